@@ -1,0 +1,209 @@
+"""BatchedFormationEnv: the training world, many episodes of one scenario stepped at once in torch.
+
+State is ``(num_envs, num_robots, 2)`` positions and velocities. ``step`` has no Python loop over
+environments or robots: the dynamics of :class:`sim.scenario.Dynamics`, the walls (an inelastic
+stop: the disc is put back inside and its velocity into the wall removed, and the touch counts as a
+wall collision), collision detection, reward and the automatic reset of finished environments are
+all tensor operations. Robots pass through each other and the object (no contact forces): every
+overlap counts as a collision, is penalised, and makes the episode a failure.
+
+Episodes last ``dynamics.episode_steps`` steps. When an environment finishes, its outcome
+(:class:`EpisodeStats`) is returned in ``StepResult.finished`` and it restarts from jittered
+start slots in the same call, so the returned observation is the first one of the new episode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from sim import observations
+from sim.metrics import collision_events, episode_outcome
+from sim.reward import RewardWeights, formation_reward
+from sim.scenario import Scenario
+
+
+@dataclass
+class EpisodeStats:
+    """Outcomes of the environments that finished in one step; every field is (F,) for F finished."""
+
+    env_ids: torch.Tensor          # long
+    success: torch.Tensor          # bool
+    final_distance: torch.Tensor   # mean assigned distance [m]
+    episode_return: torch.Tensor   # undiscounted return, mean over robots
+    robot_collisions: torch.Tensor  # collision onsets (robot, step) summed over the episode
+    object_collisions: torch.Tensor
+    wall_collisions: torch.Tensor
+    length: torch.Tensor           # steps
+
+    def __len__(self) -> int:
+        return int(self.env_ids.numel())
+
+
+@dataclass
+class StepResult:
+    """What one call to ``step`` returns.
+
+    obs: (E, N, 2N+1, 4) entity tokens (or (E, N, 4N+2) flat vectors with ``obs="flat"``).
+    mask: (E, N, 2N+1) bool token validity (None for flat observations).
+    reward: (E, N) reward of this step.
+    done: (E,) bool, the episode ended with this step (the env has already been reset).
+    finished: outcomes of the finished environments (empty when none finished).
+    """
+
+    obs: torch.Tensor
+    mask: torch.Tensor | None
+    reward: torch.Tensor
+    done: torch.Tensor
+    finished: EpisodeStats
+
+
+class BatchedFormationEnv:
+    """``num_envs`` copies of ``scenario`` stepped together (see the module docstring).
+
+    Args:
+        scenario: the task.
+        num_envs: number of parallel environments E.
+        seed: seeds the start jitter; the same seed and actions repeat a run exactly.
+        device: torch device.
+        obs: ``"tokens"`` (entity tokens, any N) or ``"flat"`` (the paper's fixed-size vector).
+        reward_weights: see :mod:`sim.reward`.
+    """
+
+    def __init__(self, scenario: Scenario, num_envs: int, *, seed: int | None = None,
+                 device: str | torch.device = "cpu", obs: str = "tokens",
+                 reward_weights: RewardWeights = RewardWeights(), dtype: torch.dtype = torch.float32):
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if obs not in ("tokens", "flat"):
+            raise ValueError(f"obs must be 'tokens' or 'flat', got {obs!r}")
+        self.scenario = scenario
+        self.num_envs = num_envs
+        self.num_robots = scenario.num_robots
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.obs_kind = obs
+        self.reward_weights = reward_weights
+        dyn = scenario.dynamics
+        self.dt, self.episode_steps = dyn.dt, dyn.episode_steps
+        self.arena = scenario.arena
+        self.radius = scenario.robot_radius
+        kw = dict(dtype=dtype, device=self.device)
+        self.poly = torch.as_tensor(scenario.polygon, **kw)
+        self.start_slots = torch.as_tensor(scenario.starts, **kw)
+        self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
+        e, n = num_envs, self.num_robots
+        self.pos = torch.zeros(e, n, 2, **kw)
+        self.vel = torch.zeros(e, n, 2, **kw)
+        self.t = torch.zeros(e, dtype=torch.long, device=self.device)
+        self.collided = torch.zeros(e, dtype=torch.bool, device=self.device)
+        self.ret = torch.zeros(e, **kw)
+        self.counts = torch.zeros(e, 3, dtype=torch.long, device=self.device)
+        self.prev_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
+        self.generator = torch.Generator(device=self.device)
+        self.seed(seed)
+        self._lo = torch.tensor([self.radius, self.radius], **kw)
+        self._hi = torch.tensor([self.arena[0] - self.radius, self.arena[1] - self.radius], **kw)
+
+    # ----------------------------------------------------------------- set-up
+    def seed(self, seed: int | None) -> None:
+        self.generator.manual_seed(int(seed) if seed is not None else torch.seed() % (2**63))
+
+    def reset(self, seed: int | None = None, env_ids: torch.Tensor | None = None):
+        """Restart all (or ``env_ids``) environments; returns ``(obs, mask)`` of all environments."""
+        if seed is not None:
+            self.seed(seed)
+        ids = torch.arange(self.num_envs, device=self.device) if env_ids is None else env_ids
+        self._reset_ids(ids)
+        return self.observe()
+
+    def _reset_ids(self, ids: torch.Tensor) -> None:
+        k = ids.numel()
+        jitter = self.scenario.start_jitter
+        noise = (torch.rand(k, self.num_robots, 2, generator=self.generator, device=self.device,
+                            dtype=self.dtype) * 2 - 1) * jitter
+        self.pos[ids] = self.start_slots + noise
+        self.vel[ids] = 0
+        self.t[ids] = 0
+        self.collided[ids] = False
+        self.ret[ids] = 0
+        self.counts[ids] = 0
+        self.prev_contact[ids] = False
+
+    # ------------------------------------------------------------ observation
+    def observe(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Observations of the current state: tokens and mask, or ``(flat, None)``."""
+        if self.obs_kind == "flat":
+            return observations.flat(self.pos, self.vel, self.targets), None
+        return observations.tokens(self.pos, self.vel, self.targets, self.poly, self.arena)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """Copies of the raw state: ``pos``, ``vel``, ``targets`` (E, N, 2) and ``t`` (E,)."""
+        return {"pos": self.pos.clone(), "vel": self.vel.clone(), "targets": self.targets.clone(),
+                "t": self.t.clone()}
+
+    def set_state(self, pos: torch.Tensor, vel: torch.Tensor) -> None:
+        """Overwrite positions and velocities, (E, N, 2) each (for tests and scripted starts)."""
+        for name, x in (("pos", pos), ("vel", vel)):
+            if tuple(x.shape) != (self.num_envs, self.num_robots, 2):
+                raise ValueError(f"{name} must have shape {(self.num_envs, self.num_robots, 2)}, "
+                                 f"got {tuple(x.shape)}")
+        self.pos.copy_(pos)
+        self.vel.copy_(vel)
+
+    # ------------------------------------------------------------------- step
+    def step(self, actions: torch.Tensor) -> StepResult:
+        """Advance every environment by one ``dt`` with (E, N, 2) commanded accelerations [m/s^2]."""
+        shape = (self.num_envs, self.num_robots, 2)
+        if tuple(actions.shape) != shape:
+            raise ValueError(f"actions must have shape (num_envs, num_robots, 2) = {shape}, "
+                             f"got {tuple(actions.shape)}")
+        a = actions.to(self.pos)
+        if not torch.isfinite(a).all():
+            raise ValueError("actions contain NaN or inf; the policy output must be finite")
+        dyn = self.scenario.dynamics
+        a = _clip_norm(a, dyn.accel_limit)
+        vel = _clip_norm(self.vel + self.dt * (a - dyn.damping * self.vel), dyn.speed_limit)
+        pos = self.pos + self.dt * vel
+        inside = pos.clamp(self._lo, self._hi)
+        hit_wall_axis = inside != pos
+        vel = torch.where(hit_wall_axis, torch.zeros_like(vel), vel)
+        self.pos, self.vel = inside, vel
+
+        events = collision_events(self.pos, self.poly, self.radius, self.arena)
+        events.wall = events.wall | hit_wall_axis.any(-1)
+        contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)
+        onsets = (contact & ~self.prev_contact).sum(1)                           # (E,3)
+        self.prev_contact = contact
+        self.counts += onsets
+        self.collided |= contact.any(-1).any(-1)
+        reward = formation_reward(self.pos, self.targets, events, self.scenario.target_tolerance,
+                                  self.reward_weights)
+        self.ret += reward.mean(-1)
+        self.t += 1
+        done = self.t >= self.episode_steps
+        finished = self._finish(done)
+        obs, mask = self.observe()
+        return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
+
+    def _finish(self, done: torch.Tensor) -> EpisodeStats:
+        ids = done.nonzero().squeeze(-1)
+        if ids.numel() == 0:
+            empty = torch.zeros(0, device=self.device)
+            return EpisodeStats(ids, empty.bool(), empty, empty, ids, ids, ids, ids)
+        out = episode_outcome(self.pos[ids], self.targets[ids], self.collided[ids],
+                              self.scenario.target_tolerance)
+        stats = EpisodeStats(
+            env_ids=ids, success=out.success, final_distance=out.final_distance,
+            episode_return=self.ret[ids].clone(), robot_collisions=self.counts[ids, 0].clone(),
+            object_collisions=self.counts[ids, 1].clone(), wall_collisions=self.counts[ids, 2].clone(),
+            length=self.t[ids].clone())
+        self._reset_ids(ids)
+        return stats
+
+
+def _clip_norm(x: torch.Tensor, limit: float) -> torch.Tensor:
+    """Scale each (..., 2) vector down to norm <= limit (direction kept)."""
+    norm = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
+    return x * (limit / norm.clamp_min(limit))

@@ -1,0 +1,112 @@
+"""Observation layouts, defined once and used by training, the ControlStack and exported policies.
+
+Entity tokens (layout version :data:`LAYOUT_VERSION`)
+-----------------------------------------------------
+Robot i of N sees ``T = 2N + 1`` tokens of ``TOKEN_DIM = 4`` features each, in this order::
+
+    token                     type           features (metres, m/s; arena centred at (W/2, H/2))
+    0        self             SELF   (0)     [p_x - W/2, p_y - H/2, v_x, v_y]
+    1..N     target k         TARGET (1)     [g_k - p, 0, 0]
+    N+1..2N-1 other robot j   ROBOT  (2)     [q_j - p, u_j - v]        (j != i, ascending j)
+    2N       object           OBJECT (3)     [c - p, s - p]            c: object centroid,
+                                                                       s: nearest point of its boundary
+
+``token_types(N)`` gives the (T,) type of each token and ``tokens()`` returns
+``(E, N, T, 4)`` features plus an ``(E, N, T)`` validity mask (all true in the simulator; the
+fleet bridge clears it for robots that dropped out). A policy built on tokens works for any N.
+
+Flat vector (the paper's Figure 1, for fixed-N baselines)
+---------------------------------------------------------
+``[P(2), V(2), G_1..G_N (g_k - p), R_1..R_{N-1} (q_j - p)]`` -> ``4N + 2`` features.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from sim.geometry import closest_point_on_polygon
+
+LAYOUT_VERSION = 1
+TOKEN_DIM = 4
+SELF, TARGET, ROBOT, OBJECT = 0, 1, 2, 3
+NUM_TOKEN_TYPES = 4
+
+
+def num_tokens(n: int) -> int:
+    return 2 * n + 1
+
+
+def token_types(n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(2N+1,) long tensor of token types for N robots."""
+    return torch.tensor([SELF] + [TARGET] * n + [ROBOT] * (n - 1) + [OBJECT], dtype=torch.long,
+                        device=device)
+
+
+def _check(pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor) -> None:
+    if pos.dim() != 3 or pos.shape[-1] != 2:
+        raise ValueError(f"pos must have shape (num_envs, num_robots, 2), got {tuple(pos.shape)}")
+    if vel.shape != pos.shape:
+        raise ValueError(f"vel must have the shape of pos {tuple(pos.shape)}, got {tuple(vel.shape)}")
+    if targets.shape != pos.shape:
+        raise ValueError(f"targets must have the shape of pos {tuple(pos.shape)}, got {tuple(targets.shape)}")
+
+
+def _others_index(n: int, device) -> torch.Tensor:
+    """(N, N-1) index of the other robots for each robot, ascending."""
+    idx = torch.arange(n, device=device)
+    full = idx.unsqueeze(0).expand(n, n)
+    keep = ~torch.eye(n, dtype=torch.bool, device=device)
+    return full[keep].view(n, n - 1)
+
+
+def tokens(pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor, poly: torch.Tensor,
+           arena: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entity tokens of every robot.
+
+    Args:
+        pos, vel: (E, N, 2) positions [m] and velocities [m/s].
+        targets: (E, N, 2) target slots [m].
+        poly: (M, 2) object polygon [m].
+        arena: (W, H) [m].
+
+    Returns:
+        tokens: (E, N, 2N+1, 4), mask: (E, N, 2N+1) bool.
+    """
+    _check(pos, vel, targets)
+    e, n, _ = pos.shape
+    poly = poly.to(pos)
+    centre = torch.tensor([arena[0] / 2, arena[1] / 2], dtype=pos.dtype, device=pos.device)
+    self_tok = torch.cat((pos - centre, vel), -1).unsqueeze(2)                       # (E,N,1,4)
+    rel_g = targets.unsqueeze(1) - pos.unsqueeze(2)                                  # (E,N,N,2)
+    tgt_tok = torch.cat((rel_g, torch.zeros_like(rel_g)), -1)                         # (E,N,N,4)
+    others = _others_index(n, pos.device)                                            # (N,N-1)
+    rel_p = pos[:, others] - pos.unsqueeze(2)                                        # (E,N,N-1,2)
+    rel_v = vel[:, others] - vel.unsqueeze(2)
+    rob_tok = torch.cat((rel_p, rel_v), -1)                                          # (E,N,N-1,4)
+    _, nearest = closest_point_on_polygon(pos, poly)                                 # (E,N,2)
+    c = _centroid(poly)
+    obj_tok = torch.cat((c - pos, nearest - pos), -1).unsqueeze(2)                   # (E,N,1,4)
+    toks = torch.cat((self_tok, tgt_tok, rob_tok, obj_tok), 2)
+    mask = torch.ones(toks.shape[:-1], dtype=torch.bool, device=pos.device)
+    return toks, mask
+
+
+def _centroid(poly: torch.Tensor) -> torch.Tensor:
+    x, y = poly[:, 0], poly[:, 1]
+    xn, yn = torch.roll(x, -1), torch.roll(y, -1)
+    cross = x * yn - xn * y
+    area = 0.5 * cross.sum()
+    return torch.stack(((x + xn).mul(cross).sum(), (y + yn).mul(cross).sum())) / (6 * area)
+
+
+def flat(pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """The paper's flat per-robot vector: (E, N, 2) inputs -> (E, N, 4N + 2)."""
+    _check(pos, vel, targets)
+    e, n, _ = pos.shape
+    rel_g = (targets.unsqueeze(1) - pos.unsqueeze(2)).reshape(e, n, 2 * n)
+    rel_p = (pos[:, _others_index(n, pos.device)] - pos.unsqueeze(2)).reshape(e, n, 2 * (n - 1))
+    return torch.cat((pos, vel, rel_g, rel_p), -1)
+
+
+def flat_dim(n: int) -> int:
+    return 4 * n + 2

@@ -1,0 +1,1 @@
+"""One module per `formation` subcommand (see stack.cli)."""
