@@ -19,8 +19,9 @@ from dataclasses import dataclass
 import torch
 
 from sim import observations
-from sim.metrics import collision_events, episode_outcome
-from sim.reward import RewardWeights, formation_reward
+from sim.geometry import Frame, Polygon
+from sim.metrics import episode_outcome, frame_collisions
+from sim.reward import RewardWeights, reward_from_distances
 from sim.scenario import Scenario
 
 
@@ -90,7 +91,9 @@ class BatchedFormationEnv:
         self.arena = scenario.arena
         self.radius = scenario.robot_radius
         kw = dict(dtype=dtype, device=self.device)
-        self.poly = torch.as_tensor(scenario.polygon, **kw)
+        self.polygon = Polygon(torch.as_tensor(scenario.polygon, **kw))
+        self.centroid = observations._centroid(self.polygon.vertices)
+        self._frame: Frame | None = None
         self.start_slots = torch.as_tensor(scenario.starts, **kw)
         self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
         e, n = num_envs, self.num_robots
@@ -101,6 +104,11 @@ class BatchedFormationEnv:
         self.ret = torch.zeros(e, **kw)
         self.counts = torch.zeros(e, 3, dtype=torch.long, device=self.device)
         self.prev_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
+        self._t_max = 0   # host-side upper bound of self.t, so most steps skip the done check
+        self._not_done = torch.zeros(e, dtype=torch.bool, device=self.device)
+        none = torch.zeros(0, dtype=torch.long, device=self.device)
+        self._none_finished = EpisodeStats(none, none.bool(), none.to(dtype), none.to(dtype),
+                                           none, none, none, none)
         self.generator = torch.Generator(device=self.device)
         self.seed(seed)
         self._lo = torch.tensor([self.radius, self.radius], **kw)
@@ -123,6 +131,7 @@ class BatchedFormationEnv:
         jitter = self.scenario.start_jitter
         noise = (torch.rand(k, self.num_robots, 2, generator=self.generator, device=self.device,
                             dtype=self.dtype) * 2 - 1) * jitter
+        self._frame = None
         self.pos[ids] = self.start_slots + noise
         self.vel[ids] = 0
         self.t[ids] = 0
@@ -130,13 +139,15 @@ class BatchedFormationEnv:
         self.ret[ids] = 0
         self.counts[ids] = 0
         self.prev_contact[ids] = False
+        self._t_max = int(self.t.max())
 
     # ------------------------------------------------------------ observation
     def observe(self) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Observations of the current state: tokens and mask, or ``(flat, None)``."""
         if self.obs_kind == "flat":
             return observations.flat(self.pos, self.vel, self.targets), None
-        return observations.tokens(self.pos, self.vel, self.targets, self.poly, self.arena)
+        frame = self._frame if self._frame is not None else Frame(self.pos, self.targets, self.polygon)
+        return observations.frame_tokens(frame, self.vel, self.arena, self.centroid)
 
     def state(self) -> dict[str, torch.Tensor]:
         """Copies of the raw state: ``pos``, ``vel``, ``targets`` (E, N, 2) and ``t`` (E,)."""
@@ -151,8 +162,10 @@ class BatchedFormationEnv:
                                  f"got {tuple(x.shape)}")
         self.pos.copy_(pos)
         self.vel.copy_(vel)
+        self._frame = None
 
     # ------------------------------------------------------------------- step
+    @torch.no_grad()
     def step(self, actions: torch.Tensor) -> StepResult:
         """Advance every environment by one ``dt`` with (E, N, 2) commanded accelerations [m/s^2]."""
         shape = (self.num_envs, self.num_robots, 2)
@@ -171,27 +184,33 @@ class BatchedFormationEnv:
         vel = torch.where(hit_wall_axis, torch.zeros_like(vel), vel)
         self.pos, self.vel = inside, vel
 
-        events = collision_events(self.pos, self.poly, self.radius, self.arena)
+        frame = Frame(self.pos, self.targets, self.polygon)
+        events = frame_collisions(frame, self.radius, self.arena)
         events.wall = events.wall | hit_wall_axis.any(-1)
         contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)
         onsets = (contact & ~self.prev_contact).sum(1)                           # (E,3)
         self.prev_contact = contact
         self.counts += onsets
         self.collided |= contact.any(-1).any(-1)
-        reward = formation_reward(self.pos, self.targets, events, self.scenario.target_tolerance,
-                                  self.reward_weights)
+        reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
+                                       self.reward_weights)
         self.ret += reward.mean(-1)
         self.t += 1
-        done = self.t >= self.episode_steps
-        finished = self._finish(done)
+        self._t_max += 1
+        if self._t_max >= self.episode_steps:   # some env may be done: look (one host sync)
+            done = self.t >= self.episode_steps
+            finished = self._finish(done)
+            self._t_max = int(self.t.max())
+        else:
+            done, finished = self._not_done, self._none_finished
+        self._frame = frame if len(finished) == 0 else None
         obs, mask = self.observe()
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
 
     def _finish(self, done: torch.Tensor) -> EpisodeStats:
         ids = done.nonzero().squeeze(-1)
         if ids.numel() == 0:
-            empty = torch.zeros(0, device=self.device)
-            return EpisodeStats(ids, empty.bool(), empty, empty, ids, ids, ids, ids)
+            return self._none_finished
         out = episode_outcome(self.pos[ids], self.targets[ids], self.collided[ids],
                               self.scenario.target_tolerance)
         stats = EpisodeStats(

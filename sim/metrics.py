@@ -22,7 +22,7 @@ from functools import cache
 import numpy as np
 import torch
 
-from sim.geometry import closest_point_on_polygon, pairwise_distances, wall_clearance
+from sim.geometry import Frame, Polygon
 
 CONTACT_EPS = 1e-6
 _ENUMERATE_MAX_N = 6
@@ -41,17 +41,23 @@ class CollisionEvents:
         return self.robot | self.object | self.wall
 
 
-def collision_events(pos: torch.Tensor, poly: torch.Tensor, radius: float,
+def collision_events(pos: torch.Tensor, poly: torch.Tensor | Polygon, radius: float,
                      arena: tuple[float, float], eps: float = CONTACT_EPS) -> CollisionEvents:
-    """Collisions of (..., N, 2) robot centres with each other, the object polygon (M, 2) and walls."""
-    n = pos.shape[-2]
-    d = pairwise_distances(pos)
-    eye = torch.eye(n, dtype=torch.bool, device=pos.device)
-    robot = ((d < 2 * radius - eps) & ~eye).any(-1)
-    sd, _ = closest_point_on_polygon(pos, poly.to(pos))
-    obj = sd < radius - eps
-    wall = (wall_clearance(pos, arena) < radius - eps).any(-1)
-    return CollisionEvents(robot=robot, object=obj, wall=wall)
+    """Collisions of (E, N, 2) robot centres with each other, the object polygon (M, 2) and walls."""
+    if not isinstance(poly, Polygon):
+        poly = Polygon(poly.to(pos))
+    return frame_collisions(Frame(pos, pos, poly), radius, arena, eps)
+
+
+def frame_collisions(frame: Frame, radius: float, arena: tuple[float, float],
+                     eps: float = CONTACT_EPS) -> CollisionEvents:
+    """Collision events of a precomputed :class:`sim.geometry.Frame` (see the module docstring)."""
+    n = frame.d_rr.shape[-1]
+    close = frame.d_rr < 2 * radius - eps
+    close &= ~torch.eye(n, dtype=torch.bool, device=close.device)
+    lim = radius - eps
+    wall = (frame.px < lim) | (frame.py < lim) | (frame.px > arena[0] - lim) | (frame.py > arena[1] - lim)
+    return CollisionEvents(robot=close.any(-1), object=frame.obj_sd < lim, wall=wall)
 
 
 @cache
@@ -61,8 +67,9 @@ def _permutations(n: int, device: str) -> torch.Tensor:
 
 def distance_matrix(pos: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """(..., N, 2) robots, (..., N, 2) targets -> (..., N robots, N targets) distances."""
-    diff = pos.unsqueeze(-2) - targets.unsqueeze(-3)
-    return (diff * diff).sum(-1).sqrt()
+    dx = pos[..., :, None, 0] - targets[..., None, :, 0]
+    dy = pos[..., :, None, 1] - targets[..., None, :, 1]
+    return (dx * dx + dy * dy).sqrt()
 
 
 def optimal_assignment(cost: torch.Tensor) -> torch.Tensor:

@@ -39,7 +39,12 @@ class RewardWeights:
 def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: CollisionEvents,
                      tolerance: float, weights: RewardWeights = RewardWeights()) -> torch.Tensor:
     """(E, N, 2) positions and targets -> (E, N) per-robot reward of this step."""
-    d = distance_matrix(pos, targets)                      # (E, N robots, N targets)
+    return reward_from_distances(distance_matrix(pos, targets), events, tolerance, weights)
+
+
+def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: float,
+                          weights: RewardWeights = RewardWeights()) -> torch.Tensor:
+    """(E, N robots, N targets) distances -> (E, N) per-robot reward (see the module docstring)."""
     to_target = d.min(-2).values                           # (E, N targets)
     to_robot = d.min(-1).values                            # (E, N robots)
     cover = 0.5 * (to_target.mean(-1) + to_robot.mean(-1))  # (E,)

@@ -1,0 +1,161 @@
+import math
+
+import pytest
+import torch
+
+from sim.batched_env import BatchedFormationEnv
+from sim.scenario import Dynamics, make_scenario, transport_scenario
+
+SC = make_scenario("paper-3")
+
+
+def _env(sc=SC, e=1, **kw):
+    env = BatchedFormationEnv(sc, e, seed=0, dtype=torch.float64, **kw)
+    env.reset()
+    return env
+
+
+def _place(env, pos, vel=None):
+    pos = torch.as_tensor(pos, dtype=torch.float64).expand(env.num_envs, -1, -1).clone()
+    env.set_state(pos, torch.zeros_like(pos) if vel is None else torch.as_tensor(vel).expand_as(pos).clone())
+
+
+OPEN = [[0.2, 0.15], [0.5, 0.15], [0.8, 0.15]]   # clear of each other, the box and the walls
+
+
+def test_one_step_by_hand():
+    env = _env()
+    _place(env, OPEN)
+    env.step(torch.tensor([[[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]]]))
+    # v = 0.05 * 1 = 0.05 ; p = 0.2 + 0.05 * 0.05 = 0.2025
+    assert env.vel[0, 0].tolist() == pytest.approx([0.05, 0.0])
+    assert env.pos[0, 0].tolist() == pytest.approx([0.2025, 0.15])
+    env.step(torch.zeros(1, 3, 2))
+    # damping only: v = 0.05 - 0.05 * 0.5 * 0.05 = 0.04875
+    assert env.vel[0, 0, 0].item() == pytest.approx(0.04875)
+
+
+def test_acceleration_is_clipped_by_norm_keeping_direction():
+    env = _env()
+    _place(env, OPEN)
+    env.step(torch.tensor([[[3.0, 4.0], [0.0, 0.0], [0.0, 0.0]]]))
+    # |a| = 5 > 1 -> a = (0.6, 0.8); v = dt * a
+    assert env.vel[0, 0].tolist() == pytest.approx([0.03, 0.04])
+
+
+@pytest.mark.parametrize("accel,damping,expected", [
+    (1.0, 0.5, 0.4),     # a / c = 2 m/s > speed limit 0.4: the limit holds
+    (0.1, 0.5, 0.2),     # a / c = 0.2 m/s < 0.4: damping sets the terminal speed
+])
+def test_terminal_speed(accel, damping, expected):
+    dyn = Dynamics(damping=damping, episode_steps=10_000)
+    sc = transport_scenario(1, dynamics=dyn)
+    env = _env(sc)
+    _place(env, [[0.05, 0.05]])
+    speeds = []
+    for _ in range(300):
+        env.step(torch.tensor([[[accel / math.sqrt(2)] * 2]], dtype=torch.float64))
+        if env.pos[0, 0, 0] > 0.9:       # restart before the wall, keep the velocity
+            env.set_state(torch.tensor([[[0.05, 0.05]]], dtype=torch.float64), env.vel.clone())
+        speeds.append(env.vel[0, 0].norm().item())
+    assert max(speeds) <= expected + 1e-12
+    assert speeds[-1] == pytest.approx(expected, rel=1e-3)
+
+
+def test_wall_stops_the_robot_and_counts_one_collision():
+    env = _env()
+    _place(env, [[0.06, 0.8], [0.5, 0.15], [0.8, 0.15]])
+    for _ in range(20):
+        r = env.step(torch.tensor([[[-1.0, 0.0], [0.0, 0.0], [0.0, 0.0]]]))
+    assert env.pos[0, 0, 0].item() == pytest.approx(0.04)
+    assert env.vel[0, 0, 0].item() == 0.0
+    assert env.counts[0].tolist() == [0, 0, 1]           # one wall contact onset, nothing else
+    assert env.collided[0] and r.reward[0, 0] < r.reward[0, 1]
+
+
+def test_episode_end_reports_success_and_resets():
+    env = _env(e=2)
+    tg = env.targets[0]
+    _place(env, tg)
+    env.t[:] = SC.dynamics.episode_steps - 1
+    env._t_max = int(env.t.max())
+    r = env.step(torch.zeros(2, 3, 2))
+    assert r.done.tolist() == [True, True]
+    assert r.finished.env_ids.tolist() == [0, 1]
+    assert r.finished.success.tolist() == [True, True]
+    assert r.finished.final_distance.tolist() == pytest.approx([0.0, 0.0])
+    # reset happened: back on the (jittered) start slots, step counter 0
+    assert env.t.tolist() == [0, 0]
+    assert (env.pos - torch.as_tensor(SC.starts)).abs().max() <= SC.start_jitter + 1e-12
+
+
+def test_collision_during_the_episode_fails_it():
+    env = _env()
+    tg = env.targets[0]
+    _place(env, tg)
+    env.collided[0] = True
+    env.t[:] = SC.dynamics.episode_steps - 1
+    env._t_max = int(env.t.max())
+    r = env.step(torch.zeros(1, 3, 2))
+    assert r.finished.success.tolist() == [False]
+
+
+def test_full_episode_length_and_auto_reset():
+    env = _env(e=4)
+    ends = 0
+    for step in range(2 * SC.dynamics.episode_steps):
+        r = env.step(torch.zeros(4, 3, 2))
+        if r.done.any():
+            ends += 1
+            assert len(r.finished) == 4 and r.finished.length.tolist() == [128] * 4
+            assert step + 1 in (128, 256)
+    assert ends == 2
+
+
+def test_seed_repeats_and_different_seeds_differ():
+    def run(seed):
+        env = BatchedFormationEnv(SC, 8, seed=seed)
+        env.reset()
+        g = torch.Generator().manual_seed(123)
+        for _ in range(200):
+            r = env.step(torch.rand(8, 3, 2, generator=g) * 2 - 1)
+        return env.pos.clone(), r.obs.clone()
+
+    a, b, c = run(1), run(1), run(2)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert not torch.equal(a[0], c[0])
+
+
+def test_bad_actions_raise_clear_errors():
+    env = _env()
+    with pytest.raises(ValueError, match=r"actions must have shape \(num_envs, num_robots, 2\) = \(1, 3, 2\)"):
+        env.step(torch.zeros(1, 4, 2))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        env.step(torch.full((1, 3, 2), float("nan")))
+
+
+def test_flat_observations():
+    env = BatchedFormationEnv(SC, 2, seed=0, obs="flat")
+    obs, mask = env.reset()
+    assert obs.shape == (2, 3, 14) and mask is None
+    r = env.step(torch.zeros(2, 3, 2))
+    assert r.obs.shape == (2, 3, 14)
+
+
+@pytest.mark.parametrize("n", [1, 2, 8, 16])
+def test_runs_for_many_robot_counts(n):
+    env = BatchedFormationEnv(transport_scenario(n), 3, seed=0)
+    obs, _ = env.reset()
+    assert obs.shape == (3, n, 2 * n + 1, 4)
+    for _ in range(130):
+        r = env.step(torch.rand(3, n, 2) * 2 - 1)
+        assert torch.isfinite(r.obs).all() and torch.isfinite(r.reward).all()
+
+
+def test_tokens_after_a_step_equal_a_fresh_observation():
+    env = _env(e=3)
+    env.step(torch.rand(3, 3, 2, dtype=torch.float64))
+    r = env.step(torch.rand(3, 3, 2, dtype=torch.float64))
+    env._frame = None
+    fresh, _ = env.observe()
+    assert torch.equal(r.obs, fresh)

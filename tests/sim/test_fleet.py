@@ -1,0 +1,31 @@
+import numpy as np
+import pytest
+
+from sim.fleet import BatchedFleet, Fleet, FleetState
+from sim.scenario import make_scenario
+
+
+def test_batched_fleet_implements_the_interface_and_moves():
+    fleet = BatchedFleet(make_scenario("paper-3"))
+    assert isinstance(fleet, Fleet)
+    s0 = fleet.reset(seed=0)
+    fleet.send_accelerations(np.tile([0.0, -1.0], (3, 1)))
+    s1 = fleet.step()
+    assert s1.step == 1 and s1.time == pytest.approx(0.05)
+    assert np.allclose(s1.positions - s0.positions, [[0.0, -0.0025]] * 3)
+    assert np.allclose(s1.targets, make_scenario("paper-3").targets)
+
+
+def test_batched_fleet_refuses_bad_commands():
+    fleet = BatchedFleet(make_scenario("paper-3"))
+    fleet.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(num_robots, 2\) = \(3, 2\)"):
+        fleet.send_accelerations(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        fleet.send_accelerations(np.array([[np.nan, 0.0]] * 3))
+
+
+def test_fleet_state_checks_shapes():
+    with pytest.raises(ValueError, match=r"FleetState.velocities must have shape \(2, 2\)"):
+        FleetState(time=0.0, step=0, positions=np.zeros((2, 2)), velocities=np.zeros((3, 2)),
+                   targets=np.zeros((2, 2)), object_pose=np.zeros(3))

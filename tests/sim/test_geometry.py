@@ -1,0 +1,69 @@
+import math
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sim.geometry import Polygon, closest_point_on_polygon, pairwise_distances
+
+BOX = torch.tensor([[0.4, 0.35], [0.6, 0.35], [0.6, 0.65], [0.4, 0.65]], dtype=torch.float64)
+
+
+def test_box_signed_distance_by_hand():
+    pts = torch.tensor([[0.7, 0.5],      # right of the box: 0.1
+                        [0.5, 0.5],      # centre: inside, nearest side at 0.1 -> -0.1
+                        [0.7, 0.75],     # beyond the corner (0.6, 0.65): hypot(0.1, 0.1)
+                        [0.5, 0.36]],    # inside near the bottom: -0.01
+                       dtype=torch.float64)
+    sd, nearest = closest_point_on_polygon(pts, BOX)
+    assert torch.allclose(sd, torch.tensor([0.1, -0.1, math.hypot(0.1, 0.1), -0.01], dtype=torch.float64))
+    assert torch.allclose(nearest[2], torch.tensor([0.6, 0.65], dtype=torch.float64))
+    assert torch.allclose(nearest[3], torch.tensor([0.5, 0.35], dtype=torch.float64))
+
+
+def _generic(poly: torch.Tensor) -> Polygon:
+    p = Polygon(poly)
+    p.convex_ccw = False      # force the crossing-number path
+    return p
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(0, 1), st.floats(0, 1))
+def test_convex_fast_path_matches_crossing_number(x, y):
+    pts = torch.tensor([[x, y]], dtype=torch.float64)
+    fast = Polygon(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
+    slow = _generic(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
+    for a, b in zip(fast, slow, strict=True):
+        assert torch.allclose(a, b)
+
+
+L_SHAPE = torch.tensor([[0.2, 0.2], [0.8, 0.2], [0.8, 0.4], [0.4, 0.4], [0.4, 0.8], [0.2, 0.8]],
+                       dtype=torch.float64)
+
+
+def test_non_convex_polygon():
+    poly = Polygon(L_SHAPE)
+    assert not poly.convex_ccw
+    pts = torch.tensor([[0.6, 0.5],   # in the notch: nearest is (0.6, 0.4) on the inner edge
+                        [0.3, 0.3],   # inside the L: nearest edge 0.1 away
+                        [0.6, 0.3]],  # inside the foot: nearest is y=0.2 or y=0.4, 0.1 away
+                       dtype=torch.float64)
+    sd, nx, ny = poly.signed_distance_xy(pts[:, 0], pts[:, 1])
+    assert torch.allclose(sd, torch.tensor([0.1, -0.1, -0.1], dtype=torch.float64))
+    assert torch.allclose(torch.stack((nx[0], ny[0])), torch.tensor([0.6, 0.4], dtype=torch.float64))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 1), st.floats(0, 1)), min_size=2, max_size=6))
+def test_pairwise_distances_match_numpy(points):
+    pos = torch.tensor(points, dtype=torch.float64)
+    ref = np.linalg.norm(np.asarray(points)[:, None] - np.asarray(points)[None], axis=-1)
+    assert np.allclose(pairwise_distances(pos).numpy(), ref)
+
+
+def test_polygon_shape_error():
+    import pytest
+
+    with pytest.raises(ValueError, match=r"shape \(M >= 3, 2\)"):
+        Polygon(torch.zeros(2, 2))

@@ -1,0 +1,85 @@
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sim import observations as obs
+from sim.geometry import closest_point_on_polygon
+from sim.scenario import make_scenario, transport_scenario
+
+POLY = torch.as_tensor(make_scenario("paper-3").polygon, dtype=torch.float64)
+
+
+def reference_tokens(pos, vel, targets, poly):
+    """Token layout written out with plain loops, straight from the module docstring."""
+    e, n, _ = pos.shape
+    c = torch.tensor([0.5, 0.5], dtype=pos.dtype)  # centroid of the default box
+    out = torch.zeros(e, n, 2 * n + 1, 4, dtype=pos.dtype)
+    for b in range(e):
+        for i in range(n):
+            p, v = pos[b, i], vel[b, i]
+            out[b, i, 0] = torch.cat((p - 0.5, v))
+            for k in range(n):
+                out[b, i, 1 + k, :2] = targets[b, k] - p
+            others = [j for j in range(n) if j != i]
+            for slot, j in enumerate(others):
+                out[b, i, n + 1 + slot] = torch.cat((pos[b, j] - p, vel[b, j] - v))
+            _, s = closest_point_on_polygon(p, poly)
+            out[b, i, 2 * n] = torch.cat((c - p, s - p))
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 6), st.integers(0, 2**31 - 1))
+def test_tokens_match_the_documented_layout(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.rand(2, n, 2, generator=g, dtype=torch.float64)
+    vel = torch.rand(2, n, 2, generator=g, dtype=torch.float64) - 0.5
+    targets = torch.as_tensor(transport_scenario(n).targets).expand(2, -1, -1)
+    toks, mask = obs.tokens(pos, vel, targets, POLY, (1.0, 1.0))
+    assert toks.shape == (2, n, obs.num_tokens(n), obs.TOKEN_DIM)
+    assert mask.all() and mask.shape == toks.shape[:-1]
+    assert torch.allclose(toks, reference_tokens(pos, vel, targets, POLY))
+
+
+def test_token_types():
+    assert obs.token_types(3).tolist() == [0, 1, 1, 1, 2, 2, 3]
+    assert obs.token_types(1).tolist() == [0, 1, 3]
+
+
+def test_permuting_robots_permutes_token_sets():
+    n = 4
+    g = torch.Generator().manual_seed(0)
+    pos = torch.rand(1, n, 2, generator=g, dtype=torch.float64)
+    vel = torch.rand(1, n, 2, generator=g, dtype=torch.float64)
+    targets = torch.as_tensor(transport_scenario(n).targets).unsqueeze(0)
+    perm = torch.tensor([2, 0, 3, 1])
+    a, _ = obs.tokens(pos, vel, targets, POLY, (1.0, 1.0))
+    b, _ = obs.tokens(pos[:, perm], vel[:, perm], targets, POLY, (1.0, 1.0))
+    for i in range(n):
+        mine, theirs = a[0, perm[i]], b[0, i]
+        assert torch.allclose(mine[: n + 1], theirs[: n + 1])       # self + targets unchanged
+        assert torch.allclose(mine[-1], theirs[-1])                   # object
+        # other robots: the same set, maybe in another order
+        sa = sorted(map(tuple, mine[n + 1:2 * n].round(decimals=9).tolist()))
+        sb = sorted(map(tuple, theirs[n + 1:2 * n].round(decimals=9).tolist()))
+        assert sa == sb
+
+
+def test_flat_vector_by_hand():
+    pos = torch.tensor([[[0.7, 0.4], [0.7, 0.6]]])
+    vel = torch.tensor([[[0.1, 0.0], [0.0, -0.2]]])
+    targets = torch.tensor([[[0.3, 0.4], [0.3, 0.6]]])
+    f = obs.flat(pos, vel, targets)
+    assert f.shape == (1, 2, obs.flat_dim(2)) == (1, 2, 10)
+    # P, V, G_1, G_2, R_1 for robot 0
+    assert np.allclose(f[0, 0].numpy(), [0.7, 0.4, 0.1, 0.0, -0.4, 0.0, -0.4, 0.2, 0.0, 0.2])
+
+
+def test_shape_errors_name_the_argument():
+    pos = torch.zeros(2, 3, 2)
+    with pytest.raises(ValueError, match="vel must have the shape of pos"):
+        obs.tokens(pos, torch.zeros(2, 4, 2), pos, POLY, (1.0, 1.0))
+    with pytest.raises(ValueError, match=r"pos must have shape \(num_envs, num_robots, 2\)"):
+        obs.flat(torch.zeros(3, 2), torch.zeros(3, 2), torch.zeros(3, 2))

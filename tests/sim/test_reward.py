@@ -1,0 +1,38 @@
+import pytest
+import torch
+
+from sim.metrics import collision_events
+from sim.reward import RewardWeights, formation_reward
+from sim.scenario import make_scenario
+
+POLY = torch.as_tensor(make_scenario("paper-3").polygon)
+
+
+def test_reward_by_hand():
+    targets = torch.tensor([[[0.3, 0.4], [0.3, 0.6]]])
+    # robot 0 on target 0 exactly, robot 1 0.3 to the right of target 1 (x = 0.6 is the box edge,
+    # so put it at (0.3, 0.9): 0.3 above target 1, clear of everything)
+    pos = torch.tensor([[[0.3, 0.4], [0.3, 0.9]]])
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    r = formation_reward(pos, targets, ev, 0.05)
+    # to_target: target 0 -> 0 (robot 0), target 1 -> 0.2 (robot 0 is nearer than robot 1's 0.3)
+    # to_robot: robot 0 -> 0, robot 1 -> 0.3 (target 1)
+    # cover = 0.5 * (0.1 + 0.15) = 0.125; arrived = 1/2; r = -0.125 + 0.1 * 0.5 = -0.075
+    assert r[0].tolist() == pytest.approx([-0.075, -0.075])
+
+
+def test_collision_penalties_are_per_robot():
+    targets = torch.tensor([[[0.3, 0.4], [0.3, 0.6], [0.2, 0.2]]])
+    pos = torch.tensor([[[0.3, 0.4], [0.3, 0.46], [0.02, 0.2]]])   # 0 and 1 touch; 2 in the wall
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    w = RewardWeights()
+    r = formation_reward(pos, targets, ev, 0.05, w)
+    team = r[0, 0] + w.w_robot
+    assert r[0, 1] == pytest.approx(team - w.w_robot)
+    assert r[0, 2] == pytest.approx(team - w.w_wall)
+
+
+def test_reward_is_maximal_when_every_target_is_held():
+    targets = torch.tensor([[[0.3, 0.3], [0.3, 0.5], [0.3, 0.7]]])
+    ev = collision_events(targets, POLY, 0.04, (1.0, 1.0))
+    assert formation_reward(targets, targets, ev, 0.05)[0].tolist() == pytest.approx([0.1] * 3)

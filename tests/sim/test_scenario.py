@@ -1,0 +1,111 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from sim.scenario import (
+    MAX_ROBOTS,
+    PRESETS,
+    Dynamics,
+    Scenario,
+    ScenarioError,
+    make_scenario,
+    rectangle,
+    transport_scenario,
+)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_are_valid(name):
+    sc = make_scenario(name)
+    assert sc.starts.shape == sc.targets.shape == (sc.num_robots, 2)
+    # starts are right of the object, targets left of it: the formation change crosses it
+    assert sc.starts[:, 0].min() > sc.polygon[:, 0].max()
+    assert sc.targets[:, 0].max() < sc.polygon[:, 0].min()
+
+
+def test_paper_presets_match_the_paper():
+    for n in (3, 4, 5):
+        sc = make_scenario(f"paper-{n}")
+        assert sc.num_robots == n
+        assert sc.robot_radius * 2 == pytest.approx(0.08)
+        assert sc.target_tolerance == pytest.approx(0.05)
+        assert sc.arena == (1.0, 1.0)
+        assert sc.dynamics.dt == pytest.approx(0.05) and sc.dynamics.episode_steps == 128
+
+
+@pytest.mark.parametrize("n", range(1, MAX_ROBOTS + 1))
+def test_any_robot_count_from_1_to_max(n):
+    sc = transport_scenario(n)
+    assert sc.num_robots == n
+
+
+def _base(**kw):
+    sc = make_scenario("paper-3")
+    fields = {f.name: getattr(sc, f.name) for f in dataclasses.fields(sc)}
+    fields.update(kw)
+    return fields
+
+
+def test_overlapping_slots_name_the_field():
+    starts = ((0.7, 0.40), (0.7, 0.45), (0.7, 0.65))
+    with pytest.raises(ScenarioError, match=r"start_slots\[0\] and start_slots\[1\] overlap"):
+        Scenario(**_base(start_slots=starts))
+
+
+def test_slot_inside_object_names_the_field():
+    targets = ((0.5, 0.5), (0.3, 0.3), (0.3, 0.7))
+    with pytest.raises(ScenarioError, match=r"target_slots\[0\].*inside or touching the object"):
+        Scenario(**_base(target_slots=targets))
+
+
+def test_slot_outside_arena_names_the_field():
+    targets = ((0.3, 0.3), (0.3, 0.5), (1.2, 0.7))
+    with pytest.raises(ScenarioError, match=r"target_slots\[2\].*outside the arena"):
+        Scenario(**_base(target_slots=targets))
+
+
+def test_slot_count_mismatch():
+    with pytest.raises(ScenarioError, match="start_slots has 2 slots but num_robots is 3"):
+        Scenario(**_base(start_slots=((0.7, 0.3), (0.7, 0.6))))
+
+
+def test_clockwise_polygon_rejected():
+    cw = tuple(reversed(rectangle((0.5, 0.5), (0.2, 0.3))))
+    with pytest.raises(ScenarioError, match="counter-clockwise"):
+        Scenario(**_base(object_vertices=cw))
+
+
+def test_bad_dynamics_named():
+    with pytest.raises(ScenarioError, match="dynamics.speed_limit"):
+        Scenario(**_base(dynamics=Dynamics(speed_limit=-1)))
+    with pytest.raises(ScenarioError, match="dynamics.damping"):
+        Scenario(**_base(dynamics=Dynamics(damping=30.0)))
+
+
+def test_unknown_fields_are_errors():
+    data = make_scenario("paper-3").to_dict()
+    data["robots"] = 3
+    with pytest.raises(ScenarioError, match=r"unknown scenario field\(s\) \['robots'\]"):
+        Scenario.from_dict(data)
+    data = make_scenario("paper-3").to_dict()
+    data["dynamics"]["gravity"] = 9.8
+    with pytest.raises(ScenarioError, match="unknown dynamics field"):
+        Scenario.from_dict(data)
+
+
+def test_round_trip_through_dict():
+    sc = make_scenario("paper-5")
+    again = Scenario.from_dict(sc.to_dict())
+    assert again == sc
+
+
+def test_polygon_object_allowed():
+    tri = ((0.45, 0.35), (0.6, 0.5), (0.45, 0.65))
+    sc = transport_scenario(3, object_vertices=tri)
+    assert np.allclose(sc.object_center, [0.5, 0.5])
+
+
+def test_unknown_preset():
+    with pytest.raises(ScenarioError, match="unknown scenario 'paper-9'"):
+        make_scenario("paper-9")
