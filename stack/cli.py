@@ -13,6 +13,7 @@ import sys
 
 COMMAND_MODULES = [
     "stack.commands.scenarios",
+    "stack.commands.demo",
 ]
 
 DESCRIPTION = """\
