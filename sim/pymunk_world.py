@@ -1,0 +1,375 @@
+"""PymunkWorld: the formation-change scenario as rigid bodies in pymunk, with a real robot's model error.
+
+The "real" side of sim-to-real: contacts are physical (robots cannot pass through each other, the
+object or the walls) and the actuators are imperfect. It implements :class:`sim.fleet.Fleet`::
+
+    world = PymunkWorld(make_scenario("paper-3"), ModelError(gain=0.7))
+    state = world.reset(seed=0)             # FleetState as measured (noisy if configured)
+    world.send_accelerations(a_cmd)         # (N, 2) m/s^2, held until the next call
+    state = world.step()                    # advances dt
+
+Bodies
+    * Robots: dynamic discs of radius ``scenario.robot_radius``, unit mass, infinite moment of
+      inertia (holonomic discs: heading is irrelevant and friction must not spin them).
+    * The object: a **static** body with the scenario polygon (convex pieces if the polygon is not
+      convex). The task is the formation change *before* transport: the object rests on the floor
+      and the batched world, the observation tokens, the metrics and the safety layer all use the
+      fixed ``scenario.polygon``; a static body keeps that one geometry true here, and behaves like
+      an object too heavy for a robot to push. ``FleetState.object_pose`` is its centroid, heading 0.
+    * Walls: four static segments lying outside the arena whose inner faces are the lines
+      x = 0, x = W, y = 0, y = H (thick segments: nothing tunnels through them).
+    * Contacts use Coulomb friction ``contact_friction`` and restitution ``contact_elasticity``;
+      ``collision_slop`` is 1e-4 m. Pymunk resolves a contact once shapes overlap: with the
+      default 10 substeps a robot driven at full acceleration overlaps a wall or the object by
+      under 1 mm and another robot by under 2 mm (1 substep: ~9 mm and ~18 mm). Any overlap
+      beyond 1e-6 m is a collision event, as everywhere else.
+
+Dynamics per control tick (``dt`` = ``scenario.dynamics.dt``), per robot, with :class:`ModelError`::
+
+    u_k     = a_cmd[k - delay_ticks]                          (0 before the first command) [m/s^2]
+    u_k     = clip_norm(u_k, accel_limit)
+    a_act  += alpha * (gain_i * u_k - a_act),  alpha = 1 - exp(-dt / lag_tau)   (alpha = 1 if tau = 0)
+    a       = a_act + disturbance + w_k,       w_k ~ N(0, disturbance_std^2) per axis
+    v_free  = v + dt * (a - damping * v)
+    v_free  = v_free * max(0, 1 - dt * floor_friction / |v_free|)        (Coulomb floor friction)
+    v'      = clip_norm(v_free, speed_limit)                             [m/s]
+
+``v'`` becomes the body velocity and pymunk advances ``substeps`` steps of ``dt / substeps``:
+without contact the position moves by exactly ``dt * v'`` (the scenario's semi-implicit Euler),
+with contact pymunk's impulses change velocity and position. With ``ModelError()`` (no error) and
+no contact the motion equals :class:`sim.batched_env.BatchedFormationEnv` to rounding (measured ~4e-15 m over 40 ticks).
+
+Measurements (``read_state`` / ``step``) add N(0, position_noise_std^2) and
+N(0, velocity_noise_std^2) per axis, drawn once per tick; ``true_state`` is noise free.
+Collision events come from :func:`sim.metrics.collision_events` on the true positions after each
+tick, counted as onsets (robot, step) per kind like the batched world.
+
+Randomness: ``reset(seed)`` seeds four independent numpy streams (start jitter, per-robot gain,
+disturbance noise, measurement noise) spawned from ``numpy.random.SeedSequence(seed)``, so turning
+one knob never changes the draws of another. ``reset()`` without a seed continues the streams.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import pymunk
+import torch
+from pymunk.autogeometry import convex_decomposition
+
+from sim.fleet import FleetState, check_accelerations
+from sim.geometry import Polygon
+from sim.metrics import EpisodeOutcome, collision_events, episode_outcome
+from sim.scenario import Scenario
+
+WALL_THICKNESS = 0.05      # [m] half-thickness of the wall segments, all outside the arena
+COLLISION_SLOP = 1e-4      # [m] overlap pymunk leaves in resting contact
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """How a real robot departs from the nominal model; the defaults are a perfect robot.
+
+    Attributes:
+        gain: achieved / commanded acceleration (0.7 = the robot reaches 70 %).
+        gain_spread: per-robot gain drawn at reset from U(gain - spread, gain + spread).
+        lag_tau: first-order actuator lag time constant [s] (0 = none).
+        delay_ticks: pure command delay in control ticks (0 = none).
+        disturbance: constant acceleration disturbance (x, y) added to every robot [m/s^2].
+        disturbance_std: std of a white acceleration disturbance per axis and tick [m/s^2].
+        floor_friction: Coulomb-like deceleration opposing motion [m/s^2].
+        position_noise_std: measurement noise std per axis on positions [m].
+        velocity_noise_std: measurement noise std per axis on velocities [m/s].
+    """
+
+    gain: float = 1.0
+    gain_spread: float = 0.0
+    lag_tau: float = 0.0
+    delay_ticks: int = 0
+    disturbance: tuple[float, float] = (0.0, 0.0)
+    disturbance_std: float = 0.0
+    floor_friction: float = 0.0
+    position_noise_std: float = 0.0
+    velocity_noise_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        def number(name: str, value) -> float:
+            if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+                raise ValueError(f"ModelError.{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"ModelError.{name} must be finite, got {value!r}")
+            return float(value)
+
+        for name in ("gain_spread", "lag_tau", "disturbance_std", "floor_friction",
+                     "position_noise_std", "velocity_noise_std"):
+            if number(name, getattr(self, name)) < 0:
+                raise ValueError(f"ModelError.{name} must be >= 0 (0 turns it off), "
+                                 f"got {getattr(self, name)!r}")
+        if number("gain", self.gain) <= 0:
+            raise ValueError(f"ModelError.gain must be > 0 (1 = perfect actuator), got {self.gain!r}")
+        if self.gain - self.gain_spread <= 0:
+            raise ValueError(f"ModelError.gain_spread = {self.gain_spread!r} must be below gain = "
+                             f"{self.gain!r} so that every robot's gain stays positive")
+        if isinstance(self.delay_ticks, bool) or not isinstance(self.delay_ticks, int | np.integer) \
+                or self.delay_ticks < 0:
+            raise ValueError(f"ModelError.delay_ticks must be an integer >= 0, got {self.delay_ticks!r}")
+        try:
+            dist = tuple(self.disturbance)
+        except TypeError:
+            dist = ()
+        if len(dist) != 2:
+            raise ValueError(f"ModelError.disturbance must be an (x, y) pair in m/s^2, "
+                             f"got {self.disturbance!r}")
+        object.__setattr__(self, "disturbance",
+                           (number("disturbance", dist[0]), number("disturbance", dist[1])))
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """Collision events of one instant, each (N,) bool (see :func:`sim.metrics.collision_events`)."""
+
+    robot: np.ndarray
+    object: np.ndarray
+    wall: np.ndarray
+
+    @property
+    def any(self) -> np.ndarray:
+        """(N,) bool: the robot touches anything."""
+        return self.robot | self.object | self.wall
+
+
+@dataclass(frozen=True)
+class CollisionCounts:
+    """Collision onsets this episode per kind: a robot entering contact counts once per entry."""
+
+    robot: int = 0
+    object: int = 0
+    wall: int = 0
+
+    @property
+    def any(self) -> bool:
+        """True when any collision happened this episode (the episode then fails)."""
+        return self.robot + self.object + self.wall > 0
+
+
+def clip_norm(x: np.ndarray, limit: float) -> np.ndarray:
+    """Scale each (..., 2) row down to norm <= limit, keeping its direction."""
+    norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    return x * (limit / np.maximum(norm, limit))
+
+
+class PymunkWorld:
+    """The scenario in pymunk with :class:`ModelError` (see the module docstring).
+
+    Args:
+        scenario: the task (arena, object, slots, dynamics).
+        model_error: the robot's departure from the nominal model.
+        substeps: pymunk steps per control tick (contact resolution; motion is unaffected).
+        contact_friction: Coulomb friction coefficient of every contact.
+        contact_elasticity: restitution of every contact, in [0, 1].
+        seed: seeds the first episode when ``reset()`` is called without a seed.
+
+    Attributes (besides the :class:`sim.fleet.Fleet` calls):
+        gains: (N,) actuator gain of each robot this episode.
+        applied_accelerations: (N, 2) acceleration the actuators produced in the last tick,
+            disturbance included, before damping and floor friction [m/s^2].
+        space: the ``pymunk.Space`` (read it; changing it voids the guarantees above).
+    """
+
+    def __init__(self, scenario: Scenario, model_error: ModelError = ModelError(), *,
+                 substeps: int = 10, contact_friction: float = 0.5, contact_elasticity: float = 0.0,
+                 seed: int | None = None):
+        if not isinstance(model_error, ModelError):
+            raise TypeError(f"model_error must be a ModelError, got {type(model_error).__name__}")
+        if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        if not (math.isfinite(contact_friction) and contact_friction >= 0):
+            raise ValueError(f"contact_friction must be >= 0, got {contact_friction!r}")
+        if not (math.isfinite(contact_elasticity) and 0 <= contact_elasticity <= 1):
+            raise ValueError(f"contact_elasticity must be in [0, 1], got {contact_elasticity!r}")
+        self.scenario = scenario
+        self.model_error = model_error
+        self.substeps = substeps
+        n = scenario.num_robots
+        dyn = scenario.dynamics
+        self._lag_alpha = 1.0 if model_error.lag_tau == 0 else 1.0 - math.exp(-dyn.dt / model_error.lag_tau)
+        self._polygon = Polygon(torch.as_tensor(scenario.polygon, dtype=torch.float64))
+        self._targets = scenario.targets
+        center = scenario.object_center
+        self._object_pose = np.array([center[0], center[1], 0.0])
+
+        self.space = pymunk.Space()
+        self.space.collision_slop = COLLISION_SLOP
+        self._robots: list[pymunk.Body] = []
+        for _ in range(n):
+            body = pymunk.Body(mass=1.0, moment=float("inf"))
+            shape = pymunk.Circle(body, scenario.robot_radius)
+            self._set_material(shape, contact_friction, contact_elasticity)
+            self.space.add(body, shape)
+            self._robots.append(body)
+        for shape in self._static_shapes():
+            self._set_material(shape, contact_friction, contact_elasticity)
+            self.space.add(shape)
+
+        self._seed_streams(seed)
+        self._command = np.zeros((n, 2))
+        self.reset()
+
+    # ----------------------------------------------------------------- set-up
+    @staticmethod
+    def _set_material(shape: pymunk.Shape, friction: float, elasticity: float) -> None:
+        shape.friction = friction
+        shape.elasticity = elasticity
+
+    def _static_shapes(self) -> list[pymunk.Shape]:
+        w, h = self.scenario.arena
+        t = WALL_THICKNESS
+        body = self.space.static_body
+        walls = [pymunk.Segment(body, a, b, t) for a, b in (
+            ((-t, -t), (-t, h + t)), ((w + t, -t), (w + t, h + t)),
+            ((-t, -t), (w + t, -t)), ((-t, h + t), (w + t, h + t)))]
+        verts = [tuple(p) for p in self.scenario.polygon]
+        if self._polygon.convex_ccw:
+            pieces = [verts]
+        else:
+            pieces = [[tuple(v) for v in hull[:-1]] for hull in convex_decomposition(verts + [verts[0]], 0.0)]
+        return walls + [pymunk.Poly(body, piece) for piece in pieces]
+
+    def _seed_streams(self, seed: int | None) -> None:
+        jitter, gain, disturbance, noise = np.random.SeedSequence(seed).spawn(4)
+        self._rng_jitter = np.random.default_rng(jitter)
+        self._rng_gain = np.random.default_rng(gain)
+        self._rng_disturbance = np.random.default_rng(disturbance)
+        self._rng_noise = np.random.default_rng(noise)
+
+    @property
+    def dt(self) -> float:
+        """Control period [s]."""
+        return self.scenario.dynamics.dt
+
+    def reset(self, seed: int | None = None) -> FleetState:
+        """Start an episode: jittered start slots at rest, fresh gains, empty actuators and delay line."""
+        if seed is not None:
+            self._seed_streams(seed)
+        s, me = self.scenario, self.model_error
+        n = s.num_robots
+        j = s.start_jitter
+        starts = s.starts + self._rng_jitter.uniform(-j, j, size=(n, 2))
+        self.gains = me.gain + self._rng_gain.uniform(-me.gain_spread, me.gain_spread, size=n)
+        self._command = np.zeros((n, 2))
+        self._delay_line = deque(np.zeros((n, 2)) for _ in range(me.delay_ticks))
+        self._actuator = np.zeros((n, 2))
+        self.applied_accelerations = np.zeros((n, 2))
+        self._step = 0
+        self._prev_contact = np.zeros((n, 3), dtype=bool)
+        self._counts = np.zeros(3, dtype=np.int64)
+        self.set_state(starts)
+        return self.read_state()
+
+    def set_state(self, positions: np.ndarray, velocities: np.ndarray | None = None) -> None:
+        """Place the robots: (N, 2) true positions [m] and velocities [m/s] (default at rest).
+
+        For tests and scripted starts; the step count and collision tallies are kept.
+        """
+        n = self.scenario.num_robots
+        pos = np.asarray(positions, dtype=np.float64)
+        vel = np.zeros((n, 2)) if velocities is None else np.asarray(velocities, dtype=np.float64)
+        for name, x in (("positions", pos), ("velocities", vel)):
+            if x.shape != (n, 2) or not np.all(np.isfinite(x)):
+                raise ValueError(f"{name} must be a finite ({n}, 2) array, got shape {x.shape}")
+        for body, p, v in zip(self._robots, pos, vel, strict=True):
+            body.position = (float(p[0]), float(p[1]))
+            body.velocity = (float(v[0]), float(v[1]))
+            self.space.reindex_shapes_for_body(body)
+        self._after_motion()
+
+    # ------------------------------------------------------------- fleet API
+    def send_accelerations(self, accelerations: np.ndarray) -> None:
+        """Command (N, 2) accelerations [m/s^2]; held until the next call."""
+        self._command = check_accelerations(accelerations, self.scenario.num_robots).copy()
+
+    def step(self) -> FleetState:
+        """Advance one control tick (see the module docstring) and return the measured state."""
+        dyn, me = self.scenario.dynamics, self.model_error
+        self._delay_line.append(self._command)
+        u = clip_norm(self._delay_line.popleft(), dyn.accel_limit)
+        target = self.gains[:, None] * u
+        if self._lag_alpha == 1.0:
+            self._actuator = target
+        else:
+            self._actuator = self._actuator + self._lag_alpha * (target - self._actuator)
+        a = self._actuator + np.asarray(me.disturbance)
+        if me.disturbance_std > 0:
+            a = a + self._rng_disturbance.normal(0.0, me.disturbance_std, size=a.shape)
+        self.applied_accelerations = a
+
+        vel = self._true_vel
+        v = vel + dyn.dt * (a - dyn.damping * vel)
+        if me.floor_friction > 0:
+            speed = np.linalg.norm(v, axis=-1, keepdims=True)
+            keep = np.maximum(0.0, 1.0 - dyn.dt * me.floor_friction / np.maximum(speed, 1e-300))
+            v = v * keep
+        v = clip_norm(v, dyn.speed_limit)
+        for body, vi in zip(self._robots, v, strict=True):
+            body.velocity = (float(vi[0]), float(vi[1]))
+        h = dyn.dt / self.substeps
+        for _ in range(self.substeps):
+            self.space.step(h)
+
+        self._step += 1
+        self._after_motion()
+        contact = np.stack((self.contacts.robot, self.contacts.object, self.contacts.wall), -1)
+        self._counts += (contact & ~self._prev_contact).sum(0)
+        self._prev_contact = contact
+        return self.read_state()
+
+    def read_state(self) -> FleetState:
+        """The state as measured at this tick (with measurement noise, if configured)."""
+        return self._state(self._meas_pos, self._meas_vel)
+
+    def true_state(self) -> FleetState:
+        """The noise-free state at this tick."""
+        return self._state(self._true_pos, self._true_vel)
+
+    # ------------------------------------------------------------- judging
+    @property
+    def contacts(self) -> Contacts:
+        """Collision events at the current true positions."""
+        return self._contacts
+
+    @property
+    def collision_counts(self) -> CollisionCounts:
+        """Collision onsets since reset (``.any``: the episode has collided)."""
+        r, o, w = (int(c) for c in self._counts)
+        return CollisionCounts(robot=r, object=o, wall=w)
+
+    def outcome(self) -> EpisodeOutcome:
+        """:func:`sim.metrics.episode_outcome` of the current true positions (batch of 1)."""
+        pos = torch.from_numpy(self._true_pos).unsqueeze(0)
+        return episode_outcome(pos, torch.from_numpy(self._targets).unsqueeze(0),
+                               torch.tensor([self.collision_counts.any]),
+                               self.scenario.target_tolerance)
+
+    # ------------------------------------------------------------- internals
+    def _after_motion(self) -> None:
+        """Read the bodies, judge contacts, take this tick's measurement."""
+        self._true_pos = np.array([tuple(b.position) for b in self._robots], dtype=np.float64)
+        self._true_vel = np.array([tuple(b.velocity) for b in self._robots], dtype=np.float64)
+        ev = collision_events(torch.from_numpy(self._true_pos).unsqueeze(0), self._polygon,
+                              self.scenario.robot_radius, self.scenario.arena)
+        self._contacts = Contacts(robot=ev.robot[0].numpy(), object=ev.object[0].numpy(),
+                                  wall=ev.wall[0].numpy())
+        me = self.model_error
+        self._meas_pos, self._meas_vel = self._true_pos, self._true_vel
+        if me.position_noise_std > 0:
+            self._meas_pos = self._true_pos + self._rng_noise.normal(0, me.position_noise_std, (len(self._robots), 2))
+        if me.velocity_noise_std > 0:
+            self._meas_vel = self._true_vel + self._rng_noise.normal(0, me.velocity_noise_std, (len(self._robots), 2))
+
+    def _state(self, pos: np.ndarray, vel: np.ndarray) -> FleetState:
+        return FleetState(time=self._step * self.dt, step=self._step, positions=pos.copy(),
+                          velocities=vel.copy(), targets=self._targets.copy(),
+                          object_pose=self._object_pose.copy())

@@ -1,0 +1,90 @@
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from sim import observations
+from sim.metrics import collision_events
+from sim.pettingzoo_env import FormationParallelEnv
+from sim.pymunk_world import ModelError
+from sim.reward import formation_reward
+from sim.scenario import Dynamics, transport_scenario
+
+SHORT = transport_scenario(3, dynamics=Dynamics(episode_steps=25))   # keeps the API runs short
+
+
+def test_passes_the_pettingzoo_parallel_api_test_without_warnings():
+    env = FormationParallelEnv(SHORT, ModelError(gain=0.8, position_noise_std=0.001))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        parallel_api_test(env, num_cycles=40)      # more cycles than steps: truncation is reached
+    pz = [w for w in caught if "pettingzoo" in w.filename]
+    assert not pz, [str(w.message) for w in pz]
+
+
+def test_passes_the_pettingzoo_seed_test():
+    parallel_seed_test(lambda: FormationParallelEnv(SHORT, ModelError(disturbance_std=0.1,
+                                                                       velocity_noise_std=0.01)),
+                       num_cycles=30)
+
+
+def test_spaces_and_observations_are_the_flattened_tokens_of_the_measured_state():
+    env = FormationParallelEnv("paper-4", ModelError(position_noise_std=0.002))
+    obs, infos = env.reset(seed=3)
+    assert env.agents == ["robot_0", "robot_1", "robot_2", "robot_3"]
+    assert env.observation_space("robot_2").shape == (9 * 4,)        # 2N + 1 = 9 tokens of 4
+    assert env.action_space("robot_2").low.tolist() == [-1.0, -1.0]
+    s = env.world.read_state()
+    toks, _ = observations.tokens(torch.from_numpy(s.positions)[None], torch.from_numpy(s.velocities)[None],
+                                  torch.from_numpy(s.targets)[None], torch.from_numpy(env.scenario.polygon),
+                                  env.scenario.arena)
+    for i, agent in enumerate(env.agents):
+        assert obs[agent].dtype == np.float32 and env.observation_space(agent).contains(obs[agent])
+        assert np.allclose(obs[agent], toks[0, i].reshape(-1).numpy(), atol=1e-6)
+        # token 0 = [p - (W/2, H/2), v]: the measured (noisy) position, not the true one
+        assert np.allclose(obs[agent][:2], s.positions[i] - 0.5, atol=1e-6)
+        assert infos[agent] == {"collision_robot": False, "collision_object": False,
+                                "collision_wall": False, "collided": False}
+    assert not np.allclose(s.positions, env.world.true_state().positions, atol=1e-5)
+
+
+def test_reward_is_the_shared_formation_reward_and_truncation_comes_at_episode_steps():
+    env = FormationParallelEnv(SHORT)
+    env.reset(seed=0)
+    push = {a: np.array([-1.0, 0.0], dtype=np.float32) for a in env.agents}   # into the object
+    hits = 0
+    for t in range(1, 26):
+        obs, rew, term, trunc, info = env.step(push)
+        true = torch.from_numpy(env.world.true_state().positions)[None]
+        events = collision_events(true, torch.from_numpy(SHORT.polygon), SHORT.robot_radius, SHORT.arena)
+        expected = formation_reward(true, torch.from_numpy(SHORT.targets)[None], events,
+                                    SHORT.target_tolerance)[0]
+        for i, agent in enumerate(env.possible_agents):
+            assert rew[agent] == pytest.approx(float(expected[i]), abs=1e-9)
+            assert info[agent]["collision_object"] == bool(events.object[0, i])
+            hits += info[agent]["collision_object"]
+        assert not any(term.values())
+        assert all(trunc.values()) == (t == 25) and any(trunc.values()) == (t == 25)
+    assert hits > 0 and info["robot_0"]["collided"]           # the push did reach the object
+    assert info["robot_0"]["success"] is False and info["robot_0"]["final_distance"] > 0.2
+    assert env.agents == []
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(push)
+
+
+def test_bad_actions_raise_naming_the_agent():
+    env = FormationParallelEnv(SHORT)
+    env.reset(seed=0)
+    ok = {a: np.zeros(2, dtype=np.float32) for a in env.agents}
+    with pytest.raises(ValueError, match=r"missing \['robot_2'\]"):
+        env.step({k: v for k, v in ok.items() if k != "robot_2"})
+    with pytest.raises(ValueError, match=r"unknown \['robot_9'\]"):
+        env.step(ok | {"robot_9": np.zeros(2)})
+    with pytest.raises(ValueError, match=r"robot_1 must have shape \(2,\)"):
+        env.step(ok | {"robot_1": np.zeros(3)})
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(ok | {"robot_0": np.array([np.nan, 0.0])})
+    with pytest.raises(ValueError, match="render_mode"):
+        FormationParallelEnv(SHORT, render_mode="human")
