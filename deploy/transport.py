@@ -1,0 +1,642 @@
+"""Zenoh transport between one controller and a fleet of robots.
+
+Key layout (``<fleet>`` and ``<rid>`` follow :func:`deploy.wire.check_name`; never '@')::
+
+    formation/<fleet>/robot/<rid>/state   robot -> controller  STATE (deploy.wire)
+    formation/<fleet>/robot/<rid>/cmd     controller -> robot  CMD
+    formation/<fleet>/robot/<rid>/alive   liveliness token of the robot
+    formation/<fleet>/ctrl/alive          liveliness token of the controller
+    formation/<fleet>/estop               ESTOP, latched (see below)
+
+Threads: Zenoh delivers into bounded :class:`zenoh.handlers.RingChannel` handlers (never a
+Python callback, so a Zenoh thread never waits on Python), and one driver thread per channel
+blocks in ``recv()``, validates with :class:`deploy.wire.WireDecoder` and updates the link's
+tables under one lock. A full ring drops its oldest sample. Malformed, foreign or stale
+messages are counted in ``link.rejects`` and dropped; the node keeps running.
+
+Latched e-stop: the controller publishes each ESTOP change and also serves the latest ESTOP
+message from a queryable on the same key. A robot queries it whenever it sees the
+controller's liveliness token appear; the controller declares the queryable before its token,
+so a robot that joins after the e-stop was raised still latches it. A robot leaves the latch
+only on a newer ESTOP with ENGAGED clear; a restarted controller that never raised one
+answers the query with an error reply and clears nothing.
+
+Readiness: each link declares its subscriptions before its liveliness token, so once the
+controller sees a robot's token (``alive_robots``) its commands reach that robot, and once a
+robot sees ``controller_alive`` its states reach the controller. Peers do not relay for each
+other: whoever must reach a robot directly connects to it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from deploy.wire import (
+    ROBOT_ALL,
+    CmdFlags,
+    CmdMsg,
+    EstopMsg,
+    MsgType,
+    Reason,
+    RejectCounter,
+    Rejection,
+    RobotRegistry,
+    Stamper,
+    StateMsg,
+    StateStatus,
+    WireDecoder,
+    check_name,
+    encode,
+)
+
+log = logging.getLogger(__name__)
+
+KEY_ROOT = "formation"
+NO_CMD_FLAGS = CmdFlags(0)
+NO_STATUS = StateStatus(0)
+_ENDPOINT_RE = re.compile(r"[a-z][a-z0-9\-]*/\S+")
+
+
+class FleetKeys:
+    """Key expressions of one fleet."""
+
+    def __init__(self, fleet: str):
+        self.fleet = check_name(fleet, "fleet name")
+        self.prefix = f"{KEY_ROOT}/{fleet}"
+        self.ctrl_alive = f"{self.prefix}/ctrl/alive"
+        self.estop = f"{self.prefix}/estop"
+        self.all_states = f"{self.prefix}/robot/*/state"
+        self.all_robot_alive = f"{self.prefix}/robot/*/alive"
+
+    def state(self, robot: str) -> str:
+        return f"{self.prefix}/robot/{check_name(robot)}/state"
+
+    def cmd(self, robot: str) -> str:
+        return f"{self.prefix}/robot/{check_name(robot)}/cmd"
+
+    def robot_alive(self, robot: str) -> str:
+        return f"{self.prefix}/robot/{check_name(robot)}/alive"
+
+    def robot_in(self, key: str, leaf: str) -> str | None:
+        """The robot name in ``formation/<fleet>/robot/<rid>/<leaf>``, or None if the key differs."""
+        head, tail = f"{self.prefix}/robot/", f"/{leaf}"
+        if not (key.startswith(head) and key.endswith(tail)):
+            return None
+        name = key[len(head):len(key) - len(tail)]
+        try:
+            return check_name(name)
+        except ValueError:
+            return None
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """How a node joins the Zenoh network (always peer mode).
+
+    Attributes:
+        listen: endpoints to listen on, e.g. ``("tcp/127.0.0.1:7447",)``; empty = listen nowhere.
+        connect: endpoints of peers to connect to, e.g. the controller's listen endpoint.
+        multicast_scouting: discover peers by UDP multicast (off by default; off in tests).
+        gossip_scouting: learn further peers through connected ones (Zenoh's default: on).
+        lease_ms: link lease (``transport/link/tx/lease``). A frozen peer is declared gone,
+            and its liveliness tokens dropped, after about this long (Zenoh default 10000).
+    """
+
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    gossip_scouting: bool = True
+    lease_ms: int | None = None
+
+    def __post_init__(self) -> None:
+        for field in ("listen", "connect"):
+            endpoints = getattr(self, field)
+            if isinstance(endpoints, str):
+                raise ValueError(f"TransportConfig.{field} must be a tuple of endpoints, "
+                                 f"not the string {endpoints!r}: write ({endpoints!r},)")
+            object.__setattr__(self, field, tuple(endpoints))
+            for endpoint in endpoints:
+                if not isinstance(endpoint, str) or not _ENDPOINT_RE.fullmatch(endpoint):
+                    raise ValueError(f"TransportConfig.{field}: {endpoint!r} is not a Zenoh "
+                                     "endpoint; write e.g. 'tcp/127.0.0.1:7447'")
+        if self.lease_ms is not None and (not isinstance(self.lease_ms, int)
+                                          or self.lease_ms < 100):
+            raise ValueError(f"TransportConfig.lease_ms={self.lease_ms!r} must be an int >= 100 "
+                             "(milliseconds) or None for Zenoh's default")
+
+    def to_zenoh(self) -> zenoh.Config:
+        config = zenoh.Config()
+        config.insert_json5("mode", '"peer"')
+        config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        config.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip_scouting))
+        if self.lease_ms is not None:
+            config.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        return config
+
+    def open(self) -> zenoh.Session:
+        return zenoh.open(self.to_zenoh())
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago on ``host`` (for tests and local fleets)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass(frozen=True, slots=True)
+class ReceivedState:
+    robot: str
+    msg: StateMsg
+    receive_time_ns: int  # receiver's clock
+
+
+@dataclass(frozen=True, slots=True)
+class ReceivedCommand:
+    msg: CmdMsg
+    receive_time_ns: int  # receiver's clock
+    expires_at_ns: int  # receiver's clock: receipt + ttl (and send + ttl on a shared clock)
+
+
+@dataclass(frozen=True, slots=True)
+class LivelinessEvent:
+    robot: str
+    joined: bool  # True: token appeared; False: token gone (node closed, killed or lease expired)
+    time_ns: int  # receiver's clock
+
+
+class _Link:
+    """Session ownership, driver threads, the shared lock and clean close."""
+
+    def __init__(self, transport: TransportConfig | zenoh.Session,
+                 clock_ns: Callable[[], int]):
+        if isinstance(transport, TransportConfig):
+            self.session = transport.open()
+            self._owns_session = True
+        elif isinstance(transport, zenoh.Session):
+            self.session = transport
+            self._owns_session = False
+        else:
+            raise TypeError("transport must be a TransportConfig or an open zenoh.Session, "
+                            f"got {type(transport).__name__}")
+        self.clock_ns = clock_ns
+        self.rejects = RejectCounter()
+        self.internal_errors = 0  # exceptions in this link's own handlers (logged); should stay 0
+        self._cond = threading.Condition()
+        self._closed = False
+        self._entities: list = []  # undeclared in reverse order on close
+        self._threads: list[threading.Thread] = []
+
+    def _subscribe(self, declared, on_item: Callable, name: str) -> None:
+        """Keep a declared subscriber/queryable and start its driver thread."""
+        self._entities.append(declared)
+        thread = threading.Thread(target=self._drive, args=(declared.handler, on_item),
+                                  name=f"{type(self).__name__}-{name}", daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def _drive(self, handler, on_item: Callable) -> None:
+        while True:
+            try:
+                item = handler.recv()
+            except zenoh.ZError:  # channel closed: entity undeclared or session closed
+                return
+            try:
+                on_item(item)
+            except Exception:
+                with self._cond:
+                    self.internal_errors += 1
+                log.exception("%s: error while handling a Zenoh sample", type(self).__name__)
+
+    def _reject(self, reason: Reason) -> None:
+        self.rejects.add(reason)
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Block until ``predicate()`` holds (checked after every update), the timeout passes
+        or the link closes; return whether it holds."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0 or self._closed:
+                    return predicate()
+                self._cond.wait(min(left, 0.05))
+        return True
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"{type(self).__name__} is closed; open a new one to send")
+
+    def close(self) -> None:
+        """Undeclare everything (liveliness token first), stop the threads, close an owned session.
+
+        Idempotent. Tables stay readable after close.
+        """
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._cond.notify_all()
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:  # the session was closed under us: nothing left to undeclare
+                pass
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+        if self._owns_session:
+            self.session.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class FleetLink(_Link):
+    """Controller side: latest state per robot, robot liveliness, commands, latched e-stop.
+
+    Args:
+        fleet: fleet name (one key chunk).
+        registry: the robots (string ids <-> wire ids); states of others are UNKNOWN_ROBOT.
+        transport: a TransportConfig (the link opens and owns the session) or an open session.
+        clock_ns: the controller's monotonic clock [ns].
+        shared_clock: robots share ``clock_ns`` (same host): also reject FROM_FUTURE sends.
+        queue_capacity: ring size of each inbound channel (oldest dropped when full).
+    """
+
+    def __init__(self, fleet: str, registry: RobotRegistry,
+                 transport: TransportConfig | zenoh.Session, *,
+                 clock_ns: Callable[[], int] = time.monotonic_ns, shared_clock: bool = False,
+                 queue_capacity: int = 256):
+        self.keys = FleetKeys(fleet)
+        self.registry = registry
+        super().__init__(transport, clock_ns)
+        self.decoder = WireDecoder(registry, clock_ns if shared_clock else None,
+                                   counter=self.rejects)
+        self._states: dict[str, ReceivedState] = {}
+        self._alive: set[str] = set()
+        self._events: deque[LivelinessEvent] = deque(maxlen=4096)
+        first = Stamper(clock_ns)
+        self._cmd_stampers = {r: Stamper(clock_ns, first.epoch) for r in registry.names}
+        self._estop_stamper = first
+        self._estop_bytes: bytes | None = None
+        self._estop_engaged = False
+        try:
+            self._open(queue_capacity)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, capacity: int) -> None:
+        s = self.session
+        self._subscribe(s.declare_subscriber(self.keys.all_states,
+                                             zenoh.handlers.RingChannel(capacity)),
+                        self._on_state, "states")
+        self._subscribe(s.liveliness().declare_subscriber(
+            self.keys.all_robot_alive, zenoh.handlers.RingChannel(capacity), history=True),
+            self._on_liveliness, "alive")
+        self._subscribe(s.declare_queryable(self.keys.estop, zenoh.handlers.RingChannel(64)),
+                        self._on_estop_query, "estop-query")
+        self._cmd_publishers = {
+            robot: s.declare_publisher(self.keys.cmd(robot),
+                                       congestion_control=zenoh.CongestionControl.DROP,
+                                       priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+            for robot in self.registry.names}
+        self._entities.extend(self._cmd_publishers.values())
+        self._estop_publisher = s.declare_publisher(
+            self.keys.estop, congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.REAL_TIME, express=True)
+        self._entities.append(self._estop_publisher)
+        self._entities.append(s.liveliness().declare_token(self.keys.ctrl_alive))
+
+    # -- inbound (driver threads) ---------------------------------------------------------
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        now = self.clock_ns()
+        robot = self.keys.robot_in(str(sample.key_expr), "state")
+        if robot is None:
+            return self._reject(Reason.BAD_KEY)
+        robot_id = self.registry.id_of(robot)
+        if robot_id is None:
+            return self._reject(Reason.UNKNOWN_ROBOT)
+        payload = sample.payload.to_bytes()
+        with self._cond:
+            msg = self.decoder.decode(payload, MsgType.STATE, robot_id)
+            if isinstance(msg, StateMsg):
+                self._states[robot] = ReceivedState(robot, msg, now)
+                self._cond.notify_all()
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        robot = self.keys.robot_in(str(sample.key_expr), "alive")
+        if robot is None:
+            return self._reject(Reason.BAD_KEY)
+        if robot not in self.registry:
+            return self._reject(Reason.UNKNOWN_ROBOT)
+        joined = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            (self._alive.add if joined else self._alive.discard)(robot)
+            self._events.append(LivelinessEvent(robot, joined, self.clock_ns()))
+            self._cond.notify_all()
+
+    def _on_estop_query(self, query: zenoh.Query) -> None:
+        with self._cond:
+            latest = self._estop_bytes
+        try:
+            if latest is None:
+                query.reply_err(b"no e-stop has been published by this controller")
+            else:
+                query.reply(self.keys.estop, latest)
+        finally:
+            query.drop()
+
+    # -- tables ---------------------------------------------------------------------------
+    def latest_states(self) -> dict[str, ReceivedState]:
+        """Newest accepted state per robot (robots never heard from are absent)."""
+        with self._cond:
+            return dict(self._states)
+
+    def state_of(self, robot: str) -> ReceivedState | None:
+        with self._cond:
+            return self._states.get(robot)
+
+    @property
+    def alive_robots(self) -> frozenset[str]:
+        """Registered robots whose liveliness token is present now."""
+        with self._cond:
+            return frozenset(self._alive)
+
+    def pop_events(self) -> list[LivelinessEvent]:
+        """Robot join/leave events since the last call, oldest first."""
+        with self._cond:
+            events = list(self._events)
+            self._events.clear()
+            return events
+
+    # -- outbound -------------------------------------------------------------------------
+    def send_command(self, robot: str, acceleration: Sequence[float], ttl_ms: int,
+                     flags: CmdFlags = NO_CMD_FLAGS, state_seq: int = 0) -> CmdMsg:
+        """Publish one command: acceleration (x, y) [m/s^2], valid ttl_ms [ms].
+
+        Raises ValueError (nothing is sent) for an unknown robot or an invalid field (NaN...).
+        """
+        self._check_open()
+        robot_id = self.registry.id_of(robot)
+        if robot_id is None:
+            raise ValueError(f"robot {robot!r} is not in the registry {self.registry.names}")
+        epoch, seq, now = self._cmd_stampers[robot].next()
+        msg = CmdMsg(robot_id, epoch, seq, now, tuple(acceleration), ttl_ms, flags, state_seq)
+        self._cmd_publishers[robot].put(encode(msg))
+        return msg
+
+    def send_accelerations(self, robots: Sequence[str], accelerations: np.ndarray, ttl_ms: int,
+                           flags: CmdFlags = NO_CMD_FLAGS) -> list[CmdMsg]:
+        """Publish one command per row of ``accelerations`` (N, 2) [m/s^2] to ``robots`` (N).
+
+        All rows are validated before any is sent. ``state_seq`` echoes each robot's latest
+        accepted state seq (0 if none).
+        """
+        acc = np.asarray(accelerations, dtype=np.float64)
+        if acc.shape != (len(robots), 2):
+            raise ValueError(f"accelerations must have shape (num_robots, 2) = "
+                             f"({len(robots)}, 2), got {acc.shape}")
+        if not np.all(np.isfinite(acc)):
+            raise ValueError("accelerations contain NaN or inf; refusing to send them to robots")
+        unknown = [r for r in robots if r not in self.registry]
+        if unknown:
+            raise ValueError(f"robots {unknown} are not in the registry {self.registry.names}")
+        states = self.latest_states()
+        return [self.send_command(r, acc[i], ttl_ms, flags,
+                                  states[r].msg.seq if r in states else 0)
+                for i, r in enumerate(robots)]
+
+    @property
+    def estop_engaged(self) -> bool:
+        with self._cond:
+            return self._estop_engaged
+
+    def raise_estop(self, reason_code: int = 0) -> EstopMsg:
+        """Latch the fleet-wide e-stop (published now and served to late joiners)."""
+        return self._publish_estop(True, reason_code)
+
+    def clear_estop(self) -> EstopMsg:
+        """Release the e-stop: robots leave their latch on this newer message."""
+        return self._publish_estop(False, 0)
+
+    def _publish_estop(self, engaged: bool, reason_code: int) -> EstopMsg:
+        self._check_open()
+        epoch, seq, now = self._estop_stamper.next()
+        msg = EstopMsg(epoch, seq, now, engaged, reason_code)
+        data = encode(msg)
+        with self._cond:
+            self._estop_bytes = data
+            self._estop_engaged = engaged
+            self._estop_publisher.put(data)
+        return msg
+
+
+class RobotLink(_Link):
+    """Robot side: publish state, receive the latest command, latch the e-stop.
+
+    Several RobotLinks may share one session (a simulated fleet in one process).
+
+    Args:
+        fleet, robot: fleet and robot names; ``robot`` must be in ``registry``.
+        transport: a TransportConfig (the link owns the session) or an open session.
+        clock_ns: the robot's monotonic clock [ns].
+        shared_clock: the controller shares ``clock_ns`` (same host): reject EXPIRED and
+            FROM_FUTURE commands at receipt and count expiry from the send time too.
+        estop_query_timeout_s: how long one query for the latched e-stop waits for replies.
+    """
+
+    def __init__(self, fleet: str, robot: str, registry: RobotRegistry,
+                 transport: TransportConfig | zenoh.Session, *,
+                 clock_ns: Callable[[], int] = time.monotonic_ns, shared_clock: bool = False,
+                 queue_capacity: int = 16, estop_query_timeout_s: float = 1.0):
+        self.keys = FleetKeys(fleet)
+        self.robot = check_name(robot)
+        robot_id = registry.id_of(robot)
+        if robot_id is None:
+            raise ValueError(f"robot {robot!r} is not in the registry {registry.names}")
+        self.robot_id = robot_id
+        self.registry = registry
+        super().__init__(transport, clock_ns)
+        self.shared_clock = shared_clock
+        self.decoder = WireDecoder(registry, clock_ns if shared_clock else None,
+                                   counter=self.rejects)
+        self.estop_query_timeout_s = estop_query_timeout_s
+        self._stamper = Stamper(clock_ns)
+        self._command: ReceivedCommand | None = None
+        self._estopped = False
+        self._estop_reason = 0
+        self._estop_bytes: bytes | None = None
+        self._estop_synced = False
+        self._controller_alive = False
+        self._cancel_queries = zenoh.CancellationToken()
+        try:
+            self._open(queue_capacity)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, capacity: int) -> None:
+        s = self.session
+        self._subscribe(s.declare_subscriber(self.keys.cmd(self.robot),
+                                             zenoh.handlers.RingChannel(capacity)),
+                        self._on_cmd, "cmd")
+        self._subscribe(s.declare_subscriber(self.keys.estop,
+                                             zenoh.handlers.RingChannel(capacity)),
+                        lambda sample: self._on_estop(sample.payload.to_bytes()), "estop")
+        self._subscribe(s.liveliness().declare_subscriber(
+            self.keys.ctrl_alive, zenoh.handlers.RingChannel(capacity), history=True),
+            self._on_ctrl_liveliness, "ctrl-alive")
+        self._state_publisher = s.declare_publisher(
+            self.keys.state(self.robot), congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+        self._entities.append(self._state_publisher)
+        self._entities.append(s.liveliness().declare_token(self.keys.robot_alive(self.robot)))
+
+    # -- inbound (driver threads) ---------------------------------------------------------
+    def _on_cmd(self, sample: zenoh.Sample) -> None:
+        now = self.clock_ns()
+        payload = sample.payload.to_bytes()
+        with self._cond:
+            msg = self.decoder.decode(payload, MsgType.CMD, self.robot_id)
+            if isinstance(msg, CmdMsg):
+                expires = now + msg.ttl_ms * 1_000_000
+                if self.shared_clock:
+                    expires = min(expires, msg.send_time_ns + msg.ttl_ms * 1_000_000)
+                self._command = ReceivedCommand(msg, now, expires)
+                self._cond.notify_all()
+
+    def _on_estop(self, payload: bytes) -> None:
+        with self._cond:
+            if payload == self._estop_bytes:  # the latched message again (query after publish)
+                return
+            msg = self.decoder.decode(payload, MsgType.ESTOP, ROBOT_ALL)
+            if isinstance(msg, EstopMsg):
+                self._estop_bytes = payload
+                self._estopped = msg.engaged
+                self._estop_reason = msg.reason_code
+                self._cond.notify_all()
+
+    def _on_ctrl_liveliness(self, sample: zenoh.Sample) -> None:
+        joined = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            self._controller_alive = joined
+            if not joined:
+                self._estop_synced = False
+            self._cond.notify_all()
+        if joined and not self._closed:
+            thread = threading.Thread(target=self._query_estop, daemon=True,
+                                      name=f"RobotLink-{self.robot}-estop-get")
+            self._threads.append(thread)
+            thread.start()
+
+    def _query_estop(self) -> None:
+        """Fetch the latched e-stop from the controller's queryable (retried if unanswered)."""
+        for _ in range(3):
+            try:
+                replies = self.session.get(self.keys.estop, zenoh.handlers.RingChannel(8),
+                                           timeout=self.estop_query_timeout_s,
+                                           cancellation_token=self._cancel_queries)
+                answered = False
+                while True:
+                    try:
+                        reply = replies.recv()
+                    except zenoh.ZError:  # all replies in (or timed out, or session closed)
+                        break
+                    answered = True
+                    if reply.ok is not None:
+                        self._on_estop(reply.ok.payload.to_bytes())
+            except zenoh.ZError:  # session closed while querying
+                return
+            if answered:
+                with self._cond:
+                    self._estop_synced = True
+                    self._cond.notify_all()
+                return
+            if self._closed:
+                return
+
+    def close(self) -> None:
+        self._cancel_queries.cancel()
+        super().close()
+
+    # -- tables ---------------------------------------------------------------------------
+    @property
+    def latest_command(self) -> ReceivedCommand | None:
+        """The newest accepted command, expired or not."""
+        with self._cond:
+            return self._command
+
+    def command(self, now_ns: int | None = None) -> ReceivedCommand | None:
+        """The newest accepted command if it has not expired at ``now_ns`` (default: now)."""
+        now = self.clock_ns() if now_ns is None else now_ns
+        with self._cond:
+            cmd = self._command
+        return cmd if cmd is not None and now < cmd.expires_at_ns else None
+
+    @property
+    def estopped(self) -> bool:
+        """Latched e-stop: True from an ENGAGED ESTOP until a newer one with ENGAGED clear."""
+        with self._cond:
+            return self._estopped
+
+    @property
+    def estop_reason(self) -> int:
+        with self._cond:
+            return self._estop_reason
+
+    @property
+    def estop_synced(self) -> bool:
+        """The controller answered a query for the latched e-stop since it last appeared."""
+        with self._cond:
+            return self._estop_synced
+
+    @property
+    def controller_alive(self) -> bool:
+        with self._cond:
+            return self._controller_alive
+
+    # -- outbound -------------------------------------------------------------------------
+    def publish_state(self, position: Sequence[float], velocity: Sequence[float],
+                      status: StateStatus = NO_STATUS) -> StateMsg:
+        """Publish position (x, y) [m] and velocity (x, y) [m/s].
+
+        ESTOPPED and CONTROLLER_LOST are added to ``status`` from the link's own view;
+        ``last_cmd_seq`` is the latest accepted command's seq. Raises ValueError on NaN/inf.
+        """
+        self._check_open()
+        with self._cond:
+            if self._estopped:
+                status |= StateStatus.ESTOPPED
+            if not self._controller_alive:
+                status |= StateStatus.CONTROLLER_LOST
+            last_cmd_seq = self._command.msg.seq if self._command else 0
+        epoch, seq, now = self._stamper.next()
+        msg = StateMsg(self.robot_id, epoch, seq, now, tuple(position), tuple(velocity), status,
+                       last_cmd_seq)
+        self._state_publisher.put(encode(msg))
+        return msg
+
+
+__all__ = ["FleetKeys", "FleetLink", "LivelinessEvent", "ReceivedCommand", "ReceivedState",
+           "Rejection", "RobotLink", "TransportConfig", "free_tcp_port"]

@@ -1,0 +1,519 @@
+"""Wire format between the controller and robots: fixed little-endian binary structs.
+
+Every message is one 24-byte header followed by a fixed-size body chosen by the message type
+(the byte layout, with offsets, is in ``docs/wire-format.md``)::
+
+    header  <2sBBHHIIQ   magic b"FS", version, msg_type, robot_id, flags, epoch, seq, send_time_ns
+    STATE   <ddddII      position x, y [m], velocity x, y [m/s] (f64), last_cmd_seq, reserved
+    CMD     <ddIHH       acceleration x, y [m/s^2] (f64), state_seq, ttl_ms, reserved
+    ESTOP   <II          reason_code, reserved
+
+``send_time_ns`` is the sender's monotonic clock (``time.monotonic_ns()``, CLOCK_MONOTONIC). It
+is comparable with the receiver's clock only when both share it (same host) or the clocks are
+synchronised; :class:`WireDecoder` therefore checks expiry only when it is given a clock.
+
+``epoch`` is a random non-zero u32 drawn when a sender starts; ``seq`` counts from 1 within an
+epoch. A receiver keeps, per stream (message type, robot id), the current epoch and the last
+sequence number: an older or repeated sequence is STALE, a new epoch is a sender restart, and a
+retired epoch is STALE (so a late packet from before a restart cannot flap the stream back).
+
+Decoding never raises on any byte string: :func:`decode` returns a message or a
+:class:`Rejection` with a :class:`Reason`, and :class:`WireDecoder` adds the checks that need
+context (robot registry, sequence, clock) and counts every rejection in a :class:`RejectCounter`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import secrets
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+from typing import ClassVar, NamedTuple
+
+MAGIC = b"FS"
+WIRE_VERSION = 1
+ROBOT_ALL = 0xFFFF  # robot_id of fleet-wide messages (ESTOP); never a robot's own id
+U32_MAX = 0xFFFF_FFFF
+U64_MAX = 0xFFFF_FFFF_FFFF_FFFF
+TTL_MS_MAX = 0xFFFF
+
+HEADER = struct.Struct("<2sBBHHIIQ")
+STATE_BODY = struct.Struct("<ddddII")
+CMD_BODY = struct.Struct("<ddIHH")
+ESTOP_BODY = struct.Struct("<II")
+HEADER_SIZE = HEADER.size  # 24
+
+
+class MsgType(IntEnum):
+    """Byte 3 of every message."""
+
+    STATE = 1  # robot -> controller
+    CMD = 2  # controller -> robot
+    ESTOP = 3  # controller -> fleet, latched
+
+
+MESSAGE_SIZE = {
+    MsgType.STATE: HEADER_SIZE + STATE_BODY.size,  # 64
+    MsgType.CMD: HEADER_SIZE + CMD_BODY.size,  # 48
+    MsgType.ESTOP: HEADER_SIZE + ESTOP_BODY.size,  # 32
+}
+
+
+class StateStatus(IntFlag):
+    """Header ``flags`` of a STATE message: what the robot is doing on its own."""
+
+    ESTOPPED = 1  # latched e-stop is engaged on the robot
+    WATCHDOG_BRAKING = 2  # no fresh command (ttl expired): the robot brakes on its own
+    CONTROLLER_LOST = 4  # the controller's liveliness token is gone
+    FAULT = 8  # robot-local fault (drives, localisation)
+
+
+class CmdFlags(IntFlag):
+    """Header ``flags`` of a CMD message."""
+
+    BRAKE = 1  # ignore the acceleration; brake at the robot's maximum deceleration this tick
+    STOP = 2  # brake to rest and stay at rest until a command with STOP clear arrives
+
+
+class EstopFlags(IntFlag):
+    """Header ``flags`` of an ESTOP message."""
+
+    ENGAGED = 1  # set: e-stop raised (latched); clear: e-stop released
+
+
+ALLOWED_FLAGS = {
+    MsgType.STATE: int(StateStatus.ESTOPPED | StateStatus.WATCHDOG_BRAKING
+                       | StateStatus.CONTROLLER_LOST | StateStatus.FAULT),
+    MsgType.CMD: int(CmdFlags.BRAKE | CmdFlags.STOP),
+    MsgType.ESTOP: int(EstopFlags.ENGAGED),
+}
+
+
+class Reason(IntEnum):
+    """Why a message was rejected. The numbers are stable (logs, third-party clients)."""
+
+    BAD_SIZE = 1  # shorter than the header, or not the size of its message type
+    BAD_MAGIC = 2  # bytes 0..1 are not b"FS"
+    BAD_VERSION = 3  # byte 2 is not WIRE_VERSION
+    UNKNOWN_TYPE = 4  # byte 3 is not a MsgType
+    UNEXPECTED_TYPE = 5  # a known type on a key meant for another (e.g. CMD on a state key)
+    BAD_SEQUENCE = 6  # epoch or seq is 0
+    BAD_FLAGS = 7  # a flag bit not defined for this message type is set
+    BAD_RESERVED = 8  # a reserved field is not 0
+    BAD_ROBOT_ID = 9  # ROBOT_ALL on a per-robot message, or a robot id on an ESTOP
+    NON_FINITE = 10  # NaN or inf in a float field
+    BAD_TTL = 11  # ttl_ms is 0
+    UNKNOWN_ROBOT = 12  # robot id or key name not in the registry
+    ROBOT_MISMATCH = 13  # robot id differs from the robot named by the key
+    STALE = 14  # seq not newer than the last accepted in this epoch, or a retired epoch
+    EXPIRED = 15  # CMD older than its ttl (receiver clock shared with the sender)
+    FROM_FUTURE = 16  # send time ahead of the receiver's clock by more than the tolerance
+    BAD_KEY = 17  # key expression does not follow the fleet layout
+
+
+class Rejection(NamedTuple):
+    """A message that was not accepted, with the reason and a human-readable detail."""
+
+    reason: Reason
+    detail: str
+
+
+_NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}")
+
+
+def check_name(name: object, what: str = "robot id") -> str:
+    """Validate a fleet or robot name used as one key-expression chunk; return it.
+
+    Allowed: 1..64 characters from ``[A-Za-z0-9_.-]``, not starting with '.', '-' or '@'
+    (Zenoh reserves '@'-chunks). Raises ValueError naming the problem and the fix.
+    """
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
+        raise ValueError(
+            f"{what} {name!r} is not allowed: use 1-64 characters from [A-Za-z0-9_.-], "
+            "starting with a letter, digit or '_' (never '@', '/', '*', '$', '?', '#' or spaces)")
+    return name
+
+
+class RobotRegistry:
+    """Robot names (string ids in key expressions) <-> numeric u16 ids on the wire.
+
+    ``RobotRegistry(["r0", "r1"])`` numbers robots 0, 1, ... in order; a mapping fixes ids
+    explicitly. Id 0xFFFF (ROBOT_ALL) is reserved.
+    """
+
+    def __init__(self, robots: Iterable[str] | Mapping[str, int]):
+        pairs = (list(robots.items()) if isinstance(robots, Mapping)
+                 else [(name, i) for i, name in enumerate(robots)])
+        self._by_name: dict[str, int] = {}
+        self._by_id: dict[int, str] = {}
+        for name, rid in pairs:
+            check_name(name)
+            if not isinstance(rid, int) or isinstance(rid, bool) or not 0 <= rid < ROBOT_ALL:
+                raise ValueError(f"robot {name!r}: numeric id {rid!r} must be an int in "
+                                 f"[0, {ROBOT_ALL - 1}] (0xFFFF is reserved for ROBOT_ALL)")
+            if name in self._by_name or rid in self._by_id:
+                raise ValueError(f"robot {name!r} / id {rid}: names and ids must be unique")
+            self._by_name[name] = rid
+            self._by_id[rid] = name
+        if not self._by_name:
+            raise ValueError("RobotRegistry needs at least one robot")
+
+    def id_of(self, name: str) -> int | None:
+        return self._by_name.get(name)
+
+    def name_of(self, robot_id: int) -> str | None:
+        return self._by_id.get(robot_id)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._by_name)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __len__(self) -> int:
+        return len(self._by_name)
+
+
+@dataclass(frozen=True, slots=True)
+class StateMsg:
+    """Robot -> controller. position [m] and velocity [m/s] are (x, y) in the arena frame."""
+
+    TYPE: ClassVar[MsgType] = MsgType.STATE
+    robot_id: int
+    epoch: int
+    seq: int
+    send_time_ns: int
+    position: tuple[float, float]
+    velocity: tuple[float, float]
+    status: StateStatus = StateStatus(0)
+    last_cmd_seq: int = 0  # seq of the last CMD the robot accepted, 0 = none yet
+
+    def __post_init__(self) -> None:
+        _normalise_pairs(self, "position", "velocity")
+
+
+@dataclass(frozen=True, slots=True)
+class CmdMsg:
+    """Controller -> robot. acceleration [m/s^2] (x, y), valid for ttl_ms after send_time_ns."""
+
+    TYPE: ClassVar[MsgType] = MsgType.CMD
+    robot_id: int
+    epoch: int
+    seq: int
+    send_time_ns: int
+    acceleration: tuple[float, float]
+    ttl_ms: int
+    flags: CmdFlags = CmdFlags(0)
+    state_seq: int = 0  # seq of the robot STATE this command answers, 0 = none
+
+    def __post_init__(self) -> None:
+        _normalise_pairs(self, "acceleration")
+
+
+@dataclass(frozen=True, slots=True)
+class EstopMsg:
+    """Controller -> fleet. Latched: robots stay stopped until a newer ESTOP with engaged=False."""
+
+    TYPE: ClassVar[MsgType] = MsgType.ESTOP
+    epoch: int
+    seq: int
+    send_time_ns: int
+    engaged: bool
+    reason_code: int = 0  # application-defined, 0 = unspecified
+    robot_id: int = ROBOT_ALL
+
+
+Message = StateMsg | CmdMsg | EstopMsg
+
+
+def _pair(value: object) -> object:
+    """(x, y) as a tuple of Python floats when it converts; otherwise unchanged (encode rejects)."""
+    try:
+        pair = tuple(float(v) for v in value)  # type: ignore[attr-defined]
+    except (TypeError, ValueError, OverflowError):
+        return value
+    return pair if len(pair) == 2 else value
+
+
+def _normalise_pairs(msg: object, *fields: str) -> None:
+    for field in fields:
+        object.__setattr__(msg, field, _pair(getattr(msg, field)))
+
+
+def _check_uint(value: object, bits: int, field: str, lo: int = 0) -> Rejection | None:
+    """Range check of an integer field. Only encode can fail it for fields other than
+    epoch/seq (struct.unpack yields in-range values), so the reason there is nominal."""
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value < (1 << bits):
+        return Rejection(Reason.BAD_SEQUENCE if field in ("epoch", "seq") else Reason.BAD_SIZE,
+                         f"{field}={value!r} must be an int in [{lo}, {(1 << bits) - 1}]")
+    return None
+
+
+def _check_fields(msg: Message) -> Rejection | None:
+    """Field checks shared by encode (raises) and decode (rejects)."""
+    t = msg.TYPE
+    for field, bits, lo in (("epoch", 32, 1), ("seq", 32, 1), ("send_time_ns", 64, 0),
+                            ("robot_id", 16, 0)):
+        bad = _check_uint(getattr(msg, field), bits, field, lo)
+        if bad:
+            return bad
+    if t is MsgType.ESTOP:
+        if msg.robot_id != ROBOT_ALL:
+            return Rejection(Reason.BAD_ROBOT_ID,
+                             f"ESTOP robot_id={msg.robot_id} must be ROBOT_ALL (0xFFFF)")
+    elif msg.robot_id == ROBOT_ALL:
+        return Rejection(Reason.BAD_ROBOT_ID,
+                         f"{t.name} robot_id=0xFFFF is reserved for fleet-wide messages")
+    if isinstance(msg, StateMsg):
+        floats = {"position": msg.position, "velocity": msg.velocity}
+        flags = int(msg.status)
+        extras = {"last_cmd_seq": msg.last_cmd_seq}
+    elif isinstance(msg, CmdMsg):
+        floats = {"acceleration": msg.acceleration}
+        flags = int(msg.flags)
+        extras = {"state_seq": msg.state_seq}
+        bad = _check_uint(msg.ttl_ms, 16, "ttl_ms")
+        if bad:
+            return bad
+        if msg.ttl_ms == 0:
+            return Rejection(Reason.BAD_TTL, "ttl_ms=0: a command must live 1..65535 ms")
+    else:
+        floats = {}
+        flags = int(EstopFlags.ENGAGED) if msg.engaged else 0
+        extras = {"reason_code": msg.reason_code}
+    if flags & ~ALLOWED_FLAGS[t]:
+        return Rejection(Reason.BAD_FLAGS, f"{t.name} flags=0x{flags:04x} sets undefined bits "
+                         f"(allowed mask 0x{ALLOWED_FLAGS[t]:04x})")
+    for field, value in extras.items():
+        bad = _check_uint(value, 32, field)
+        if bad:
+            return bad
+    for field, pair in floats.items():
+        if len(pair) != 2:
+            return Rejection(Reason.BAD_SIZE, f"{field} must have 2 components (x, y)")
+        if not all(math.isfinite(v) for v in pair):
+            return Rejection(Reason.NON_FINITE, f"{field}={pair} contains NaN or inf")
+    return None
+
+
+def encode(msg: Message) -> bytes:
+    """Pack a message into its fixed-size bytes. Raises ValueError on any invalid field."""
+    try:
+        bad = _check_fields(msg)
+    except TypeError as err:
+        raise ValueError(f"{type(msg).__name__}: fields have wrong types ({err})") from None
+    if bad:
+        raise ValueError(f"cannot encode {type(msg).__name__}: {bad.detail}; "
+                         "fix the field before sending")
+    t = msg.TYPE
+    if isinstance(msg, StateMsg):
+        flags, body = int(msg.status), STATE_BODY.pack(*msg.position, *msg.velocity,
+                                                       msg.last_cmd_seq, 0)
+    elif isinstance(msg, CmdMsg):
+        flags, body = int(msg.flags), CMD_BODY.pack(*msg.acceleration, msg.state_seq,
+                                                    msg.ttl_ms, 0)
+    else:
+        flags = int(EstopFlags.ENGAGED) if msg.engaged else 0
+        body = ESTOP_BODY.pack(msg.reason_code, 0)
+    return HEADER.pack(MAGIC, WIRE_VERSION, int(t), msg.robot_id, flags, msg.epoch, msg.seq,
+                       msg.send_time_ns) + body
+
+
+def decode(data: bytes | bytearray | memoryview,
+           expect: MsgType | None = None) -> Message | Rejection:
+    """Structural decode of one message; never raises on any bytes.
+
+    Checks, in this order: size >= 24, magic, version, type, ``expect`` (UNEXPECTED_TYPE),
+    exact size for the type, flags, epoch/seq (BAD_SEQUENCE), robot id, ttl, finite floats,
+    reserved. Context checks (registry, staleness, expiry) are in :class:`WireDecoder`.
+    """
+    buf = memoryview(data).tobytes()  # TypeError for non-bytes-like input (a caller bug)
+    if len(buf) < HEADER_SIZE:
+        return Rejection(Reason.BAD_SIZE, f"{len(buf)} bytes is shorter than the "
+                         f"{HEADER_SIZE}-byte header")
+    magic, version, type_byte, robot_id, flags, epoch, seq, send_time_ns = HEADER.unpack_from(buf)
+    if magic != MAGIC:
+        return Rejection(Reason.BAD_MAGIC, f"magic {magic!r} is not {MAGIC!r}")
+    if version != WIRE_VERSION:
+        return Rejection(Reason.BAD_VERSION, f"version {version} is not {WIRE_VERSION}")
+    if type_byte not in MsgType._value2member_map_:
+        return Rejection(Reason.UNKNOWN_TYPE, f"message type {type_byte} is not defined")
+    t = MsgType(type_byte)
+    if expect is not None and t is not expect:
+        return Rejection(Reason.UNEXPECTED_TYPE, f"{t.name} where {expect.name} was expected")
+    if len(buf) != MESSAGE_SIZE[t]:
+        return Rejection(Reason.BAD_SIZE, f"{t.name} must be {MESSAGE_SIZE[t]} bytes, "
+                         f"got {len(buf)}")
+    if flags & ~ALLOWED_FLAGS[t]:  # before building IntFlag values from untrusted bits
+        return Rejection(Reason.BAD_FLAGS, f"{t.name} flags=0x{flags:04x} sets undefined bits "
+                         f"(allowed mask 0x{ALLOWED_FLAGS[t]:04x})")
+    msg: Message
+    if t is MsgType.STATE:
+        px, py, vx, vy, last_cmd_seq, reserved = STATE_BODY.unpack_from(buf, HEADER_SIZE)
+        msg = StateMsg(robot_id, epoch, seq, send_time_ns, (px, py), (vx, vy),
+                       StateStatus(flags), last_cmd_seq)
+    elif t is MsgType.CMD:
+        ax, ay, state_seq, ttl_ms, reserved = CMD_BODY.unpack_from(buf, HEADER_SIZE)
+        msg = CmdMsg(robot_id, epoch, seq, send_time_ns, (ax, ay), ttl_ms, CmdFlags(flags),
+                     state_seq)
+    else:
+        reason_code, reserved = ESTOP_BODY.unpack_from(buf, HEADER_SIZE)
+        msg = EstopMsg(epoch, seq, send_time_ns, bool(flags & EstopFlags.ENGAGED), reason_code,
+                       robot_id)
+    bad = _check_fields(msg)
+    if bad:
+        return bad
+    if reserved != 0:
+        return Rejection(Reason.BAD_RESERVED, f"{t.name} reserved field is {reserved}, not 0")
+    return msg
+
+
+class RejectCounter:
+    """Thread-safe count of rejections per :class:`Reason`."""
+
+    def __init__(self) -> None:
+        self._counts: dict[Reason, int] = {}
+        self._lock = threading.Lock()
+
+    def add(self, reason: Reason) -> None:
+        with self._lock:
+            self._counts[reason] = self._counts.get(reason, 0) + 1
+
+    def __getitem__(self, reason: Reason) -> int:
+        with self._lock:
+            return self._counts.get(reason, 0)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self._counts.values())
+
+    def snapshot(self) -> dict[str, int]:
+        """Counts by reason name, e.g. ``{"NON_FINITE": 2}`` (for logs and reports)."""
+        with self._lock:
+            return {r.name: n for r, n in sorted(self._counts.items())}
+
+    def __repr__(self) -> str:
+        return f"RejectCounter({self.snapshot()})"
+
+
+class SequenceTracker:
+    """Per stream: the current (epoch, last seq) and a few retired epochs.
+
+    ``is_fresh`` only looks; ``accept`` records, so a message rejected later for another reason
+    does not move the stream forward.
+    """
+
+    def __init__(self, retired_epochs: int = 8):
+        self._current: dict[tuple[int, int], tuple[int, int]] = {}
+        self._retired: dict[tuple[int, int], deque[int]] = {}
+        self._retired_len = retired_epochs
+
+    def is_fresh(self, stream: tuple[int, int], epoch: int, seq: int) -> bool:
+        current = self._current.get(stream)
+        if current is None:
+            return True
+        cur_epoch, last_seq = current
+        if epoch == cur_epoch:
+            return seq > last_seq
+        return epoch not in self._retired.get(stream, ())
+
+    def accept(self, stream: tuple[int, int], epoch: int, seq: int) -> None:
+        current = self._current.get(stream)
+        if current is not None and current[0] != epoch:
+            self._retired.setdefault(stream, deque(maxlen=self._retired_len)).append(current[0])
+        self._current[stream] = (epoch, seq)
+
+
+class WireDecoder:
+    """Full receive-side validation: :func:`decode` plus registry, sequence and clock checks.
+
+    Args:
+        registry: known robots; ids not in it are UNKNOWN_ROBOT. None skips the check.
+        clock_ns: the receiver's clock, only if it is the same clock as the senders'
+            (``time.monotonic_ns`` on one host): enables EXPIRED (CMD older than ttl_ms) and
+            FROM_FUTURE (any message sent more than ``max_future_ms`` ahead of now).
+        counter: where rejections are counted (a new one if None).
+    """
+
+    def __init__(self, registry: RobotRegistry | None = None,
+                 clock_ns: Callable[[], int] | None = None, max_future_ms: float = 100.0,
+                 counter: RejectCounter | None = None):
+        self.registry = registry
+        self.clock_ns = clock_ns
+        self.max_future_ns = int(max_future_ms * 1e6)
+        self.rejects = counter if counter is not None else RejectCounter()
+        self.sequences = SequenceTracker()
+
+    def reject(self, reason: Reason, detail: str) -> Rejection:
+        self.rejects.add(reason)
+        return Rejection(reason, detail)
+
+    def decode(self, data: bytes | bytearray | memoryview, expect: MsgType | None = None,
+               robot_id: int | None = None) -> Message | Rejection:
+        """Validate one message; ``robot_id`` is the id the key names (ROBOT_MISMATCH if not).
+
+        Accepted messages advance the per-(type, robot id) sequence; rejections are counted.
+        """
+        msg = decode(data, expect)
+        if isinstance(msg, Rejection):
+            self.rejects.add(msg.reason)
+            return msg
+        if (self.registry is not None and msg.robot_id != ROBOT_ALL
+                and self.registry.name_of(msg.robot_id) is None):
+            return self.reject(Reason.UNKNOWN_ROBOT, f"robot id {msg.robot_id} is not registered")
+        if robot_id is not None and msg.robot_id != robot_id:
+            return self.reject(Reason.ROBOT_MISMATCH,
+                               f"robot id {msg.robot_id} on the key of robot id {robot_id}")
+        if self.clock_ns is not None:
+            now = self.clock_ns()
+            if msg.send_time_ns > now + self.max_future_ns:
+                return self.reject(Reason.FROM_FUTURE, f"sent {(msg.send_time_ns - now) / 1e6:.3f}"
+                                   " ms in the future: sender and receiver clocks differ")
+            if isinstance(msg, CmdMsg) and now - msg.send_time_ns > msg.ttl_ms * 1_000_000:
+                return self.reject(Reason.EXPIRED, f"command is {(now - msg.send_time_ns) / 1e6:.3f}"
+                                   f" ms old, ttl {msg.ttl_ms} ms")
+        stream = (int(msg.TYPE), msg.robot_id)
+        if not self.sequences.is_fresh(stream, msg.epoch, msg.seq):
+            return self.reject(Reason.STALE, f"{msg.TYPE.name} epoch {msg.epoch} seq {msg.seq} is "
+                               "not newer than the last accepted")
+        self.sequences.accept(stream, msg.epoch, msg.seq)
+        return msg
+
+
+def new_epoch() -> int:
+    """A random non-zero u32 identifying one run of a sender."""
+    return secrets.randbelow(U32_MAX) + 1
+
+
+class Stamper:
+    """Sender side of one stream: (epoch, seq, send_time_ns) for each new message.
+
+    seq counts 1, 2, ...; at 2**32 - 1 a new epoch starts at seq 1 (receivers treat it as a
+    restart). Thread-safe.
+    """
+
+    def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns, epoch: int | None = None):
+        self.clock_ns = clock_ns
+        self.epoch = new_epoch() if epoch is None else epoch
+        if not 1 <= self.epoch <= U32_MAX:
+            raise ValueError(f"epoch={self.epoch} must be in [1, 2**32 - 1]")
+        self.seq = 0
+        self._lock = threading.Lock()
+
+    def next(self) -> tuple[int, int, int]:
+        with self._lock:
+            if self.seq >= U32_MAX:
+                old = self.epoch
+                while self.epoch == old:
+                    self.epoch = new_epoch()
+                self.seq = 0
+            self.seq += 1
+            return self.epoch, self.seq, self.clock_ns()

@@ -1,0 +1,279 @@
+"""FleetLink and RobotLink over real Zenoh sessions on 127.0.0.1 (multicast scouting off)."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from deploy.transport import FleetKeys, FleetLink, RobotLink, TransportConfig, free_tcp_port
+from deploy.wire import (
+    CmdFlags,
+    CmdMsg,
+    EstopMsg,
+    RobotRegistry,
+    StateMsg,
+    StateStatus,
+    encode,
+)
+
+FLEET = "testfleet"
+WAIT_S = 5.0  # generous: waits end as soon as the condition holds
+REGISTRY = RobotRegistry(["r0", "r1"])
+
+
+@pytest.fixture
+def port() -> int:
+    return free_tcp_port()
+
+
+@pytest.fixture
+def controller(port):
+    with FleetLink(FLEET, REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))) as link:
+        yield link
+
+
+def robot_link(port: int, robot: str = "r0", listen_port: int | None = None,
+               **kwargs) -> RobotLink:
+    listen = (f"tcp/127.0.0.1:{listen_port}",) if listen_port else ()
+    config = TransportConfig(listen=listen, connect=(f"tcp/127.0.0.1:{port}",))
+    t = time.perf_counter()
+    link = RobotLink(FLEET, robot, REGISTRY, config, **kwargs)
+    print("robot open", robot, time.perf_counter() - t)
+    return link
+
+
+def connected(controller: FleetLink, robot: RobotLink) -> None:
+    """Both sides see each other's token, so each side's subscriptions are in place."""
+    assert controller.wait_for(lambda: robot.robot in controller.alive_robots, WAIT_S)
+    assert robot.wait_for(lambda: robot.controller_alive, WAIT_S)
+
+
+def test_keys_and_config():
+    keys = FleetKeys("f1")
+    assert keys.state("r3") == "formation/f1/robot/r3/state"
+    assert keys.cmd("r3") == "formation/f1/robot/r3/cmd"
+    assert keys.robot_alive("r3") == "formation/f1/robot/r3/alive"
+    assert (keys.ctrl_alive, keys.estop) == ("formation/f1/ctrl/alive", "formation/f1/estop")
+    assert keys.robot_in("formation/f1/robot/r3/state", "state") == "r3"
+    assert keys.robot_in("formation/f2/robot/r3/state", "state") is None
+    assert keys.robot_in("formation/f1/robot/a/b/state", "state") is None
+    with pytest.raises(ValueError, match="never '@'"):
+        keys.state("@r0")
+    config = TransportConfig(listen=("tcp/127.0.0.1:7447",), connect=("tcp/10.0.0.2:7447",),
+                             lease_ms=1000).to_zenoh()
+    assert json.loads(config.get_json("mode")) == "peer"
+    assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.2:7447"]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("transport/link/tx/lease")) == 1000
+    with pytest.raises(ValueError, match="not a Zenoh endpoint"):
+        TransportConfig(listen=("127.0.0.1:7447",))
+    with pytest.raises(ValueError, match="tuple of endpoints"):
+        TransportConfig(connect="tcp/127.0.0.1:7447")
+    with pytest.raises(ValueError, match="lease_ms"):
+        TransportConfig(lease_ms=5)
+
+
+def test_state_and_command_round_trip(controller, port):
+    with robot_link(port, "r0") as r0, robot_link(port, "r1") as r1:
+        connected(controller, r0)
+        connected(controller, r1)
+        sent = r0.publish_state((0.25, -0.5), (0.125, 0.0), StateStatus.FAULT)
+        assert controller.wait_for(lambda: controller.state_of("r0") is not None, WAIT_S)
+        got = controller.state_of("r0")
+        assert got.msg == sent and got.robot == "r0"
+        assert got.msg.position == (0.25, -0.5) and got.msg.velocity == (0.125, 0.0)
+        assert got.msg.status == StateStatus.FAULT and got.msg.robot_id == 0
+
+        cmd = controller.send_command("r0", (1.5, -2.0), ttl_ms=200, flags=CmdFlags.BRAKE,
+                                      state_seq=got.msg.seq)
+        assert r0.wait_for(lambda: r0.latest_command is not None, WAIT_S)
+        received = r0.latest_command
+        assert received.msg == cmd and received.msg.acceleration == (1.5, -2.0)
+        assert received.msg.state_seq == sent.seq
+        assert received.expires_at_ns == received.receive_time_ns + 200_000_000
+        assert r0.command(received.receive_time_ns + 199_999_999) is received
+        assert r0.command(received.receive_time_ns + 200_000_000) is None
+        assert r0.publish_state((0.0, 0.0), (0.0, 0.0)).last_cmd_seq == cmd.seq
+
+        r1_state = r1.publish_state((0.75, 0.5), (0.0, 0.0))
+        assert controller.wait_for(lambda: controller.state_of("r1") is not None, WAIT_S)
+        batch = controller.send_accelerations(["r0", "r1"], np.array([[0.1, 0.2], [0.3, 0.4]]),
+                                              ttl_ms=100)
+        assert batch[1].state_seq == r1_state.seq
+        assert r1.wait_for(lambda: r1.latest_command is not None, WAIT_S)
+        assert r1.latest_command.msg.acceleration == (0.3, 0.4)
+        assert r0.wait_for(lambda: r0.latest_command.msg.seq == batch[0].seq, WAIT_S)
+        assert r0.latest_command.msg.acceleration == (0.1, 0.2)
+        assert set(controller.latest_states()) == {"r0", "r1"}
+        assert controller.rejects.total == r0.rejects.total == r1.rejects.total == 0
+
+
+def test_commands_with_nan_are_never_sent(controller, port):
+    with robot_link(port) as r0:
+        connected(controller, r0)
+        with pytest.raises(ValueError, match="NaN"):
+            controller.send_accelerations(["r0", "r1"], np.array([[0.0, 0.0], [math.nan, 0]]),
+                                          ttl_ms=100)
+        with pytest.raises(ValueError, match="acceleration"):
+            controller.send_command("r0", (math.inf, 0.0), ttl_ms=100)
+        with pytest.raises(ValueError, match="not in the registry"):
+            controller.send_command("r9", (0.0, 0.0), ttl_ms=100)
+        ok = controller.send_command("r0", (0.0, 1.0), ttl_ms=100)
+        assert r0.wait_for(lambda: r0.latest_command is not None, WAIT_S)
+        assert r0.latest_command.msg == ok  # nothing from the refused calls arrived first
+
+
+def test_robot_join_and_leave_are_seen(controller, port):
+    r1 = robot_link(port, "r1")
+    assert controller.wait_for(lambda: "r1" in controller.alive_robots, WAIT_S)
+    r1.close()
+    assert controller.wait_for(lambda: "r1" not in controller.alive_robots, WAIT_S)
+    events = [(e.robot, e.joined) for e in controller.pop_events()]
+    assert events == [("r1", True), ("r1", False)]
+    assert controller.pop_events() == []
+
+
+def test_estop_is_latched_for_a_robot_that_joins_later(controller, port):
+    controller.raise_estop(reason_code=3)
+    assert controller.estop_engaged
+    with robot_link(port, "r0") as late:
+        assert late.wait_for(lambda: late.estopped, WAIT_S)
+        assert late.estop_reason == 3
+        assert late.publish_state((0.0, 0.0), (0.0, 0.0)).status & StateStatus.ESTOPPED
+        controller.clear_estop()
+        assert late.wait_for(lambda: not late.estopped, WAIT_S)
+    with robot_link(port, "r1") as after_clear:
+        assert after_clear.wait_for(lambda: after_clear.estop_synced, WAIT_S)
+        assert not after_clear.estopped
+        assert after_clear.rejects.total == 0
+
+
+def test_estop_latch_survives_a_controller_restart(port):
+    listen = TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    with robot_link(port, "r0") as robot:
+        with FleetLink(FLEET, REGISTRY, listen) as first:
+            connected(first, robot)
+            first.raise_estop()
+            assert robot.wait_for(lambda: robot.estopped, WAIT_S)
+        assert robot.wait_for(lambda: not robot.controller_alive, WAIT_S)
+        with FleetLink(FLEET, REGISTRY, listen) as second:  # never raised: answers "none"
+            assert robot.wait_for(lambda: robot.controller_alive and robot.estop_synced, WAIT_S)
+            assert robot.estopped
+            second.clear_estop()  # a new epoch: accepted as the controller's restart
+            assert robot.wait_for(lambda: not robot.estopped, WAIT_S)
+
+
+def _raw_session(port: int) -> zenoh.Session:
+    return zenoh.open(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).to_zenoh())
+
+
+def _inject(session: zenoh.Session, key: str, payloads: list[bytes]) -> None:
+    """Publish raw payloads once a subscriber on ``key`` is known (else Zenoh drops them)."""
+    publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline = time.monotonic() + WAIT_S
+    while not publisher.matching_status and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert publisher.matching_status, f"no subscriber on {key}"
+    for payload in payloads:
+        publisher.put(payload)
+    publisher.undeclare()
+
+
+def test_bad_states_are_rejected_counted_and_the_controller_keeps_running(controller, port):
+    with robot_link(port, "r0") as r0, _raw_session(port) as raw:
+        connected(controller, r0)
+        good = r0.publish_state((0.5, 0.5), (0.0, 0.0))
+        assert controller.wait_for(lambda: controller.state_of("r0") is not None, WAIT_S)
+        r0_key, r1_key = FleetKeys(FLEET).state("r0"), FleetKeys(FLEET).state("r1")
+        nan_state = bytearray(encode(StateMsg(0, good.epoch, good.seq + 50, 0, (0.0, 0.0),
+                                              (0.0, 0.0))))
+        struct.pack_into("<d", nan_state, 24, math.nan)
+        injected = {
+            r0_key: [b"", b"hello", b"\xff" * 64,  # BAD_SIZE, BAD_SIZE, BAD_MAGIC
+                     encode(good),  # replay: STALE
+                     bytes(nan_state),  # NON_FINITE
+                     encode(StateMsg(1, 9, 1, 0, (0.0, 0.0), (0.0, 0.0))),  # r1's id: MISMATCH
+                     encode(CmdMsg(0, 9, 1, 0, (0.0, 0.0), 10)),  # UNEXPECTED_TYPE
+                     b"FS\x02" + encode(good)[3:]],  # BAD_VERSION
+            "formation/testfleet/robot/zz/state": [encode(good)],  # UNKNOWN_ROBOT
+        }
+        for key, payloads in injected.items():
+            _inject(raw, key, payloads)
+        expected = {"BAD_SIZE": 2, "BAD_MAGIC": 1, "STALE": 1, "NON_FINITE": 1,
+                    "ROBOT_MISMATCH": 1, "UNEXPECTED_TYPE": 1, "BAD_VERSION": 1,
+                    "UNKNOWN_ROBOT": 1}
+        assert controller.wait_for(lambda: controller.rejects.total == 9, WAIT_S)
+        assert controller.rejects.snapshot() == expected
+        assert controller.state_of("r0").msg == good  # nothing bad replaced the good state
+        assert r1_key not in controller.latest_states()
+        newer = r0.publish_state((0.625, 0.5), (0.0, 0.0))
+        assert controller.wait_for(lambda: controller.state_of("r0").msg == newer, WAIT_S)
+        assert controller.internal_errors == 0
+
+
+def test_bad_commands_are_rejected_and_counted_by_the_robot(controller, port):
+    now = time.monotonic_ns()
+    robot_port = free_tcp_port()  # peers do not relay: the injector connects to the robot
+    with (robot_link(port, "r0", listen_port=robot_port, shared_clock=True) as r0,
+          _raw_session(robot_port) as raw):
+        connected(controller, r0)
+        good = controller.send_command("r0", (0.5, 0.0), ttl_ms=500)
+        assert r0.wait_for(lambda: r0.latest_command is not None, WAIT_S)
+        key = FleetKeys(FLEET).cmd("r0")
+        injected = [
+            encode(CmdMsg(0, good.epoch, good.seq + 1, now - 10**9, (9.0, 9.0), 100)),  # EXPIRED
+            encode(CmdMsg(0, good.epoch, good.seq + 2, now + 10**10, (9.0, 9.0), 100)),  # FUTURE
+            encode(good),  # STALE
+            encode(CmdMsg(1, good.epoch, good.seq + 3, now, (9.0, 9.0), 100)),  # ROBOT_MISMATCH
+            encode(EstopMsg(1, 1, now, True)),  # UNEXPECTED_TYPE
+            encode(good)[:-1],  # BAD_SIZE
+        ]
+        _inject(raw, key, injected)
+        assert r0.wait_for(lambda: r0.rejects.total == len(injected), WAIT_S)
+        assert r0.rejects.snapshot() == {"BAD_SIZE": 1, "UNEXPECTED_TYPE": 1, "ROBOT_MISMATCH": 1,
+                                         "STALE": 1, "EXPIRED": 1, "FROM_FUTURE": 1}
+        assert r0.latest_command.msg == good
+        assert not r0.estopped  # an ESTOP on the cmd key is not an e-stop
+        later = controller.send_command("r0", (0.0, -0.5), ttl_ms=500)
+        assert r0.wait_for(lambda: r0.latest_command.msg == later, WAIT_S)
+        assert r0.internal_errors == 0
+
+
+def test_links_tolerate_use_after_close(port):
+    controller = FleetLink(FLEET, REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    robot = robot_link(port)
+    connected(controller, robot)
+    robot.publish_state((0.1, 0.1), (0.0, 0.0))
+    assert controller.wait_for(lambda: controller.state_of("r0") is not None, WAIT_S)
+    robot.close()
+    controller.close()
+    controller.close()  # idempotent
+    assert controller.closed and controller.state_of("r0") is not None
+    assert controller.wait_for(lambda: False, timeout_s=WAIT_S) is False  # returns at once
+    assert robot.latest_command is None and robot.command() is None
+    with pytest.raises(RuntimeError, match="closed"):
+        controller.send_command("r0", (0.0, 0.0), ttl_ms=10)
+    with pytest.raises(RuntimeError, match="closed"):
+        robot.publish_state((0.0, 0.0), (0.0, 0.0))
+
+
+def test_links_can_share_one_session(controller, port):
+    session = zenoh.open(TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).to_zenoh())
+    try:
+        robots = [RobotLink(FLEET, name, REGISTRY, session) for name in ("r0", "r1")]
+        assert controller.wait_for(lambda: controller.alive_robots == {"r0", "r1"}, WAIT_S)
+        robots[0].close()  # leaves the session open for the other robot
+        assert controller.wait_for(lambda: controller.alive_robots == {"r1"}, WAIT_S)
+        assert robots[1].wait_for(lambda: robots[1].controller_alive, WAIT_S)
+        robots[1].publish_state((0.3, 0.3), (0.0, 0.0))
+        assert controller.wait_for(lambda: controller.state_of("r1") is not None, WAIT_S)
+        robots[1].close()
+    finally:
+        session.close()
