@@ -1,0 +1,228 @@
+r"""Braking-distance control barrier functions for damped double-integrator discs.
+
+Each robot ``i`` has position ``p_i`` [m] and velocity ``v_i`` [m/s] and follows the continuous-time
+model behind :class:`sim.scenario.Dynamics`::
+
+    dp_i/dt = v_i,        dv_i/dt = u_i - c v_i          (u_i: commanded acceleration [m/s^2])
+
+with damping ``c`` [1/s]. For every robot pair ``(i, j)``, every robot and the object, and every
+robot and each of the four walls, let ``s`` be the signed distance between the two shapes [m]
+(from :mod:`controllers.safety.geometry`) and ``n`` its gradient with respect to ``p_i`` (the unit
+normal pointing towards robot i). With the relative velocity ``w = v_i - v_j`` (``w = v_i`` for the
+object and walls, which are static), the clearance rate and its derivative are::
+
+    s_dot  = n . w
+    s_ddot = n . (u_i - u_j) - c s_dot + kappa |w_t|^2,      |w_t|^2 = |w|^2 - s_dot^2
+
+where ``kappa`` is the curvature of the distance function (1/centre distance for a disc or a
+polygon vertex, 0 for an edge or a wall; the term is never negative).
+
+**Barrier** (Wang, Ames, Egerstedt, IEEE T-RO 2017, "Safety barrier certificates for
+collision-free multirobot systems"), with a safety margin ``m`` [m] and ``z = s - m``::
+
+    h = phi(z) + s_dot,        phi(z) = sqrt(2 alpha z)
+
+``h >= 0`` says the approach speed ``-s_dot`` is no more than what a constant deceleration
+``alpha`` [m/s^2] can cancel within the remaining clearance ``z``, so ``s`` stays above ``m``.
+``alpha`` is the braking the barrier may count on: ``braking_share * a_box`` for a static obstacle
+and ``2 * braking_share * a_box`` for a pair (both robots brake), where ``a_box`` is the
+acceleration every robot can produce in any direction inside the QP's actuator octagon. With
+``braking_share = 0.5`` one robot alone can meet a pair's demand, so a robot pinned at a wall does
+not make its neighbour's constraint infeasible. Damping only adds deceleration while approaching
+(``-c s_dot > 0`` when ``s_dot < 0``), so it is left out of ``alpha`` and kept in ``h_dot``.
+
+To keep ``h`` finite and differentiable at ``z <= 0`` (a robot already inside the margin), ``phi``
+continues below ``z_f`` (``sqrt_floor``) along its tangent:
+``phi(z) = sqrt(2 alpha z_f) + alpha / sqrt(2 alpha z_f) (z - z_f)`` for ``z < z_f``. The safe set
+``h >= 0`` then guarantees ``s >= m - z_f`` (when ``s_dot = 0``).
+
+**Derivative** (``phi'(z) = alpha / sqrt(2 alpha max(z, z_f))``)::
+
+    h_dot = n . (u_i - u_j) + drift,       drift = (phi'(z) - c) s_dot + kappa |w_t|^2
+
+**Constraint** ``h_dot >= -K(h)`` with the class-K function ``K(h) = gamma h`` (linear, default)
+or ``gamma h^3`` (as in the paper), i.e. one row per pair, linear in the accelerations::
+
+    n . u_i - n . u_j >= b,        b = -K(h) - drift
+
+Feasibility on the boundary ``h = 0``: there ``s_dot = -phi(z)``, so ``b = alpha - c phi(z) -
+kappa |w_t|^2 <= alpha``, which the braking budget above covers. Continuous-time invariance of
+``h >= 0`` then follows from the comparison lemma; the discrete 20 Hz zero-order hold and the
+speed limit are absorbed by the margin ``m`` and caught by the post-check.
+
+Row layout (K = P + N + 4N rows for N robots and P = N(N-1)/2 pairs): pairs in
+``np.triu_indices`` order, then robot-object for robots 0..N-1, then robot-wall robot-major
+(robot i, walls x = 0, x = W, y = 0, y = H at rows ``P + N + 4 i + w``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from controllers.safety.geometry import SceneDistances
+from sim.scenario import Dynamics
+
+
+class SafetyConfigError(ValueError):
+    """A safety-filter setting that cannot work; the message names the field and the fix."""
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Settings of the safety filter (barrier, QP, post-check).
+
+    Attributes:
+        margin: clearance the barrier keeps between shapes beyond contact [m].
+        gamma: gain of the class-K function [1/s for linear; s/m^2 for cubic].
+        class_k: ``"linear"`` (``gamma h``) or ``"cubic"`` (``gamma h^3``, as in the paper).
+        braking_share: fraction of one robot's acceleration the barrier counts on for braking.
+        sqrt_floor: ``z_f``, below it the square root continues linearly [m].
+        accel_fraction: the QP's actuator octagon is inscribed in a circle of
+            ``accel_fraction * accel_limit`` (so the plant's norm clip never bites).
+        tighten: the QP solves the barrier rows with ``b + tighten`` (solver tolerance) [m/s^2].
+        eps: OSQP absolute and relative tolerance.
+        max_iter: OSQP iteration limit.
+        slack_weight: penalty on squared barrier slack in the fallback QP.
+        geometry: ``"fcl"`` (FCL scene) or ``"analytic"`` (closed-form numpy) distances.
+        postcheck: check the one-tick sweep and brake robots that would touch.
+        postcheck_margin: clearance the post-check demands [m] (0 = no contact).
+    """
+
+    margin: float = 0.01
+    gamma: float = 3.0
+    class_k: str = "linear"
+    braking_share: float = 0.5
+    sqrt_floor: float = 1e-3
+    accel_fraction: float = 0.999
+    tighten: float = 1e-3
+    eps: float = 1e-7
+    max_iter: int = 4000
+    slack_weight: float = 1e6
+    geometry: str = "fcl"
+    postcheck: bool = True
+    postcheck_margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        positive = ("gamma", "braking_share", "sqrt_floor", "accel_fraction", "eps", "slack_weight")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise SafetyConfigError(f"safety.{name} must be a positive finite number, got {value!r}")
+        for name in ("margin", "tighten", "postcheck_margin"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise SafetyConfigError(f"safety.{name} must be a finite number >= 0, got {value!r}")
+        if self.braking_share > 1:
+            raise SafetyConfigError(f"safety.braking_share must be in (0, 1], got {self.braking_share}")
+        if self.accel_fraction > 1:
+            raise SafetyConfigError(f"safety.accel_fraction must be in (0, 1], got {self.accel_fraction}")
+        if self.class_k not in ("linear", "cubic"):
+            raise SafetyConfigError(f"safety.class_k must be 'linear' or 'cubic', got {self.class_k!r}")
+        if self.geometry not in ("fcl", "analytic"):
+            raise SafetyConfigError(f"safety.geometry must be 'fcl' or 'analytic', got {self.geometry!r}")
+        if not (isinstance(self.max_iter, int) and self.max_iter > 0):
+            raise SafetyConfigError(f"safety.max_iter must be a positive integer, got {self.max_iter!r}")
+
+    @classmethod
+    def from_dict(cls, data: dict) -> SafetyConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise SafetyConfigError(f"unknown safety field(s) {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**data)
+
+
+def octagon_accel(dynamics: Dynamics, config: SafetyConfig) -> float:
+    """``a_box``: the acceleration available in every direction inside the actuator octagon [m/s^2].
+
+    The octagon with vertices on a circle of radius ``R = accel_fraction * accel_limit`` has the
+    edges ``|u_x|, |u_y| <= R cos(pi/8)`` and ``|u_x +- u_y| <= sqrt(2) R cos(pi/8)``.
+    """
+    return config.accel_fraction * dynamics.accel_limit * math.cos(math.pi / 8)
+
+
+@dataclass
+class BarrierTerms:
+    """The barrier rows of one instant (K = P + N + 4N, see the module docstring).
+
+    Attributes:
+        pair_normal: (P, 2) row coefficients on ``u_i`` (and minus them on ``u_j``).
+        object_normal: (N, 2) row coefficients of the robot-object rows.
+        h: (K,) barrier values [m/s].
+        drift: (K,) the part of ``h_dot`` that does not depend on ``u`` [m/s^2].
+        bound: (K,) ``b``: each row demands ``coefficients . u >= b`` [m/s^2].
+    """
+
+    pair_i: np.ndarray
+    pair_j: np.ndarray
+    pair_normal: np.ndarray
+    object_normal: np.ndarray
+    wall_normal: np.ndarray
+    h: np.ndarray
+    drift: np.ndarray
+    bound: np.ndarray
+
+    def rows_times(self, u: np.ndarray) -> np.ndarray:
+        """(K,) row values ``n . (u_i - u_j)`` for (N, 2) accelerations ``u``."""
+        pair = np.sum(self.pair_normal * (u[self.pair_i] - u[self.pair_j]), axis=1)
+        obj = np.sum(self.object_normal * u, axis=1)
+        wall = u @ self.wall_normal.T                                  # (N, 4)
+        return np.concatenate([pair, obj, wall.ravel()])
+
+    def dense(self, num_robots: int) -> np.ndarray:
+        """(K, 2N) dense row matrix (for tests and the fallback QP)."""
+        n, p = num_robots, len(self.pair_i)
+        a = np.zeros((p + 5 * n, 2 * n))
+        rows = np.arange(p)
+        for axis in (0, 1):
+            a[rows, 2 * self.pair_i + axis] = self.pair_normal[:, axis]
+            a[rows, 2 * self.pair_j + axis] = -self.pair_normal[:, axis]
+            a[p + np.arange(n), 2 * np.arange(n) + axis] = self.object_normal[:, axis]
+        for w in range(4):
+            for axis in (0, 1):
+                a[p + n + 4 * np.arange(n) + w, 2 * np.arange(n) + axis] = self.wall_normal[w, axis]
+        return a
+
+
+def _phi(z: np.ndarray, alpha: float | np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
+    """``phi(z)`` and ``phi'(z)`` of the module docstring (square root with a linear floor)."""
+    zc = np.maximum(z, floor)
+    root = np.sqrt(2.0 * alpha * zc)
+    slope = alpha / root
+    return root + slope * np.minimum(z - floor, 0.0), slope
+
+
+def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
+                  config: SafetyConfig) -> BarrierTerms:
+    """Barrier values and rows for (N, 2) velocities [m/s] and the distances of the same instant."""
+    a_box = octagon_accel(dynamics, config)
+    alpha_static = config.braking_share * a_box
+    alpha_pair = 2.0 * config.braking_share * a_box
+    c = dynamics.damping
+
+    w_pair = vel[dist.pair_i] - vel[dist.pair_j]                           # (P, 2)
+    sdot_pair = np.sum(dist.pair_normal * w_pair, axis=1)
+    tang_pair = np.maximum(np.sum(w_pair * w_pair, axis=1) - sdot_pair**2, 0.0)
+    sdot_obj = np.sum(dist.object_normal * vel, axis=1)                    # (N,)
+    tang_obj = np.maximum(np.sum(vel * vel, axis=1) - sdot_obj**2, 0.0)
+    sdot_wall = (vel @ dist.wall_normal.T).ravel()                         # (4N,)
+
+    s = np.concatenate([dist.pair_distance, dist.object_distance, dist.wall_distance.ravel()])
+    sdot = np.concatenate([sdot_pair, sdot_obj, sdot_wall])
+    curv_term = np.concatenate([dist.pair_curvature * tang_pair, dist.object_curvature * tang_obj,
+                                np.zeros(sdot_wall.shape)])
+    alpha = np.empty(len(s))
+    alpha[:len(sdot_pair)] = alpha_pair
+    alpha[len(sdot_pair):] = alpha_static
+
+    phi, dphi = _phi(s - config.margin, alpha, config.sqrt_floor)
+    h = phi + sdot
+    drift = (dphi - c) * sdot + curv_term
+    k_of_h = config.gamma * (h if config.class_k == "linear" else h**3)
+    return BarrierTerms(pair_i=dist.pair_i, pair_j=dist.pair_j, pair_normal=dist.pair_normal,
+                        object_normal=dist.object_normal, wall_normal=dist.wall_normal,
+                        h=h, drift=drift, bound=-k_of_h - drift)

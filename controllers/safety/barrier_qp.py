@@ -1,0 +1,297 @@
+r"""The centralised safety filter: FCL distances -> barrier rows -> one OSQP QP -> post-check.
+
+For N robots the decision variable is ``u`` in R^{2N}, ``u = (u_0x, u_0y, u_1x, ...)`` [m/s^2]::
+
+    minimise    || u - a_nom ||^2                      (P = 2 I, q = -2 a_nom)
+    subject to  n_k . (u_i - u_j) >= b_k + tighten    every pair, robot-object, robot-wall row k
+                |u_ix|, |u_iy|     <= R cos(pi/8)      actuator octagon inscribed in the circle
+                |u_ix +- u_iy|     <= sqrt(2) R cos(pi/8)   of radius R = accel_fraction * accel_limit
+
+with the rows and bounds ``b_k`` of :mod:`controllers.safety.barrier` (the braking-distance
+barrier of Wang, Ames and Egerstedt, IEEE T-RO 2017, derived there for damped double integrators
+with a safety margin). ``a_nom`` is first clipped to the actuator limit, as the plant would.
+
+Solve path, every outcome an explicit :class:`SafetyStatus`:
+
+1. ``UNCHANGED``: the clipped nominal command already satisfies every barrier row; returned as is.
+2. ``INTERVENED``: OSQP (one problem per N, set up once with a fixed sparsity pattern, then only
+   ``update(q=, l=, u=, Ax=)`` per tick, eps 1e-7 with polishing) solved and its answer satisfies
+   every row within 1e-6.
+3. ``SLACK``: OSQP failed or was infeasible: the QP with one slack ``sigma_k >= 0`` per barrier row
+   (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ slack_weight * |sigma|^2``, the
+   actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers.
+4. ``FALLBACK_BRAKE``: that failed too, or the input was not finite, or the post-check
+   (:mod:`controllers.safety.postcheck`) replaced some robot's command by maximum braking.
+
+The output is never NaN and never exceeds the actuator limit; the filter does not raise on data,
+only on shapes that break the call's contract.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import osqp
+import qpsolvers
+import scipy.sparse as sp
+
+from controllers.safety.barrier import BarrierTerms, SafetyConfig, barrier_terms, octagon_accel
+from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
+from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
+from sim.scenario import Scenario
+
+_ROW_CHECK_TOL = 1e-6
+
+
+class SafetyStatus(StrEnum):
+    """What the safety filter did to the nominal command."""
+
+    UNCHANGED = "unchanged"
+    INTERVENED = "intervened"
+    SLACK = "slack"
+    FALLBACK_BRAKE = "fallback_brake"
+
+
+@dataclass
+class SafetyResult:
+    """The filter's answer for N robots.
+
+    Attributes:
+        a_safe: (N, 2) safe accelerations [m/s^2], finite and within the actuator limit.
+        status: see :class:`SafetyStatus`.
+        reason: why the status is not ``UNCHANGED`` / ``INTERVENED`` ("" otherwise).
+        braked: (N,) bool, robots commanded to brake by the fallback or the post-check.
+        contact: (N,) bool, robots the post-check predicts to touch something even when braking.
+        min_barrier: smallest barrier value h over all rows [m/s] (nan when not computed).
+        min_clearance: smallest signed distance between shapes [m] (nan when not computed).
+        max_slack: largest slack of the slack QP [m/s^2] (0 otherwise).
+        solve_time_s: time in the QP solvers [s].
+        total_time_s: time of the whole call [s].
+    """
+
+    a_safe: np.ndarray
+    status: SafetyStatus
+    reason: str = ""
+    braked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    contact: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    min_barrier: float = math.nan
+    min_clearance: float = math.nan
+    max_slack: float = 0.0
+    solve_time_s: float = 0.0
+    total_time_s: float = 0.0
+
+    @property
+    def modified(self) -> bool:
+        """True when the command differs from the (clipped) nominal one."""
+        return self.status is not SafetyStatus.UNCHANGED
+
+
+class _Problem:
+    """The OSQP problem, FCL scene and post-check for one robot count N (set up once)."""
+
+    def __init__(self, scenario: Scenario, n: int, config: SafetyConfig):
+        self.n = n
+        dyn = scenario.dynamics
+        self.scene = CollisionScene(scenario, n)
+        self.checker = SweepChecker(self.scene.object_parts, scenario.robot_radius, scenario.arena,
+                                    dyn, config.postcheck_margin)
+        pi, pj = np.triu_indices(n, 1)
+        p = len(pi)
+        self.num_barrier = p + 5 * n
+        robots = np.arange(n)
+        # COO pattern: pair rows (4 entries), object rows (2), wall rows (1), box (1), diagonals (2).
+        rows = [np.repeat(np.arange(p), 4), np.repeat(p + robots, 2),
+                p + n + np.arange(4 * n), self.num_barrier + np.arange(2 * n),
+                np.repeat(self.num_barrier + 2 * n + np.arange(2 * n), 2)]
+        cols = [np.stack([2 * pi, 2 * pi + 1, 2 * pj, 2 * pj + 1], 1).ravel(),
+                np.stack([2 * robots, 2 * robots + 1], 1).ravel(),
+                (2 * robots[:, None] + np.array([0, 0, 1, 1])).ravel(),
+                np.arange(2 * n),
+                np.repeat(2 * robots, 4) + np.tile([0, 1, 0, 1], n)]
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        self.wall_values = np.tile([1.0, -1.0, 1.0, -1.0], n)
+        self.const_values = np.concatenate([self.wall_values, np.ones(2 * n),
+                                            np.tile([1.0, 1.0, 1.0, -1.0], n)])
+        nnz = len(rows)
+        coo = sp.coo_matrix((np.arange(1, nnz + 1, dtype=np.float64), (rows, cols)),
+                            shape=(self.num_barrier + 4 * n, 2 * n))
+        csc = coo.tocsc()
+        self.perm = csc.data.astype(np.int64) - 1          # CSC slot -> COO entry
+        self.a_box = octagon_accel(dyn, config)
+        limits = np.concatenate([np.full(2 * n, self.a_box), np.full(2 * n, math.sqrt(2) * self.a_box)])
+        self.lower = np.concatenate([np.zeros(self.num_barrier), -limits])
+        self.upper = np.concatenate([np.full(self.num_barrier, np.inf), limits])
+        self.solver = osqp.OSQP()
+        csc.data = self._ax(np.ones((p, 2)), np.ones((n, 2)))
+        self.solver.setup(sp.identity(2 * n, format="csc") * 2.0, np.zeros(2 * n), csc,
+                          self.lower, self.upper, eps_abs=config.eps, eps_rel=config.eps,
+                          max_iter=config.max_iter, polishing=True, warm_starting=True,
+                          verbose=False)
+
+    def _ax(self, pair_normal: np.ndarray, object_normal: np.ndarray) -> np.ndarray:
+        values = np.concatenate([np.concatenate([pair_normal, -pair_normal], 1).ravel(),
+                                 object_normal.ravel(), self.const_values])
+        return values[self.perm]
+
+    def solve(self, terms: BarrierTerms, a_nom: np.ndarray,
+              tighten: float) -> tuple[np.ndarray | None, str]:
+        """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row."""
+        self.lower[:self.num_barrier] = terms.bound + tighten
+        self.solver.update(q=-2.0 * a_nom.ravel(), l=self.lower, u=self.upper,
+                           Ax=self._ax(terms.pair_normal, terms.object_normal))
+        res = self.solver.solve(raise_error=False)
+        if res.info.status != "solved":
+            return None, res.info.status
+        if res.x is None or not np.all(np.isfinite(res.x)):
+            return None, "solved but not finite"
+        u = res.x.reshape(self.n, 2)
+        if np.any(terms.rows_times(u) < terms.bound - _ROW_CHECK_TOL):
+            return None, "solved but a barrier row is violated"
+        return u, res.info.status
+
+
+class SafetyFilter:
+    """Make nominal accelerations safe for the robots of ``scenario`` (any robot count N).
+
+    Usage::
+
+        safety = SafetyFilter(scenario)
+        result = safety.filter(pos, vel, a_nom)        # (N, 2) each -> SafetyResult
+        fleet.send_accelerations(result.a_safe)
+    """
+
+    def __init__(self, scenario: Scenario, config: SafetyConfig | None = None):
+        self.scenario = scenario
+        self.config = config or SafetyConfig()
+        self.dynamics = scenario.dynamics
+        self._problems: dict[int, _Problem] = {}
+        self._object_pose: np.ndarray | None = None
+
+    def problem(self, n: int) -> _Problem:
+        """The cached problem for N robots (built on first use)."""
+        if n not in self._problems:
+            self._problems[n] = _Problem(self.scenario, n, self.config)
+        return self._problems[n]
+
+    def distances(self, pos: np.ndarray, object_pose: np.ndarray | None = None) -> SceneDistances:
+        """Signed distances of (N, 2) centres with the configured geometry backend."""
+        prob = self.problem(len(pos))
+        prob.scene.update(pos, object_pose)
+        if self.config.geometry == "fcl":
+            return prob.scene.distances()
+        return analytic_distances(pos, self.scenario.robot_radius, self.scenario.arena,
+                                  prob.scene.polygon)
+
+    def barrier(self, pos: np.ndarray, vel: np.ndarray,
+                object_pose: np.ndarray | None = None) -> BarrierTerms:
+        """Barrier values and rows at (pos, vel), each (N, 2) [m, m/s]."""
+        return barrier_terms(self.distances(pos, object_pose), vel, self.dynamics, self.config)
+
+    def filter(self, pos: np.ndarray, vel: np.ndarray, a_nom: np.ndarray,
+               object_pose: np.ndarray | None = None) -> SafetyResult:
+        """Safe accelerations for positions [m], velocities [m/s] and nominal accelerations [m/s^2].
+
+        Args:
+            pos, vel, a_nom: (N, 2) arrays.
+            object_pose: optional (3,) object centroid x, y [m] and heading [rad]; the object is
+                treated as static within the tick.
+        """
+        start = time.perf_counter()
+        pos, vel, a_nom = (np.asarray(x, dtype=np.float64) for x in (pos, vel, a_nom))
+        n = len(pos)
+        for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom)):
+            if arr.ndim != 2 or arr.shape != (n, 2):
+                raise ValueError(f"SafetyFilter.filter: {name} must have shape (num_robots, 2) = "
+                                 f"({n}, 2), got {arr.shape}")
+        if n == 0:
+            return SafetyResult(np.zeros((0, 2)), SafetyStatus.UNCHANGED, total_time_s=0.0)
+        finite = [name for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom))
+                  if not np.all(np.isfinite(arr))]
+        if object_pose is not None and not np.all(np.isfinite(object_pose)):
+            finite.append("object_pose")
+        if finite:
+            return self._brake_all(vel, f"non-finite input in {', '.join(finite)}", start)
+
+        dist = self.distances(pos, object_pose)
+        with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
+            terms = barrier_terms(dist, vel, self.dynamics, self.config)
+        if not (np.all(np.isfinite(terms.bound)) and np.all(np.isfinite(terms.h))):
+            return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
+                                   dist)
+        prob = self._problems[n]
+        nominal = clip_norm(a_nom, self.dynamics.accel_limit)
+        status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
+        if np.all(terms.rows_times(nominal) >= terms.bound):
+            a = nominal
+        else:
+            t_solve = time.perf_counter()
+            a, osqp_status = prob.solve(terms, nominal, self.config.tighten)
+            status = SafetyStatus.INTERVENED
+            if a is None:
+                a, slack, reason = self._slack_qp(terms, nominal, prob)
+                reason = f"OSQP: {osqp_status}; {reason}"
+                status = SafetyStatus.SLACK
+            solve_time = time.perf_counter() - t_solve
+            if a is None:
+                return self._brake_all(vel, reason, start, dist, terms, solve_time)
+            a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
+        braked = np.zeros(n, dtype=bool)
+        contact = np.zeros(n, dtype=bool)
+        if self.config.postcheck:
+            check = prob.checker.check(pos, vel, a, dist.object_distance)
+            a, braked, contact = check.acc, check.braked, check.contact
+            if braked.any():
+                status = SafetyStatus.FALLBACK_BRAKE
+                reason = (reason + "; " if reason else "") + (
+                    f"post-check braked robots {np.flatnonzero(braked).tolist()}")
+        return SafetyResult(a_safe=a, status=status, reason=reason, braked=braked, contact=contact,
+                            min_barrier=float(terms.h.min()), min_clearance=dist.min_clearance(),
+                            max_slack=slack, solve_time_s=solve_time,
+                            total_time_s=time.perf_counter() - start)
+
+    # ------------------------------------------------------------------ fallbacks
+    def _slack_qp(self, terms: BarrierTerms, nominal: np.ndarray,
+                  prob: _Problem) -> tuple[np.ndarray | None, float, str]:
+        """Barrier rows softened by slack variables, solved exactly by DAQP (see module docstring)."""
+        n, k = prob.n, prob.num_barrier
+        a_rows = terms.dense(n)
+        weight = self.config.slack_weight
+        p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), np.full(k, weight)]))
+        q_vec = np.concatenate([-2.0 * nominal.ravel(), np.zeros(k)])
+        diag = np.zeros((2 * n, 2 * n))
+        robots = np.arange(n)
+        diag[2 * robots, 2 * robots] = diag[2 * robots, 2 * robots + 1] = 1.0
+        diag[2 * robots + 1, 2 * robots] = 1.0
+        diag[2 * robots + 1, 2 * robots + 1] = -1.0
+        g_mat = np.block([[-a_rows, -np.eye(k)],
+                          [diag, np.zeros((2 * n, k))],
+                          [-diag, np.zeros((2 * n, k))]])
+        limit = math.sqrt(2) * prob.a_box
+        h_vec = np.concatenate([-(terms.bound + self.config.tighten), np.full(4 * n, limit)])
+        lb = np.concatenate([np.full(2 * n, -prob.a_box), np.zeros(k)])
+        ub = np.concatenate([np.full(2 * n, prob.a_box), np.full(k, np.inf)])
+        try:
+            x = qpsolvers.solve_qp(p_mat, q_vec, g_mat, h_vec, lb=lb, ub=ub, solver="daqp")
+        except Exception as exc:  # any solver failure means: brake, and the reason says why
+            return None, 0.0, f"DAQP raised {type(exc).__name__}: {exc}"
+        if x is None or not np.all(np.isfinite(x)):
+            return None, 0.0, "DAQP found no solution"
+        u, sigma = x[:2 * n].reshape(n, 2), x[2 * n:]
+        if np.any(np.abs(u) > prob.a_box + 1e-6):
+            return None, 0.0, "DAQP answer outside the actuator limits"
+        return u, float(sigma.max(initial=0.0)), "slack QP (DAQP)"
+
+    def _brake_all(self, vel: np.ndarray, reason: str, start: float,
+                   dist: SceneDistances | None = None, terms: BarrierTerms | None = None,
+                   solve_time: float = 0.0) -> SafetyResult:
+        n = len(vel)
+        return SafetyResult(
+            a_safe=braking_acceleration(vel, self.dynamics), status=SafetyStatus.FALLBACK_BRAKE,
+            reason=reason, braked=np.ones(n, dtype=bool), contact=np.zeros(n, dtype=bool),
+            min_barrier=float(terms.h.min()) if terms is not None else math.nan,
+            min_clearance=dist.min_clearance() if dist is not None else math.nan,
+            solve_time_s=solve_time, total_time_s=time.perf_counter() - start)
