@@ -1,0 +1,120 @@
+"""Shared helpers of the benchmark scripts: thread set-up, timing, progress, table and JSON output.
+
+Every benchmark prints a human-readable table by default and, with ``--json``, exactly one JSON
+document on stdout; progress lines always go to stderr so that ``--json`` output can be piped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+
+def positive_int_list(text: str) -> list[int]:
+    """argparse type: ``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be a positive integer."""
+    items = [part.strip() for part in text.split(",") if part.strip()]
+    if not items:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of positive integers, got {text!r}")
+    values = []
+    for item in items:
+        if not item.isdigit() or int(item) < 1:
+            raise argparse.ArgumentTypeError(
+                f"{item!r} is not a positive integer (expected e.g. '1,64,1024')")
+        values.append(int(item))
+    return values
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a single positive integer."""
+    if not text.strip().isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return int(text)
+
+
+def add_output_args(parser: argparse.ArgumentParser) -> None:
+    """``--json`` and ``--threads``, the options every benchmark shares."""
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON document on stdout instead of the table")
+    parser.add_argument("--threads", type=positive_int, default=1,
+                        help="torch intra-op threads for every measured run (default: 1, the "
+                             "stable choice on a shared machine; the value is printed and saved)")
+
+
+def set_threads(threads: int) -> int:
+    """Set torch's intra-op thread count and return the value torch reports back."""
+    torch.set_num_threads(threads)
+    return torch.get_num_threads()
+
+
+def progress(message: str) -> None:
+    """One progress line on stderr (stdout is reserved for the result)."""
+    print(message, file=sys.stderr, flush=True)
+
+
+def median_rates(steppers: dict[str, Callable[[int], Any]], *, steps: int, repeats: int,
+                 warmup: int, items_per_call: int) -> dict[str, float]:
+    """Median over ``repeats`` timed runs of ``items_per_call * steps / seconds`` for each stepper.
+
+    ``step(k)`` performs one call (``k`` counts that stepper's calls from 0, for cycling a bank
+    of inputs). Each stepper first gets ``warmup`` untimed calls; then the repeats are
+    interleaved (repeat 1 of every stepper, then repeat 2, ...) so that a change of machine load
+    during the run affects all of them alike. Returns items per second (e.g. env-steps/s).
+    """
+    if steps < 1 or repeats < 1 or warmup < 0:
+        raise ValueError(f"steps and repeats must be >= 1 and warmup >= 0, got "
+                         f"steps={steps}, repeats={repeats}, warmup={warmup}")
+    calls = dict.fromkeys(steppers, 0)
+    for name, step in steppers.items():
+        for _ in range(warmup):
+            step(calls[name])
+            calls[name] += 1
+    rates: dict[str, list[float]] = {name: [] for name in steppers}
+    for _ in range(repeats):
+        for name, step in steppers.items():
+            k0 = calls[name]
+            start = time.perf_counter()
+            for k in range(k0, k0 + steps):
+                step(k)
+            elapsed = time.perf_counter() - start
+            calls[name] = k0 + steps
+            rates[name].append(items_per_call * steps / max(elapsed, 1e-12))
+    return {name: statistics.median(values) for name, values in rates.items()}
+
+
+def format_rate(value: float) -> str:
+    """Readable rate: ``1234567.0`` -> ``'1.23M'``."""
+    if not math.isfinite(value):
+        return "-"
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:.3g}{suffix}"
+    return f"{value:.3g}"
+
+
+def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], file=None) -> None:
+    """Print ``rows`` under ``headers`` as aligned columns (right-aligned except the first)."""
+    file = file if file is not None else sys.stdout
+    cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+
+    def line(row: Sequence[str]) -> str:
+        return "  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                         for i, (c, w) in enumerate(zip(row, widths, strict=True)))
+
+    print(line(cells[0]), file=file)
+    print("  ".join("-" * w for w in widths), file=file)
+    for row in cells[1:]:
+        print(line(row), file=file)
+
+
+def print_json(document: dict[str, Any]) -> None:
+    """The result document on stdout, one line, nothing else."""
+    print(json.dumps(document), flush=True)
