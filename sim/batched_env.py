@@ -146,8 +146,8 @@ class BatchedFormationEnv:
         """Observations of the current state: tokens and mask, or ``(flat, None)``."""
         if self.obs_kind == "flat":
             return observations.flat(self.pos, self.vel, self.targets), None
-        frame = self._frame if self._frame is not None else Frame(self.pos, self.targets, self.polygon)
-        return observations.frame_tokens(frame, self.vel, self.arena, self.centroid)
+        frame = self._frame if self._frame is not None else Frame(self.pos, self.vel, self.targets, self.polygon)
+        return observations.frame_tokens(frame, self.arena, self.centroid)
 
     def state(self) -> dict[str, torch.Tensor]:
         """Copies of the raw state: ``pos``, ``vel``, ``targets`` (E, N, 2) and ``t`` (E,)."""
@@ -184,7 +184,7 @@ class BatchedFormationEnv:
         vel = torch.where(hit_wall_axis, torch.zeros_like(vel), vel)
         self.pos, self.vel = inside, vel
 
-        frame = Frame(self.pos, self.targets, self.polygon)
+        frame = Frame(self.pos, self.vel, self.targets, self.polygon)
         events = frame_collisions(frame, self.radius, self.arena)
         events.wall = events.wall | hit_wall_axis.any(-1)
         contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)

@@ -7,6 +7,8 @@ broadcasting over a trailing dimension of size 2.
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 import torch
 
@@ -30,12 +32,18 @@ class Polygon:
         self.inv_len2 = 1.0 / (self.ex * self.ex + self.ey * self.ey)
         cross_next = self.ex * torch.roll(self.ey, -1) - self.ey * torch.roll(self.ex, -1)
         self.convex_ccw = bool((cross_next > 0).all())
+        lo, hi = vertices.min(0).values, vertices.max(0).values
+        on_box = ((vertices == lo) | (vertices == hi)).all(-1)
+        self.axis_aligned_box = len(vertices) == 4 and self.convex_ccw and bool(on_box.all())
+        self.box_center, self.box_half = (lo + hi) / 2, (hi - lo) / 2
 
     def signed_distance_xy(self, px: torch.Tensor, py: torch.Tensor):
         """Signed distance and nearest boundary point of points given as x and y planes (...,).
 
         Returns ``(signed (...,), nearest_x (...,), nearest_y (...,))``.
         """
+        if self.axis_aligned_box:
+            return self._box_distance_xy(px, py)
         rx = px.unsqueeze(-1) - self.ax            # (..., M)
         ry = py.unsqueeze(-1) - self.ay
         t = ((rx * self.ex + ry * self.ey) * self.inv_len2).clamp_(0.0, 1.0)
@@ -55,6 +63,27 @@ class Polygon:
         ny = self.ay[idx] + ti * self.ey[idx]
         dist = d2min.sqrt()
         return torch.where(inside, -dist, dist), nx, ny
+
+
+    def _box_distance_xy(self, px: torch.Tensor, py: torch.Tensor):
+        """Closed form for an axis-aligned box: with ``q = |p - c| - h`` (per axis),
+        ``sd = |max(q, 0)| + min(max(q_x, q_y), 0)``; the nearest point is ``p`` clamped to the box
+        outside, and ``p`` moved onto the nearer side inside."""
+        cx, cy = self.box_center[0], self.box_center[1]
+        hx, hy = self.box_half[0], self.box_half[1]
+        rx, ry = px - cx, py - cy
+        qx, qy = rx.abs() - hx, ry.abs() - hy
+        ox, oy = qx.clamp_min(0), qy.clamp_min(0)
+        inner = torch.maximum(qx, qy).clamp_max(0)
+        sd = (ox * ox + oy * oy).sqrt() + inner
+        nx = rx.clamp(-hx, hx)
+        ny = ry.clamp(-hy, hy)
+        inside = inner < 0
+        snap_x = inside & (qx >= qy)
+        snap_y = inside & (qx < qy)
+        nx = torch.where(snap_x, torch.copysign(hx.expand_as(rx), rx), nx)
+        ny = torch.where(snap_y, torch.copysign(hy.expand_as(ry), ry), ny)
+        return sd, nx + cx, ny + cy
 
 
 def closest_point_on_polygon(points: torch.Tensor, poly: torch.Tensor | Polygon):
@@ -97,20 +126,41 @@ def wall_clearance(pos: torch.Tensor, arena: tuple[float, float]) -> torch.Tenso
 class Frame:
     """The geometry of one instant, computed once and shared by collisions, reward and tokens.
 
-    Attributes (E environments, N robots; ``[e, i, j]`` is seen from robot i):
-        px, py: (E, N) robot centres [m].
-        rx, ry, d_rr: (E, N, N) other robot j relative to robot i, ``q_j - p_i``, and its norm.
-        gx, gy, d_rg: (E, N, N) target k relative to robot i, ``g_k - p_i``, and its norm.
+    Attributes (E environments, N robots; ``[e, i, ...]`` is seen from robot i):
+        pos: (E, N, 2) robot centres [m]; px, py: its (E, N) planes.
+        state: (E, N, 4) ``[p, v]`` per robot.
+        others: (E, N, N-1, 4) ``[q_j - p_i, u_j - v_i]`` for the other robots j != i, ascending j.
+        others_d2: (E, N, N-1) squared centre distance to each other robot [m^2].
+        g: (E, N, N, 2) target k relative to robot i, ``g_k - p_i``; d_rg: (E, N, N) its norm.
         obj_sd: (E, N) signed distance of the centre to the object [m] (negative inside).
         obj_nx, obj_ny: (E, N) the object's nearest boundary point [m].
     """
 
-    def __init__(self, pos: torch.Tensor, targets: torch.Tensor, polygon: Polygon):
+    def __init__(self, pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor, polygon: Polygon):
+        e, n, _ = pos.shape
+        self.pos = pos
         self.px, self.py = pos[..., 0], pos[..., 1]
-        self.rx = self.px.unsqueeze(-2) - self.px.unsqueeze(-1)
-        self.ry = self.py.unsqueeze(-2) - self.py.unsqueeze(-1)
-        self.d_rr = (self.rx * self.rx + self.ry * self.ry).sqrt()
-        self.gx = targets[..., 0].unsqueeze(-2) - self.px.unsqueeze(-1)
-        self.gy = targets[..., 1].unsqueeze(-2) - self.py.unsqueeze(-1)
-        self.d_rg = (self.gx * self.gx + self.gy * self.gy).sqrt()
+        self.state = torch.cat((pos, vel), -1)
+        if n > 1:
+            idx = others_flat_index(n, pos.device)
+            self.others = self.state.index_select(1, idx).view(e, n, n - 1, 4) - self.state.unsqueeze(2)
+        else:
+            self.others = self.state.new_zeros(e, n, 0, 4)
+        ox, oy = self.others[..., 0], self.others[..., 1]
+        self.others_d2 = ox * ox + oy * oy
+        self.g = targets.unsqueeze(1) - pos.unsqueeze(2)
+        gx, gy = self.g[..., 0], self.g[..., 1]
+        self.d_rg = (gx * gx + gy * gy).sqrt()
         self.obj_sd, self.obj_nx, self.obj_ny = polygon.signed_distance_xy(self.px, self.py)
+
+
+def others_index(n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """(N, N-1) indices of the other robots for each robot, ascending."""
+    idx = torch.arange(n, device=device)
+    keep = ~torch.eye(n, dtype=torch.bool, device=device)
+    return idx.unsqueeze(0).expand(n, n)[keep].view(n, n - 1)
+
+
+@cache
+def others_flat_index(n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    return others_index(n, device).reshape(-1)

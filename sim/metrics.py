@@ -46,15 +46,14 @@ def collision_events(pos: torch.Tensor, poly: torch.Tensor | Polygon, radius: fl
     """Collisions of (E, N, 2) robot centres with each other, the object polygon (M, 2) and walls."""
     if not isinstance(poly, Polygon):
         poly = Polygon(poly.to(pos))
-    return frame_collisions(Frame(pos, pos, poly), radius, arena, eps)
+    return frame_collisions(Frame(pos, torch.zeros_like(pos), pos, poly), radius, arena, eps)
 
 
 def frame_collisions(frame: Frame, radius: float, arena: tuple[float, float],
                      eps: float = CONTACT_EPS) -> CollisionEvents:
     """Collision events of a precomputed :class:`sim.geometry.Frame` (see the module docstring)."""
-    n = frame.d_rr.shape[-1]
-    close = frame.d_rr < 2 * radius - eps
-    close &= ~torch.eye(n, dtype=torch.bool, device=close.device)
+    contact = 2 * radius - eps
+    close = frame.others_d2 < contact * contact
     lim = radius - eps
     wall = (frame.px < lim) | (frame.py < lim) | (frame.px > arena[0] - lim) | (frame.py > arena[1] - lim)
     return CollisionEvents(robot=close.any(-1), object=frame.obj_sd < lim, wall=wall)

@@ -8,6 +8,8 @@ from hypothesis import strategies as st
 from sim.geometry import Polygon, closest_point_on_polygon, pairwise_distances
 
 BOX = torch.tensor([[0.4, 0.35], [0.6, 0.35], [0.6, 0.65], [0.4, 0.65]], dtype=torch.float64)
+L_SHAPE = torch.tensor([[0.2, 0.2], [0.8, 0.2], [0.8, 0.4], [0.4, 0.4], [0.4, 0.8], [0.2, 0.8]],
+                       dtype=torch.float64)
 
 
 def test_box_signed_distance_by_hand():
@@ -25,21 +27,41 @@ def test_box_signed_distance_by_hand():
 def _generic(poly: torch.Tensor) -> Polygon:
     p = Polygon(poly)
     p.convex_ccw = False      # force the crossing-number path
+    p.axis_aligned_box = False
     return p
+
+
+def _convex(poly: torch.Tensor) -> Polygon:
+    p = Polygon(poly)
+    p.axis_aligned_box = False   # force the half-plane path
+    return p
+
+
+def test_default_box_takes_the_closed_form():
+    assert Polygon(BOX).axis_aligned_box
+    assert not Polygon(L_SHAPE).axis_aligned_box
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0, 1), st.floats(0, 1))
+def test_box_closed_form_matches_the_general_projection(x, y):
+    pts = torch.tensor([[x, y]], dtype=torch.float64)
+    box = Polygon(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
+    gen = _convex(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
+    assert torch.allclose(box[0], gen[0], atol=1e-12)
+    # the nearest point may differ only where two sides are equally near (inside, on a diagonal)
+    nb = torch.stack(box[1:]).squeeze(-1)
+    assert torch.allclose(((nb - pts[0]) ** 2).sum().sqrt(), box[0].abs(), atol=1e-12)
 
 
 @settings(max_examples=200, deadline=None)
 @given(st.floats(0, 1), st.floats(0, 1))
 def test_convex_fast_path_matches_crossing_number(x, y):
     pts = torch.tensor([[x, y]], dtype=torch.float64)
-    fast = Polygon(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
+    fast = _convex(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
     slow = _generic(BOX).signed_distance_xy(pts[:, 0], pts[:, 1])
     for a, b in zip(fast, slow, strict=True):
         assert torch.allclose(a, b)
-
-
-L_SHAPE = torch.tensor([[0.2, 0.2], [0.8, 0.2], [0.8, 0.4], [0.4, 0.4], [0.4, 0.8], [0.2, 0.8]],
-                       dtype=torch.float64)
 
 
 def test_non_convex_polygon():
