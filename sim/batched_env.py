@@ -224,5 +224,5 @@ class BatchedFormationEnv:
 
 def _clip_norm(x: torch.Tensor, limit: float) -> torch.Tensor:
     """Scale each (..., 2) vector down to norm <= limit (direction kept)."""
-    norm = torch.linalg.vector_norm(x, dim=-1, keepdim=True)
+    norm = (x * x).sum(-1, keepdim=True).sqrt()
     return x * (limit / norm.clamp_min(limit))

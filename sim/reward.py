@@ -45,11 +45,23 @@ def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: Collision
 def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: float,
                           weights: RewardWeights = RewardWeights()) -> torch.Tensor:
     """(E, N robots, N targets) distances -> (E, N) per-robot reward (see the module docstring)."""
-    to_target = d.min(-2).values                           # (E, N targets)
-    to_robot = d.min(-1).values                            # (E, N robots)
+    to_target = _min_over(d, -2)                           # (E, N targets)
+    to_robot = _min_over(d, -1)                            # (E, N robots)
     cover = 0.5 * (to_target.mean(-1) + to_robot.mean(-1))  # (E,)
     arrived = (to_target <= tolerance).float().mean(-1)    # (E,)
     team = -weights.w_dist * cover + weights.w_arrive * arrived
     own = (weights.w_robot * events.robot.float() + weights.w_object * events.object.float()
            + weights.w_wall * events.wall.float())
     return team.unsqueeze(-1) - own
+
+
+def _min_over(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x.min(dim).values`` as a chain of elementwise minima: for the small N of this task that
+    is several times faster on the CPU than a reduction over a short dimension."""
+    if x.shape[dim] > 8:
+        return x.min(dim).values
+    parts = x.unbind(dim)
+    out = parts[0]
+    for p in parts[1:]:
+        out = torch.minimum(out, p)
+    return out

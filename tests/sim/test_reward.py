@@ -36,3 +36,13 @@ def test_reward_is_maximal_when_every_target_is_held():
     targets = torch.tensor([[[0.3, 0.3], [0.3, 0.5], [0.3, 0.7]]])
     ev = collision_events(targets, POLY, 0.04, (1.0, 1.0))
     assert formation_reward(targets, targets, ev, 0.05)[0].tolist() == pytest.approx([0.1] * 3)
+
+
+def test_min_over_matches_torch_min():
+    from sim.reward import _min_over
+
+    x = torch.rand(7, 5, 5, generator=torch.Generator().manual_seed(0))
+    for dim in (-1, -2):
+        assert torch.equal(_min_over(x, dim), x.min(dim).values)
+    big = torch.rand(2, 12, 12)
+    assert torch.equal(_min_over(big, -1), big.min(-1).values)
