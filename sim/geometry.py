@@ -131,25 +131,33 @@ class Frame:
         state: (E, N, 4) ``[p, v]`` per robot.
         others: (E, N, N-1, 4) ``[q_j - p_i, u_j - v_i]`` for the other robots j != i, ascending j.
         others_d2: (E, N, N-1) squared centre distance to each other robot [m^2].
-        g: (E, N, N, 2) target k relative to robot i, ``g_k - p_i``; d_rg: (E, N, N) its norm.
+        target_tokens: (E, N, N, 4) ``[g_k - p_i, 0, 0]`` for target k; d_rg: (E, N, N) ``|g_k - p_i|``.
         obj_sd: (E, N) signed distance of the centre to the object [m] (negative inside).
         obj_nx, obj_ny: (E, N) the object's nearest boundary point [m].
     """
 
     def __init__(self, pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor, polygon: Polygon):
+        # Differences are taken between two index_select gathers of the same shape: on the CPU
+        # that is ~2x faster than broadcasting over the small robot dimensions.
         e, n, _ = pos.shape
         self.pos = pos
         self.px, self.py = pos[..., 0], pos[..., 1]
         self.state = torch.cat((pos, vel), -1)
         if n > 1:
-            idx = others_flat_index(n, pos.device)
-            self.others = self.state.index_select(1, idx).view(e, n, n - 1, 4) - self.state.unsqueeze(2)
+            idx, rep = others_flat_index(n, pos.device)
+            self.others = (self.state.index_select(1, idx) - self.state.index_select(1, rep)).view(e, n, n - 1, 4)
         else:
             self.others = self.state.new_zeros(e, n, 0, 4)
         ox, oy = self.others[..., 0], self.others[..., 1]
         self.others_d2 = ox * ox + oy * oy
-        self.g = targets.unsqueeze(1) - pos.unsqueeze(2)
-        gx, gy = self.g[..., 0], self.g[..., 1]
+        tile, row = target_flat_index(n, pos.device)
+        pos4 = torch.nn.functional.pad(pos, (0, 2))
+        if targets.dim() == 3 and targets.stride(0) == 0:      # one target set for every env
+            tgt4 = torch.nn.functional.pad(targets[0], (0, 2)).index_select(0, tile)
+        else:
+            tgt4 = torch.nn.functional.pad(targets, (0, 2)).index_select(1, tile)
+        self.target_tokens = (tgt4 - pos4.index_select(1, row)).view(e, n, n, 4)   # [g_k - p_i, 0, 0]
+        gx, gy = self.target_tokens[..., 0], self.target_tokens[..., 1]
         self.d_rg = (gx * gx + gy * gy).sqrt()
         self.obj_sd, self.obj_nx, self.obj_ny = polygon.signed_distance_xy(self.px, self.py)
 
@@ -162,5 +170,14 @@ def others_index(n: int, device: torch.device | str = "cpu") -> torch.Tensor:
 
 
 @cache
-def others_flat_index(n: int, device: torch.device | str = "cpu") -> torch.Tensor:
-    return others_index(n, device).reshape(-1)
+def others_flat_index(n: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat (N*(N-1),) indices: the other robot j and the robot i itself, row by row."""
+    rows = torch.arange(n, device=device).repeat_interleave(n - 1)
+    return others_index(n, device).reshape(-1), rows
+
+
+@cache
+def target_flat_index(n: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat (N*N,) indices: target k and robot i for every (i, k), row by row."""
+    ar = torch.arange(n, device=device)
+    return ar.repeat(n), ar.repeat_interleave(n)

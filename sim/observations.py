@@ -80,7 +80,7 @@ def frame_tokens(frame: Frame, arena: tuple[float, float],
     e, n = frame.px.shape
     offset = frame.state.new_tensor([arena[0] / 2, arena[1] / 2, 0.0, 0.0])
     self_tok = (frame.state - offset).unsqueeze(2)                                 # (E,N,1,4)
-    tgt_tok = torch.nn.functional.pad(frame.g, (0, 2))                              # (E,N,N,4)
+    tgt_tok = frame.target_tokens                                                 # (E,N,N,4)
     obj_tok = torch.stack((centroid[0] - frame.px, centroid[1] - frame.py,
                            frame.obj_nx - frame.px, frame.obj_ny - frame.py), -1).unsqueeze(2)
     toks = torch.cat((self_tok, tgt_tok, frame.others, obj_tok), 2)
