@@ -14,6 +14,10 @@ import sys
 COMMAND_MODULES = [
     "stack.commands.scenarios",
     "stack.commands.demo",
+    "stack.commands.export",
+    "stack.commands.fleet_sim",
+    "stack.commands.bridge",
+    "stack.commands.eval",
 ]
 
 DESCRIPTION = """\

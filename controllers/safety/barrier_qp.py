@@ -180,9 +180,11 @@ class SafetyFilter:
     def distances(self, pos: np.ndarray, object_pose: np.ndarray | None = None) -> SceneDistances:
         """Signed distances of (N, 2) centres with the configured geometry backend."""
         prob = self.problem(len(pos))
-        prob.scene.update(pos, object_pose)
         if self.config.geometry == "fcl":
+            prob.scene.update(pos, object_pose)
             return prob.scene.distances()
+        if object_pose is not None:      # the analytic backend only needs the posed polygon
+            prob.scene.update(pos, object_pose)
         return analytic_distances(pos, self.scenario.robot_radius, self.scenario.arena,
                                   prob.scene.polygon)
 

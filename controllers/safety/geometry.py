@@ -39,6 +39,7 @@ the barrier derivative needs it.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import fcl
@@ -146,37 +147,64 @@ def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- analytic oracle
+_EDGE_CACHE: dict[bytes, tuple[np.ndarray, ...]] = {}
+
+
+def _polygon_edges(poly: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-edge constants of an (M, 2) polygon as (1, M) rows, cached by the vertices' bytes
+    (the polygon is fixed between re-posings, so every tick reuses them)."""
+    key = poly.tobytes() + str(poly.shape).encode()
+    hit = _EDGE_CACHE.get(key)
+    if hit is None:
+        if len(_EDGE_CACHE) >= 64:
+            _EDGE_CACHE.clear()
+        ax, ay = poly[:, 0].copy(), poly[:, 1].copy()
+        bx, by = np.roll(ax, -1), np.roll(ay, -1)
+        ex, ey = bx - ax, by - ay
+        hit = tuple(row[None] for row in (ax, ay, by, ex, ey, ex * ex + ey * ey, np.where(ey == 0, 1.0, ey)))
+        _EDGE_CACHE[key] = hit
+    return hit
+
+
 def point_polygon(points: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact signed distance of (K, 2) points to a simple polygon (M, 2), negative inside.
 
-    Returns ``(signed (K,), nearest boundary point (K, 2), at_vertex (K,) bool)``.
+    Returns ``(signed (K,), nearest boundary point (K, 2), at_vertex (K,) bool)``. Each point is
+    projected onto every edge (clamped to the segment); inside is the crossing-number test.
+    Works on x and y planes of shape (K, M): for small K that is cheaper than (K, M, 2) arrays.
     """
-    a = poly[None]                                   # (1, M, 2)
-    e = np.roll(poly, -1, axis=0)[None] - a          # (1, M, 2)
-    rel = points[:, None, :] - a                     # (K, M, 2)
-    t = np.clip(np.sum(rel * e, -1) / np.sum(e * e, -1), 0.0, 1.0)
-    diff = rel - t[..., None] * e
-    d2 = np.sum(diff * diff, -1)
+    ax, ay, by, ex, ey, len2, ey_safe = _polygon_edges(poly)
+    px, py = points[:, 0, None], points[:, 1, None]
+    rx, ry = px - ax, py - ay                                        # (K, M)
+    t = np.clip((rx * ex + ry * ey) / len2, 0.0, 1.0)
+    dx, dy = rx - t * ex, ry - t * ey
+    d2 = dx * dx + dy * dy
     k = np.argmin(d2, axis=1)
     rows = np.arange(len(points))
-    nearest = a[0, k] + t[rows, k, None] * e[0, k]
     t_best = t[rows, k]
+    nearest = np.empty((len(points), 2))
+    nearest[:, 0] = ax[0, k] + t_best * ex[0, k]
+    nearest[:, 1] = ay[0, k] + t_best * ey[0, k]
     at_vertex = (t_best <= 0.0) | (t_best >= 1.0)
-    py = points[:, 1, None]
-    ay, by = poly[:, 1][None], np.roll(poly[:, 1], -1)[None]
     straddles = (ay > py) != (by > py)
-    ey = np.where(e[0, :, 1] == 0, 1.0, e[0, :, 1])[None]
-    x_cross = poly[:, 0][None] + (py - ay) * e[0, :, 0][None] / ey
-    inside = (np.sum(straddles & (points[:, 0, None] < x_cross), axis=1) % 2) == 1
+    x_cross = ax + ry * ex / ey_safe
+    inside = (np.count_nonzero(straddles & (px < x_cross), axis=1) % 2) == 1
     dist = np.sqrt(d2[rows, k])
     return np.where(inside, -dist, dist), nearest, at_vertex
+
+
+@functools.lru_cache(maxsize=64)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, cached and read-only."""
+    pi, pj = np.triu_indices(n, 1)
+    pi.flags.writeable = pj.flags.writeable = False
+    return pi, pj
 
 
 def analytic_distances(pos: np.ndarray, radius: float, arena: tuple[float, float],
                        polygon: np.ndarray) -> SceneDistances:
     """Closed-form :class:`SceneDistances` of (N, 2) disc centres, vectorised with numpy."""
-    n = len(pos)
-    pi, pj = np.triu_indices(n, 1)
+    pi, pj = _pairs(len(pos))
     normal, centre_dist = _unit(pos[pi] - pos[pj])
     pair_points = np.stack([pos[pi] - radius * normal, pos[pj] + radius * normal], axis=1)
     sd_centre, nearest, at_vertex = point_polygon(pos, polygon)

@@ -1,0 +1,337 @@
+"""Safety layer benchmark: forward invariance in pymunk, MEC tracking error, full-tick latency.
+
+(a) invariance: ``--episodes`` randomised pymunk episodes of ``--steps`` ticks. Each episode
+    draws N in 3..16 (``transport-N``), a model error (gain 0.7..1.0 per robot, actuator lag
+    0..0.05 s, floor friction 0..0.1 m/s^2, a constant disturbance up to 0.05 m/s^2 and white
+    disturbance 0.02 m/s^2 per axis), random robot positions with >= 0.03 m clearance and random
+    velocities scaled into the barrier's safe set ``h >= 0``. Every robot keeps one adversarial
+    mode: full thrust at its nearest neighbour, at the object, at the nearest wall, along a fixed
+    random direction, along a fresh random direction every tick, the scripted controller, or
+    (with ``--policy``) a trained policy. The ControlStack runs with the MEC on, once with the
+    safety filter and once without, on the same seed; an episode counts when the pymunk world
+    records at least one contact onset (robot, object or wall).
+(b) MEC: the scripted controller's commands, recorded on the nominal model (sim dynamics, no
+    error) from each episode's start, replayed open loop through pymunk with gain 0.7, lag
+    0.05 s and floor friction 0.1 m/s^2, with and without the MEC (filter off). Tracking error =
+    mean over ticks and robots of |p_pymunk - p_nominal| [m].
+(c) latency of ControlStack.tick (observe + policy + safety + MEC) for N robots, after warm-up,
+    one torch thread, on states of scripted-controller episodes in pymunk with model error; the
+    policy is the TorchScript of ``--policy`` or of an untrained typed SDPA actor. Parts are
+    reported too: policy (observe + network) and safety.
+
+Output: a table, or with ``--json`` one document
+``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...}}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import multiprocessing
+import sys
+import time
+from pathlib import Path
+
+_BENCH_DIR = Path(__file__).resolve().parent
+for _path in (_BENCH_DIR, _BENCH_DIR.parent):
+    if str(_path) not in sys.path:
+        sys.path.insert(0, str(_path))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from _common import (  # noqa: E402
+    add_output_args,
+    positive_int,
+    positive_int_list,
+    print_json,
+    print_table,
+    progress,
+    set_threads,
+)
+from tqdm import tqdm  # noqa: E402
+
+from controllers.safety import SafetyFilter, analytic_distances  # noqa: E402
+from controllers.scripted import ScriptedController  # noqa: E402
+from sim.fleet import FleetState  # noqa: E402
+from sim.pymunk_world import ModelError, PymunkWorld  # noqa: E402
+from sim.scenario import make_scenario, transport_scenario  # noqa: E402
+from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode  # noqa: E402
+
+WALL_DIRS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+MIN_ROBOTS, MAX_ROBOTS = 3, 16
+MEC_ERROR = ModelError(gain=0.7, lag_tau=0.05, floor_friction=0.1)
+MEC_COMMAND_LIMIT = 0.6   # [m/s^2] below gain 0.7 x accel_limit 1.0: within the actuator's reach
+
+
+# ------------------------------------------------------------------ (a) invariance
+class AdversarialPolicy:
+    """FleetState -> (N, 2): each robot follows its own adversarial mode (module docstring)."""
+
+    def __init__(self, scenario, rng: np.random.Generator, network=None):
+        n = scenario.num_robots
+        self.scenario, self.rng = scenario, rng
+        self.modes = rng.integers(0, 7 if network is not None else 6, n)
+        self.fixed = rng.normal(size=(n, 2))
+        self.scripted = ScriptedController(scenario)
+        self.network = ControlStack(scenario, network, StackConfig(safety=False, mec=False)) \
+            if network is not None else None
+
+    def reset(self) -> None:
+        self.scripted.reset()
+
+    def __call__(self, state: FleetState) -> np.ndarray:
+        pos, n = state.positions, state.num_robots
+        limit = self.scenario.dynamics.accel_limit
+        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1) + np.eye(n) * 1e9
+        walls = np.stack([pos[:, 0], self.scenario.arena[0] - pos[:, 0], pos[:, 1],
+                          self.scenario.arena[1] - pos[:, 1]], 1)
+        thrust = np.stack([pos[np.argmin(d, axis=1)] - pos, self.scenario.object_center - pos,
+                           WALL_DIRS[np.argmin(walls, axis=1)], self.fixed,
+                           self.rng.normal(size=(n, 2))])
+        thrust = thrust / np.maximum(np.linalg.norm(thrust, axis=-1, keepdims=True), 1e-12) * limit
+        out = thrust[np.minimum(self.modes, 4), np.arange(n)]
+        scripted = self.modes == 5
+        if scripted.any():
+            out[scripted] = self.scripted(state)[scripted]
+        if self.network is not None and (self.modes == 6).any():
+            out[self.modes == 6] = self.network.tick(state).a_nom[self.modes == 6]
+        return out
+
+
+def random_start(world: PymunkWorld, barrier: SafetyFilter, rng: np.random.Generator) -> FleetState:
+    """Random positions with >= 0.03 m clearance, random velocities scaled into h >= 0."""
+    sc = world.scenario
+    n, r = sc.num_robots, sc.robot_radius
+    pos = np.zeros((0, 2))
+    while len(pos) < n:
+        cand = np.vstack([pos, rng.uniform(r, 1 - r, (1, 2))])
+        if analytic_distances(cand, r, sc.arena, sc.polygon).min_clearance() >= 0.03:
+            pos = cand
+    vel = rng.normal(0.0, 0.15, (n, 2))
+    while barrier.barrier(pos, vel).h.min() < 0:
+        vel *= 0.8
+    world.set_state(pos, vel)
+    return world.read_state()
+
+
+_NETWORK_CACHE: dict = {}
+
+
+def invariance_episode(task: tuple[int, int, str | None]) -> dict:
+    """One seed, filter on and off: contacts and the filter's counters."""
+    seed, steps, policy_path = task
+    torch.set_num_threads(1)
+    network = None
+    if policy_path is not None:
+        if policy_path not in _NETWORK_CACHE:
+            _NETWORK_CACHE[policy_path] = load_policy(policy_path)
+        network = _NETWORK_CACHE[policy_path]
+    out = {"seed": seed}
+    for filt in (True, False):
+        rng = np.random.default_rng(seed)
+        n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
+        sc = transport_scenario(n)
+        angle = rng.uniform(0, 2 * math.pi)
+        me = ModelError(gain=0.85, gain_spread=0.15, lag_tau=float(rng.uniform(0, 0.05)),
+                        floor_friction=float(rng.uniform(0, 0.1)),
+                        disturbance=tuple(float(rng.uniform(0, 0.05)) * np.array([math.cos(angle), math.sin(angle)])),
+                        disturbance_std=0.02)
+        world = PymunkWorld(sc, me)
+        stack = ControlStack(sc, AdversarialPolicy(sc, rng, network), StackConfig(safety=filt, mec=True))
+        barrier = SafetyFilter(sc, stack.config.safety_config)
+        m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
+        key = "on" if filt else "off"
+        out["robots"] = n
+        out[f"collided_{key}"] = m.collided
+        if filt:
+            out.update(interventions=m.interventions, infeasible=m.infeasible, fallbacks=m.fallbacks)
+    return out
+
+
+def run_invariance(episodes: int, steps: int, workers: int, seed: int, policy: str | None) -> dict:
+    tasks = [(seed + k, steps, policy) for k in range(episodes)]
+    rows = []
+    bar = tqdm(total=episodes, desc="invariance", unit="ep", file=sys.stderr)
+    if workers > 1:
+        with multiprocessing.get_context("fork").Pool(workers) as pool:
+            for row in pool.imap_unordered(invariance_episode, tasks, chunksize=4):
+                rows.append(row)
+                bar.update()
+    else:
+        for task in tasks:
+            rows.append(invariance_episode(task))
+            bar.update()
+    bar.close()
+    on = [r["seed"] for r in rows if r["collided_on"]]
+    ticks = episodes * steps
+    return {"episodes": episodes, "steps": steps, "collisions_filter_on": len(on),
+            "collisions_filter_off": sum(r["collided_off"] for r in rows),
+            "collided_seeds_filter_on": sorted(on)[:20],
+            "intervened_tick_fraction": sum(r["interventions"] for r in rows) / ticks,
+            "infeasible_tick_fraction": sum(r["infeasible"] for r in rows) / ticks,
+            "fallback_tick_fraction": sum(r["fallbacks"] for r in rows) / ticks,
+            "robots": [MIN_ROBOTS, MAX_ROBOTS], "policy": policy or "adversarial+scripted"}
+
+
+# ------------------------------------------------------------------------ (b) MEC
+class Replay:
+    """Callable policy replaying a recorded (T, N, 2) command sequence by tick index."""
+
+    def __init__(self, commands: np.ndarray):
+        self.commands = commands
+
+    def __call__(self, state: FleetState) -> np.ndarray:
+        return self.commands[min(state.step, len(self.commands) - 1)]
+
+
+def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LIMIT) -> dict:
+    """Open-loop tracking error of the nominal trajectory (module docstring, part (b)).
+
+    ``command_limit`` [m/s^2] caps the recorded commands: a robot with gain g can realise a
+    command a only if a / g <= accel_limit, so the MEC can only compensate below g * accel_limit.
+    """
+    errors = {"without": [], "with": []}
+    for k in tqdm(range(episodes), desc=f"mec (|a| <= {command_limit})", unit="ep", file=sys.stderr):
+        sc = make_scenario(("paper-3", "paper-4", "paper-5")[k % 3])
+        start = PymunkWorld(sc).reset(seed=seed + k)
+        ctl = ScriptedController(dataclasses.replace(
+            sc, dynamics=dataclasses.replace(sc.dynamics, accel_limit=command_limit)))
+        pos, vel, nominal, commands = start.positions, start.velocities, [], []
+        for step in range(sc.dynamics.episode_steps):
+            state = FleetState(time=step * sc.dynamics.dt, step=step, positions=pos, velocities=vel,
+                               targets=start.targets, object_pose=start.object_pose)
+            commands.append(ctl(state))
+            pos, vel = nominal_step(pos, vel, commands[-1], sc.dynamics)
+            nominal.append(pos)
+        nominal = np.array(nominal)
+        for key, mec in (("without", False), ("with", True)):
+            world = PymunkWorld(sc, MEC_ERROR)
+            state = world.reset(seed=seed + k)
+            stack = ControlStack(sc, Replay(np.array(commands)), StackConfig(safety=False, mec=mec))
+            deviation = []
+            for t in range(len(commands)):
+                world.send_accelerations(stack.tick(state).a_cmd)
+                state = world.step()
+                deviation.append(np.linalg.norm(world.true_state().positions - nominal[t], axis=1).mean())
+            errors[key].append(float(np.mean(deviation)))
+    without, with_mec = float(np.mean(errors["without"])), float(np.mean(errors["with"]))
+    return {"tracking_error_without": without, "tracking_error_with": with_mec,
+            "reduction": 1.0 - with_mec / without if without > 0 else math.nan,
+            "episodes": episodes, "command_limit": command_limit,
+            "model_error": {"gain": 0.7, "lag_tau": 0.05, "floor_friction": 0.1}}
+
+
+# -------------------------------------------------------------------- (c) latency
+def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int) -> dict:
+    out = {}
+    for n in robot_counts:
+        sc = transport_scenario(n)
+        if policy is not None:
+            network = load_policy(policy, n)
+            if not isinstance(network, torch.jit.ScriptModule):
+                network = torch.jit.script(network)
+        else:
+            from controllers.policy import ActorConfig, build_actor
+
+            torch.manual_seed(seed)
+            network = torch.jit.script(build_actor(ActorConfig(), n).eval())
+        stack = ControlStack(sc, network)
+        world = PymunkWorld(sc, MEC_ERROR)
+        samples: dict[str, list[int]] = {"total": [], "policy": [], "safety": [], "mec": []}
+        intervened = 0
+        episode = 0
+        bar = tqdm(total=warmup + ticks, desc=f"latency N={n}", unit="tick", file=sys.stderr, leave=False)
+        count = 0
+        while count < warmup + ticks:
+            state = world.reset(seed=seed + episode)
+            stack.reset()
+            ctl = ScriptedController(sc)
+            episode += 1
+            for _ in range(sc.dynamics.episode_steps):
+                tick = stack.tick(state)
+                count += 1
+                bar.update()
+                if count > warmup:
+                    t = tick.timings_ns
+                    samples["total"].append(t["total"])
+                    samples["policy"].append(t["observe"] + t["policy"])
+                    samples["safety"].append(t["safety"])
+                    samples["mec"].append(t["mec"])
+                    intervened += tick.intervened
+                if count >= warmup + ticks:
+                    break
+                world.send_accelerations(ctl(state))
+                state = world.step()
+        bar.close()
+        row = {}
+        for part, values in samples.items():
+            ms = np.asarray(values) / 1e6
+            prefix = "" if part == "total" else f"{part}_"
+            row[f"{prefix}p50"] = float(np.percentile(ms, 50))
+            row[f"{prefix}p99"] = float(np.percentile(ms, 99))
+        row["ticks"] = ticks
+        row["intervened_fraction"] = intervened / ticks
+        out[str(n)] = row
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--episodes", type=positive_int, default=1000, help="invariance episodes (1000)")
+    parser.add_argument("--steps", type=positive_int, default=60, help="ticks per invariance episode (60)")
+    parser.add_argument("--workers", type=positive_int, default=2, help="processes for (a) (2)")
+    parser.add_argument("--mec-episodes", type=positive_int, default=12, help="episodes for (b) (12)")
+    parser.add_argument("--robots", type=positive_int_list, default=[3, 5, 10, 20],
+                        help="robot counts for (c) (3,5,10,20)")
+    parser.add_argument("--ticks", type=positive_int, default=1000, help="timed ticks per N for (c)")
+    parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per N for (c)")
+    parser.add_argument("--policy", default=None, help="checkpoint or TorchScript file (default: "
+                        "adversarial + scripted commands in (a), an untrained actor in (c))")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", choices=["invariance", "mec", "latency"], default=None,
+                        help="run one part only (the document then holds that key alone)")
+    add_output_args(parser)
+    args = parser.parse_args(argv)
+    if args.policy is not None and not Path(args.policy).is_file():
+        print(f"error: --policy {args.policy!r} does not exist", file=sys.stderr)
+        return 2
+    threads = set_threads(args.threads)
+    start = time.perf_counter()
+    doc: dict = {}
+    if args.only in (None, "latency"):
+        progress(f"(c) latency, N = {args.robots}, {threads} torch thread(s)")
+        doc["latency_ms"] = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed)
+    if args.only in (None, "mec"):
+        progress("(b) MEC tracking")
+        doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
+        doc["mec"]["saturated"] = mec_tracking(args.mec_episodes, args.seed, command_limit=1.0)
+    if args.only in (None, "invariance"):
+        progress(f"(a) invariance, {args.episodes} episodes x {args.steps} ticks, {args.workers} workers")
+        doc["invariance"] = run_invariance(args.episodes, args.steps, args.workers, args.seed, args.policy)
+    doc.update(threads=threads, wall_s=time.perf_counter() - start)
+    if args.json:
+        print_json(doc)
+        return 0
+    if "invariance" in doc:
+        inv = doc["invariance"]
+        print_table(["invariance", "episodes", "contact episodes, filter on", "filter off"],
+                    [["pymunk, MEC on", inv["episodes"], inv["collisions_filter_on"],
+                      inv["collisions_filter_off"]]])
+        print()
+    if "mec" in doc:
+        print_table(["MEC (gain 0.7, lag, friction)", "tracking error without [m]", "with [m]", "reduction"],
+                    [[f"commands <= {m['command_limit']} m/s^2", f"{m['tracking_error_without']:.4f}",
+                      f"{m['tracking_error_with']:.4f}", f"{m['reduction']:.0%}"]
+                     for m in (doc["mec"], doc["mec"]["saturated"])])
+        print()
+    if "latency_ms" in doc:
+        print_table(["robots", "tick p50 [ms]", "p99", "policy p50", "p99", "safety p50", "p99", "mec p50"],
+                    [[n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_p50", "policy_p99", "safety_p50",
+                                                    "safety_p99", "mec_p50"))]
+                     for n, r in doc["latency_ms"].items()])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,213 @@
+"""`formation eval`: judge a policy on a scenario, in the batched world or through the ControlStack in pymunk.
+
+* ``--world batched``: :func:`controllers.mappo.evaluate` (deterministic mean actions, no safety
+  filter, no MEC, no model error); the scripted controller runs there through a stack with both
+  stages off.
+* ``--world pymunk``: :func:`stack.pipeline.run_episode` with a :class:`stack.pipeline.ControlStack`
+  (safety filter and MEC on by default) in :class:`sim.pymunk_world.PymunkWorld` with
+  ``--model-error``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import ScenarioError, make_scenario
+
+MODEL_ERROR_FIELDS = {f.name for f in dataclasses.fields(ModelError)}
+
+
+class EvalArgumentError(ValueError):
+    """A bad command-line value; the message names the flag and the fix."""
+
+
+def parse_model_error(text: str | None) -> ModelError:
+    """``"gain=0.7,lag_tau=0.05,disturbance=0.1:0"`` -> :class:`ModelError` (x:y for the pair)."""
+    if not text:
+        return ModelError()
+    values: dict = {}
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        key, sep, raw = item.partition("=")
+        key = key.strip()
+        if not sep or key not in MODEL_ERROR_FIELDS:
+            raise EvalArgumentError(
+                f"--model-error: {item!r} is not FIELD=VALUE with FIELD one of {sorted(MODEL_ERROR_FIELDS)}")
+        try:
+            if key == "disturbance":
+                x, _, y = raw.partition(":")
+                values[key] = (float(x), float(y or 0.0))
+            elif key == "delay_ticks":
+                values[key] = int(raw)
+            else:
+                values[key] = float(raw)
+        except ValueError:
+            raise EvalArgumentError(f"--model-error: {key}={raw!r} is not a number"
+                                    + (" (disturbance is X:Y in m/s^2)" if key == "disturbance" else "")) from None
+    try:
+        return ModelError(**values)
+    except ValueError as exc:
+        raise EvalArgumentError(f"--model-error: {exc}") from None
+
+
+def on_off(text: str) -> bool:
+    if text not in ("on", "off"):
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected 'on' or 'off', got {text!r}")
+    return text == "on"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a checkpoint, TorchScript policy or the scripted controller",
+                       description=__doc__)
+    p.add_argument("policy_path", nargs="?", metavar="CKPT_OR_TORCHSCRIPT",
+                   help="a training checkpoint or a TorchScript policy file")
+    p.add_argument("--policy", choices=["scripted"], default=None,
+                   help="evaluate a built-in controller instead of a file")
+    p.add_argument("--scenario", default="paper-3", help="scenario preset or transport-N (default paper-3)")
+    p.add_argument("--world", choices=["batched", "pymunk"], default="batched",
+                   help="batched: training world, no safety/MEC; pymunk: ControlStack with model error")
+    p.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
+    p.add_argument("--steps", type=int, default=None, help="ticks per episode (default: the scenario's)")
+    p.add_argument("--safety", type=on_off, default=None, metavar="on|off",
+                   help="safety filter in the pymunk world (default on)")
+    p.add_argument("--mec", type=on_off, default=None, metavar="on|off",
+                   help="model error compensator in the pymunk world (default on)")
+    p.add_argument("--model-error", default=None, metavar="K=V,...",
+                   help="pymunk ModelError fields, e.g. gain=0.7,lag_tau=0.05,floor_friction=0.1,"
+                        "disturbance=0.1:0")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from stack.pipeline import StackError
+
+    try:
+        result = evaluate_from_args(args)
+    except (EvalArgumentError, ScenarioError, StackError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print_result(result)
+    if args.json is not None:
+        from controllers.mappo.evaluate import write_json_atomic
+
+        write_json_atomic(args.json, result)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def evaluate_from_args(args) -> dict:
+    """The result document of ``formation eval`` for parsed ``args`` (raises on bad input)."""
+    if (args.policy_path is None) == (args.policy is None):
+        raise EvalArgumentError("give either a policy file (CKPT_OR_TORCHSCRIPT) or --policy scripted, "
+                                "not both and not neither")
+    if args.episodes < 1:
+        raise EvalArgumentError(f"--episodes must be a positive integer, got {args.episodes}")
+    if args.steps is not None and args.steps < 1:
+        raise EvalArgumentError(f"--steps must be a positive integer, got {args.steps}")
+    scenario = make_scenario(args.scenario)
+    if args.policy_path is not None and not Path(args.policy_path).is_file():
+        raise EvalArgumentError(f"policy file {args.policy_path!r} does not exist; give a checkpoint "
+                                "or TorchScript file, or --policy scripted")
+    notes = []
+    if args.world == "batched":
+        ignored = [flag for flag, value in (("--safety", args.safety), ("--mec", args.mec),
+                                            ("--model-error", args.model_error)) if value is not None]
+        if ignored:
+            note = (f"{', '.join(ignored)} ignored: the batched world runs the policy alone with "
+                    "the nominal model; use --world pymunk for the safety filter, MEC and model error")
+            print(f"note: {note}", file=sys.stderr)
+            notes.append(note)
+        metrics = _batched(args, scenario)
+    else:
+        metrics = _pymunk(args, scenario, parse_model_error(args.model_error))
+    return {"scenario": scenario.name, "num_robots": scenario.num_robots, "world": args.world,
+            "policy": args.policy or str(args.policy_path), "episodes": args.episodes,
+            "seed": args.seed, **metrics, "notes": notes}
+
+
+def _batched(args, scenario) -> dict:
+    from stack.pipeline import ControlStack, StackConfig, load_policy
+
+    if args.policy == "scripted":
+        from controllers.scripted import ScriptedController
+        from sim.fleet import BatchedFleet
+
+        stack = ControlStack(scenario, ScriptedController(scenario), StackConfig(safety=False, mec=False))
+        return _episodes(args, BatchedFleet(scenario), stack, safety=False, mec=False)
+    from controllers.mappo.evaluate import evaluate
+
+    if args.steps is not None:
+        raise EvalArgumentError("--steps applies to --world pymunk (the batched world runs full episodes)")
+    actor = load_policy(args.policy_path, scenario.num_robots)
+    with torch.inference_mode():
+        result = evaluate(actor, scenario, episodes=args.episodes, seed=args.seed)
+    d = result.to_dict()
+    return {k: d[k] for k in ("success_rate", "final_distance", "collision_rate", "robot_collisions",
+                              "object_collisions", "wall_collisions", "episode_return")} | {
+        "safety": False, "mec": False, "model_error": None}
+
+
+def _pymunk(args, scenario, model_error: ModelError) -> dict:
+    from stack.pipeline import ControlStack, StackConfig, load_policy
+
+    safety = True if args.safety is None else args.safety
+    mec = True if args.mec is None else args.mec
+    if args.policy == "scripted":
+        from controllers.scripted import ScriptedController
+
+        policy = ScriptedController(scenario)
+    else:
+        policy = load_policy(args.policy_path, scenario.num_robots)
+    stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec))
+    world = PymunkWorld(scenario, model_error, seed=args.seed)
+    out = _episodes(args, world, stack, safety=safety, mec=mec)
+    out["model_error"] = dataclasses.asdict(model_error)
+    return out
+
+
+def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> dict:
+    from stack.pipeline import run_episode
+
+    torch.set_num_threads(1)
+    rows = [run_episode(fleet, stack, args.seed + k, args.steps)
+            for k in tqdm(range(args.episodes), desc="eval", unit="ep", file=sys.stderr, leave=False)]
+
+    def mean(name: str) -> float:
+        return float(np.mean([getattr(r, name) for r in rows]))
+
+    return {"success_rate": mean("success"), "final_distance": mean("final_distance"),
+            "collision_rate": mean("collided"), "robot_collisions": mean("robot_collisions"),
+            "object_collisions": mean("object_collisions"), "wall_collisions": mean("wall_collisions"),
+            "interventions_per_episode": mean("interventions"), "infeasible_per_episode": mean("infeasible"),
+            "fallbacks_per_episode": mean("fallbacks"), "braking_per_episode": mean("braking"),
+            "tracking_error_m": mean("tracking_error"),
+            "tick_p50_ms": float(np.median([r.p50_tick_ms for r in rows])),
+            "tick_p99_ms": float(np.max([r.p99_tick_ms for r in rows])),
+            "safety": safety, "mec": mec}
+
+
+def print_result(result: dict) -> None:
+    print(f"formation eval: {result['policy']} on {result['scenario']} (N={result['num_robots']}), "
+          f"{result['world']} world, {result['episodes']} episodes from seed {result['seed']}")
+    skip = {"scenario", "num_robots", "world", "policy", "episodes", "seed", "notes", "model_error"}
+    width = max(len(k) for k in result if k not in skip)
+    for key, value in result.items():
+        if key in skip:
+            continue
+        text = f"{value:.4f}" if isinstance(value, float) else str(value)
+        print(f"  {key:<{width}}  {text}")
+    if result.get("model_error"):
+        me = {k: v for k, v in result["model_error"].items() if v not in (0, 0.0, (0.0, 0.0), [0.0, 0.0])}
+        print(f"  {'model_error':<{width}}  {me or 'none'}")

@@ -1,0 +1,37 @@
+"""Smoke test of bench/safety.py: a tiny run prints one JSON document of the promised shape."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_safety_bench_json_shape():
+    out = subprocess.run(
+        [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--steps", "15",
+         "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5"],
+        cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
+    doc = json.loads(out.stdout)   # stdout holds the document alone; progress is on stderr
+    inv = doc["invariance"]
+    assert inv["episodes"] == 4
+    assert isinstance(inv["collisions_filter_on"], int) and isinstance(inv["collisions_filter_off"], int)
+    assert 0 <= inv["collisions_filter_on"] <= inv["collisions_filter_off"] <= 4
+    mec = doc["mec"]
+    assert mec["tracking_error_without"] > 0 and mec["tracking_error_with"] >= 0
+    assert set(doc["latency_ms"]) == {"3", "5"}
+    for row in doc["latency_ms"].values():
+        assert 0 < row["p50"] <= row["p99"]
+        assert 0 < row["policy_p50"] and 0 < row["safety_p50"]
+
+
+def test_safety_bench_rejects_a_missing_policy():
+    out = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--policy", "/no/such.pt"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "does not exist" in out.stderr

@@ -1,0 +1,92 @@
+"""`formation eval`: tiny runs on both worlds write JSON; bad flags give exit code 2 and a clear message."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from controllers.policy import ActorConfig, build_actor
+from sim.pymunk_world import ModelError
+from stack.cli import main
+from stack.commands.eval import EvalArgumentError, parse_model_error
+
+
+def test_parse_model_error_fields():
+    me = parse_model_error("gain=0.7,lag_tau=0.05,disturbance=0.1:-0.2,delay_ticks=2")
+    assert me == ModelError(gain=0.7, lag_tau=0.05, disturbance=(0.1, -0.2), delay_ticks=2)
+    assert parse_model_error(None) == ModelError()
+    with pytest.raises(EvalArgumentError, match="FIELD one of"):
+        parse_model_error("gian=0.7")
+    with pytest.raises(EvalArgumentError, match="gain=.*not a number"):
+        parse_model_error("gain=fast")
+    with pytest.raises(EvalArgumentError, match="gain must be > 0"):
+        parse_model_error("gain=-1")
+
+
+def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    rc = main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "2", "--steps", "40",
+               "--model-error", "gain=0.8,lag_tau=0.05", "--json", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert data["world"] == "pymunk" and data["episodes"] == 2 and data["safety"] and data["mec"]
+    assert data["model_error"]["gain"] == 0.8
+    assert data["collision_rate"] == 0.0 and 0 <= data["success_rate"] <= 1
+    assert data["tick_p50_ms"] > 0
+    assert "success_rate" in capsys.readouterr().out
+
+
+def test_torchscript_batched_eval_and_ignored_flags(tmp_path, capsys):
+    torch.manual_seed(0)
+    path = tmp_path / "policy.ts"
+    torch.jit.save(torch.jit.script(build_actor(ActorConfig(embed_dim=16, num_heads=2), 3).eval()), str(path))
+    out = tmp_path / "b.json"
+    rc = main(["eval", str(path), "--episodes", "3", "--mec", "off", "--json", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert data["world"] == "batched" and data["episodes"] == 3 and not data["safety"]
+    assert data["notes"] and "--mec ignored" in data["notes"][0]
+    assert "--mec ignored" in capsys.readouterr().err
+    rc = main(["eval", str(path), "--world", "pymunk", "--episodes", "1", "--steps", "5", "--safety", "off"])
+    assert rc == 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval"], "either a policy file"),
+    (["eval", "x.pt", "--policy", "scripted"], "either a policy file"),
+    (["eval", "/no/such/file.pt"], "does not exist"),
+    (["eval", "--policy", "scripted", "--scenario", "paper-99"], "unknown scenario"),
+    (["eval", "--policy", "scripted", "--episodes", "0"], "--episodes"),
+    (["eval", "--policy", "scripted", "--world", "pymunk", "--model-error", "gain"], "FIELD=VALUE"),
+])
+def test_bad_arguments_exit_2_with_a_message(argv, message, capsys):
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_not_a_policy_file(tmp_path, capsys):
+    junk = tmp_path / "junk.pt"
+    junk.write_text("hello")
+    assert main(["eval", str(junk), "--world", "pymunk", "--episodes", "1"]) == 2
+    assert "neither a TorchScript file nor a training checkpoint" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_trained_checkpoint_runs_in_both_worlds(tmp_path):
+    """A few seconds of real training, then the checkpoint through both worlds of `formation eval`."""
+    from controllers.mappo import MAPPOConfig, train
+
+    small = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
+    train(MAPPOConfig(scenario="paper-3", num_envs=4, rollout_steps=32, update_epochs=1, num_minibatches=2,
+                      total_episodes=4, eval_interval=4, eval_episodes=2, checkpoint_interval=1,
+                      stop_at_convergence=False, progress=False, actor=dict(small), critic=dict(small)),
+          tmp_path)
+    checkpoints = sorted(tmp_path.rglob("*.pt"))
+    assert checkpoints, "training wrote no checkpoint"
+    for world in ("batched", "pymunk"):
+        out = tmp_path / f"{world}.json"
+        assert main(["eval", str(checkpoints[-1]), "--world", world, "--episodes", "2",
+                     *(["--steps", "10"] if world == "pymunk" else []), "--json", str(out)]) == 0
+        assert json.loads(out.read_text())["episodes"] == 2

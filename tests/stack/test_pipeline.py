@@ -1,0 +1,215 @@
+"""ControlStack: finite commands and statuses, safety teeth in pymunk, NaN handling, changing N, TorchScript."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from controllers.mec import MecStatus
+from controllers.policy import ActorConfig, build_actor
+from controllers.safety import SafetyStatus, braking_acceleration
+from controllers.scripted import ScriptedController
+from sim.fleet import BatchedFleet, FleetState
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import make_scenario, transport_scenario
+from stack.pipeline import (
+    ControlStack,
+    PolicyStatus,
+    StackConfig,
+    StackError,
+    load_policy,
+    nominal_step,
+    run_episode,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+WEAK_ROBOTS = ModelError(gain=0.85, gain_spread=0.15, lag_tau=0.05, floor_friction=0.05)
+
+
+def actor(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    net = build_actor(ActorConfig(embed_dim=16, num_heads=2, hidden_sizes=(32,)), 3).eval()
+    with torch.no_grad():   # large outputs so that the untrained policy actually moves robots
+        for p in net.parameters():
+            p.mul_(20.0)
+    return net
+
+
+def toward_nearest_neighbour(state: FleetState) -> np.ndarray:
+    """Full thrust (1 m/s^2) of every robot at its nearest neighbour."""
+    pos = state.positions
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1) + np.eye(len(pos)) * 1e9
+    toward = pos[np.argmin(d, axis=1)] - pos
+    return toward / np.linalg.norm(toward, axis=1, keepdims=True)
+
+
+def test_tick_returns_finite_commands_statuses_and_timings():
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, WEAK_ROBOTS, seed=0)
+    stack = ControlStack(sc, actor())
+    state = world.reset(seed=0)
+    for k in range(5):
+        tick = stack.tick(state)
+        for name in ("a_nom", "a_safe", "a_cmd"):
+            arr = getattr(tick, name)
+            assert arr.shape == (3, 2) and np.isfinite(arr).all(), name
+        assert np.all(np.linalg.norm(tick.a_cmd, axis=1) <= sc.dynamics.accel_limit + 1e-12)
+        assert tick.policy_status is PolicyStatus.OK
+        assert isinstance(tick.safety_status, SafetyStatus)
+        assert tick.mec_status is (MecStatus.RESET if k == 0 else tick.mec_status)
+        assert isinstance(tick.mec_status, MecStatus)
+        assert set(tick.timings_ns) == {"observe", "policy", "safety", "mec", "total"}
+        parts = sum(v for key, v in tick.timings_ns.items() if key != "total")
+        assert parts == tick.timings_ns["total"] and all(v >= 0 for v in tick.timings_ns.values())
+        world.send_accelerations(tick.a_cmd)
+        state = world.step()
+    assert np.any(np.abs(tick.a_nom) > 0.05)   # the policy is not idle
+
+
+def test_stages_off_pass_the_clipped_policy_command_through():
+    sc = make_scenario("paper-3")
+    stack = ControlStack(sc, lambda s: np.array([[3.0, 4.0], [0.3, 0.0], [0.0, -0.2]]),
+                         StackConfig(safety=False, mec=False))
+    tick = stack.tick(PymunkWorld(sc).reset(seed=1))
+    np.testing.assert_allclose(tick.a_cmd, [[0.6, 0.8], [0.3, 0.0], [0.0, -0.2]])
+    assert tick.safety_status is None and tick.mec_status is None and not tick.intervened
+
+
+@pytest.mark.parametrize("scenario_name", ["paper-3", "paper-5"])
+def test_filter_stops_adversarial_policy_in_pymunk_and_its_absence_collides(scenario_name):
+    sc = make_scenario(scenario_name)
+    world = PymunkWorld(sc, WEAK_ROBOTS)
+    safe = run_episode(world, ControlStack(sc, toward_nearest_neighbour), seed=3, steps=60)
+    assert not safe.collided, safe
+    assert safe.interventions > 10                                   # the filter had work to do
+    unsafe = run_episode(world, ControlStack(sc, toward_nearest_neighbour, StackConfig(safety=False)),
+                         seed=3, steps=60)
+    assert unsafe.collided and unsafe.robot_collisions >= 1          # teeth
+
+
+def test_nan_policy_output_brakes_with_a_status_and_never_emits_nan():
+    sc = make_scenario("paper-3")
+    vel = np.array([[0.2, 0.0], [0.0, -0.1], [0.05, 0.05]])
+    state = FleetState(time=0.0, step=0, positions=sc.starts, velocities=vel, targets=sc.targets,
+                       object_pose=np.array([0.5, 0.5, 0.0]))
+    half_nan = lambda s: np.array([[np.nan, 0.0], [0.1, 0.1], [np.inf, 1.0]])  # noqa: E731
+    for config in (StackConfig(safety=False, mec=False), StackConfig()):
+        tick = ControlStack(sc, half_nan, config).tick(state)
+        assert tick.policy_status is PolicyStatus.NON_FINITE_OUTPUT and tick.braking
+        assert "not finite" in tick.brake_reason
+        assert np.isfinite(tick.a_cmd).all() and np.isfinite(tick.a_nom).all()
+        np.testing.assert_allclose(tick.a_nom, braking_acceleration(vel, sc.dynamics))
+    # braking by hand: c v - v / dt = 0.5 * 0.2 - 0.2 / 0.05 = -3.9 -> clipped to -1 along x
+    tick = ControlStack(sc, half_nan, StackConfig(safety=False, mec=False)).tick(state)
+    np.testing.assert_allclose(tick.a_cmd[0], [-1.0, 0.0])
+
+
+def test_nan_network_output_and_nan_state_brake():
+    sc = make_scenario("paper-3")
+    net = actor()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.fill_(float("nan"))
+    state = PymunkWorld(sc).reset(seed=0)
+    tick = ControlStack(sc, net).tick(state)
+    assert tick.policy_status is PolicyStatus.NON_FINITE_OUTPUT and np.isfinite(tick.a_cmd).all()
+    bad = FleetState(time=0.0, step=0, positions=state.positions,
+                     velocities=np.array([[np.nan, 0.0], [0.0, 0.0], [0.0, 0.0]]), targets=state.targets,
+                     object_pose=state.object_pose)
+    tick = ControlStack(sc, actor()).tick(bad)
+    assert tick.policy_status is PolicyStatus.INVALID_STATE
+    assert tick.safety_status is SafetyStatus.FALLBACK_BRAKE
+    assert np.isfinite(tick.a_cmd).all()
+
+
+def test_robot_count_can_change_between_ticks():
+    sc = make_scenario("paper-3")
+    stack = ControlStack(sc, actor())
+    for n, expect_reset in ((3, True), (3, False), (5, True), (8, True), (3, True)):
+        state = PymunkWorld(transport_scenario(n)).reset(seed=n)
+        tick = stack.tick(state)
+        assert tick.a_cmd.shape == (n, 2) and np.isfinite(tick.a_cmd).all()
+        assert (tick.mec_status is MecStatus.RESET) == expect_reset
+    with pytest.raises(StackError, match="shape"):
+        ControlStack(sc, lambda s: np.zeros((2, 2))).tick(PymunkWorld(sc).reset(seed=0))
+
+
+def test_torchscript_file_gives_the_eager_a_nom_in_this_and_a_fresh_process(tmp_path):
+    sc = make_scenario("paper-5")
+    net = actor(1)
+    path = tmp_path / "policy.ts"
+    torch.jit.save(torch.jit.script(net), str(path))
+    state = PymunkWorld(sc, seed=2).reset(seed=2)
+    eager = ControlStack(sc, net).tick(state).a_nom
+    scripted = ControlStack(sc, str(path)).tick(state).a_nom
+    assert np.abs(eager).max() > 0.05
+    np.testing.assert_allclose(scripted, eager, atol=1e-6)
+    code = ("import json, sys; from sim.pymunk_world import PymunkWorld; from sim.scenario import make_scenario;"
+            "from stack.pipeline import ControlStack; sc = make_scenario('paper-5');"
+            "s = PymunkWorld(sc, seed=2).reset(seed=2);"
+            f"print(json.dumps(ControlStack(sc, {str(path)!r}).tick(s).a_nom.tolist()))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+    np.testing.assert_allclose(np.array(json.loads(out.stdout.strip().splitlines()[-1])), eager, atol=1e-6)
+
+
+def test_bad_policy_inputs_raise_clear_errors(tmp_path):
+    sc = make_scenario("paper-3")
+    with pytest.raises(StackError, match="does not exist"):
+        load_policy(tmp_path / "missing.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(StackError, match="neither a TorchScript file nor a training checkpoint"):
+        ControlStack(sc, junk)
+    with pytest.raises(StackError, match="callable"):
+        ControlStack(sc, 42)
+
+
+def test_nominal_step_by_hand():
+    dyn = make_scenario("paper-3").dynamics
+    p, v = nominal_step(np.zeros((1, 2)), np.array([[0.1, 0.0]]), np.array([[2.0, 0.0]]), dyn)
+    # a clipped to 1; v' = 0.1 + 0.05 (1 - 0.5 * 0.1) = 0.1475; p' = 0.05 * 0.1475
+    np.testing.assert_allclose(v, [[0.1475, 0.0]])
+    np.testing.assert_allclose(p, [[0.007375, 0.0]])
+
+
+def test_run_episode_metrics_on_both_worlds():
+    sc = make_scenario("paper-3")
+    off = StackConfig(safety=False, mec=False)
+    batched = run_episode(BatchedFleet(sc), ControlStack(sc, ScriptedController(sc), off), seed=0)
+    assert batched.success and not batched.collided and batched.steps == sc.dynamics.episode_steps
+    assert batched.tracking_error < 1e-12            # the batched world is the nominal model
+    perfect = run_episode(PymunkWorld(sc), ControlStack(sc, ScriptedController(sc), off), seed=0)
+    assert perfect.success and perfect.tracking_error < 1e-9
+    weak = ModelError(gain=0.7, lag_tau=0.05, floor_friction=0.1)
+    without = run_episode(PymunkWorld(sc, weak), ControlStack(sc, ScriptedController(sc), off), seed=0)
+    with_mec = run_episode(PymunkWorld(sc, weak),
+                           ControlStack(sc, ScriptedController(sc), StackConfig(safety=False)), seed=0)
+    assert with_mec.tracking_error < 0.6 * without.tracking_error
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
+def test_numpy_tokens_equal_sim_observations_tokens(n):
+    from sim.observations import tokens
+
+    sc = transport_scenario(n)
+    stack = ControlStack(sc, actor())
+    rng = np.random.default_rng(n)
+    for _ in range(5):
+        pos = rng.uniform(0.0, 1.0, (n, 2))
+        pos[0] = sc.object_center + rng.uniform(-0.05, 0.05, 2)      # one robot inside the object
+        vel, targets = rng.normal(0, 0.3, (n, 2)), rng.uniform(0, 1, (n, 2))
+        state = FleetState(time=0.0, step=0, positions=pos, velocities=vel, targets=targets,
+                           object_pose=np.array([0.5, 0.5, 0.0]))
+        got, got_mask = stack.observe(state)
+        as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
+        want, want_mask = tokens(as_t(pos), as_t(vel), as_t(targets),
+                                 torch.tensor(sc.polygon, dtype=torch.float32), sc.arena)
+        assert got.shape == want.shape == (1, n, 2 * n + 1, 4) and got.dtype == torch.float32
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+        assert torch.equal(got_mask, want_mask)
