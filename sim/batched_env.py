@@ -19,10 +19,12 @@ from dataclasses import dataclass
 import torch
 
 from sim import observations
-from sim.geometry import Frame, Polygon
+from sim.geometry import DetourDistance, DetourField, Frame, Polygon
 from sim.metrics import episode_outcome, frame_collisions
 from sim.reward import RewardWeights, reward_from_distances
 from sim.scenario import Scenario
+
+DETOUR_CLEARANCE = 0.01   # the reward's detour path keeps this far from the object [m]
 
 
 @dataclass
@@ -96,6 +98,8 @@ class BatchedFormationEnv:
         self._frame: Frame | None = None
         self.start_slots = torch.as_tensor(scenario.starts, **kw)
         self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
+        self.detour = DetourField(DetourDistance(self.polygon, self.targets[0],
+                                                 scenario.robot_radius + DETOUR_CLEARANCE), self.arena)
         e, n = num_envs, self.num_robots
         self.pos = torch.zeros(e, n, 2, **kw)
         self.vel = torch.zeros(e, n, 2, **kw)
@@ -193,7 +197,7 @@ class BatchedFormationEnv:
         self.counts += onsets
         self.collided |= contact.any(-1).any(-1)
         reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
-                                       self.reward_weights)
+                                       self.reward_weights, self.detour(self.pos))
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1

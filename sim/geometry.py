@@ -181,3 +181,111 @@ def target_flat_index(n: int, device: torch.device | str = "cpu") -> tuple[torch
     """Flat (N*N,) indices: target k and robot i for every (i, k), row by row."""
     ar = torch.arange(n, device=device)
     return ar.repeat(n), ar.repeat_interleave(n)
+
+
+class DetourDistance:
+    """Shortest distance from robot centres to targets *around* a convex object (the taut string).
+
+    The object is inflated by ``margin`` (a robot radius plus clearance): its vertices are pushed
+    out along the angle bisectors so every edge moves out by ``margin``. A robot-target pair whose
+    segment misses the inflated polygon gets the straight distance; otherwise the path runs
+    robot -> visible corner c_j -> along the perimeter -> corner c_i -> target::
+
+        d(p, g_k) = min_j ( |p - c_j| [c_j visible from p] + h[j, k] ),
+        h[j, k]   = min_i ( D[j, i] + |c_i - g_k| [g_k visible from c_i] ),
+
+    with D the perimeter distance between corners; ``h`` depends only on the targets, so it is
+    computed once. Visibility is the Cyrus-Beck clip of a segment against the convex polygon
+    (shrunk by 1e-6 m so that grazing a corner counts as visible). A centre inside the inflated
+    polygon is first moved to its nearest boundary point q (``d = |p - q| + d(q, g)``, continuous
+    across the boundary). Non-convex objects get the straight distance.
+    """
+
+    def __init__(self, polygon: Polygon, targets: torch.Tensor, margin: float):
+        self.enabled = polygon.convex_ccw
+        v = polygon.vertices
+        self.targets = targets                                   # (N, 2)
+        if not self.enabled:
+            return
+        ex, ey = polygon.ex, polygon.ey
+        length = (ex * ex + ey * ey).sqrt()
+        nx, ny = ey / length, -ex / length                       # outward normals (CCW polygon)
+        self.nx, self.ny = nx, ny
+        # edge k runs v_k -> v_{k+1}; vertex k joins edges k-1 and k
+        pnx, pny = torch.roll(nx, 1), torch.roll(ny, 1)
+        bis = torch.stack((nx + pnx, ny + pny), -1)
+        cos_half2 = (bis * bis).sum(-1) / 4                       # cos^2 of half the turn angle
+        self.corners = v + bis / 2 * (margin / cos_half2).unsqueeze(-1)   # (M, 2)
+        self.inflated = Polygon(self.corners)
+        # offsets of the edge lines for the visibility test, slightly inside the inflated polygon
+        self.edge_offset = (v[:, 0] * nx + v[:, 1] * ny) + margin - 1e-6   # n . x <= offset inside
+        m = len(v)
+        side = (torch.roll(self.corners, -1, 0) - self.corners).norm(dim=-1)   # corner k -> k+1
+        cum = torch.cat((side.new_zeros(1), side.cumsum(0)))
+        perimeter = cum[-1]
+        fwd = (cum[:m].unsqueeze(0) - cum[:m].unsqueeze(1)) % perimeter
+        self.perimeter_d = torch.minimum(fwd, perimeter - fwd)   # (M, M)
+        vis_cg = self.visible(self.corners.unsqueeze(1), targets.unsqueeze(0))   # (M, N)
+        d_cg = (self.corners.unsqueeze(1) - targets.unsqueeze(0)).norm(dim=-1)
+        d_cg = torch.where(vis_cg, d_cg, torch.full_like(d_cg, float("inf")))
+        self.h = (self.perimeter_d.unsqueeze(-1) + d_cg.unsqueeze(0)).min(1).values   # (M, N)
+
+    def visible(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Segments a -> b (broadcast shapes (..., 2)) that miss the inflated polygon: (...,) bool."""
+        a, b = torch.broadcast_tensors(a, b)
+        dx, dy = (b - a).unbind(-1)
+        ax, ay = a.unbind(-1)
+        num = self.edge_offset - (ax.unsqueeze(-1) * self.nx + ay.unsqueeze(-1) * self.ny)   # (..., M)
+        den = dx.unsqueeze(-1) * self.nx + dy.unsqueeze(-1) * self.ny
+        ratio = num / torch.where(den == 0, torch.ones_like(den), den)
+        inf = torch.full_like(ratio, float("inf"))
+        t_enter = torch.where(den < 0, ratio, -inf).amax(-1).clamp_min(0.0)
+        t_exit = torch.where(den > 0, ratio, inf).amin(-1).clamp_max(1.0)
+        outside_parallel = ((den == 0) & (num < 0)).any(-1)
+        return outside_parallel | (t_enter >= t_exit)
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 2) points -> (..., K) detour distances to each of the K targets [m]."""
+        straight = (points.unsqueeze(-2) - self.targets).norm(dim=-1)                   # (..., K)
+        if not self.enabled:
+            return straight
+        sd, nx, ny = self.inflated.signed_distance_xy(points[..., 0], points[..., 1])
+        inside = (sd < 0).unsqueeze(-1)
+        points = torch.where(inside, torch.stack((nx, ny), -1), points)
+        lead_in = torch.where(inside, -sd.unsqueeze(-1), torch.zeros_like(sd).unsqueeze(-1))
+        straight_q = (points.unsqueeze(-2) - self.targets).norm(dim=-1)
+        direct = self.visible(points.unsqueeze(-2), self.targets)                       # (..., K)
+        d_pc = (points.unsqueeze(-2) - self.corners).norm(dim=-1)                       # (..., M)
+        vis_pc = self.visible(points.unsqueeze(-2), self.corners)
+        d_pc = torch.where(vis_pc, d_pc, torch.full_like(d_pc, float("inf")))
+        around = (d_pc.unsqueeze(-1) + self.h).min(-2).values                           # (..., K)
+        out = torch.where(direct, straight_q, around)
+        return torch.where(torch.isinf(out), straight, out + lead_in)
+
+
+class DetourField:
+    """:class:`DetourDistance` tabulated on a grid over the arena, read back at the nearest node.
+
+    The exact detour costs a few segment clips per robot-target pair; the field costs one gather.
+    The detour distance is 1-Lipschitz, so the lookup error is at most ``resolution / sqrt(2)``
+    (3.5 mm at the default 5 mm) away from the object's inflated corners, where the detour
+    itself switches sides.
+    """
+
+    def __init__(self, detour: DetourDistance, arena: tuple[float, float], resolution: float = 0.005):
+        self.res = resolution
+        self.nx = int(round(arena[0] / resolution)) + 1
+        self.ny = int(round(arena[1] / resolution)) + 1
+        t = detour.targets
+        xs = torch.arange(self.nx, dtype=t.dtype, device=t.device) * resolution
+        ys = torch.arange(self.ny, dtype=t.dtype, device=t.device) * resolution
+        grid = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1], -1).reshape(-1, 2)
+        self.table = detour(grid).contiguous()                      # (ny * nx, K), row = iy * nx + ix
+
+    def __call__(self, pos: torch.Tensor) -> torch.Tensor:
+        """(E, N, 2) centres -> (E, N, K) detour distances to the K targets [m]."""
+        e, n, _ = pos.shape
+        ix = (pos[..., 0] / self.res).round().clamp(0, self.nx - 1)
+        iy = (pos[..., 1] / self.res).round().clamp(0, self.ny - 1)
+        node = (iy * self.nx + ix).long().reshape(-1)
+        return self.table.index_select(0, node).view(e, n, -1)

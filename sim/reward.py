@@ -1,14 +1,20 @@
 """Dense reward shared by every learner (so comparisons are fair).
 
-Per step and per robot i (all distances in metres)::
+Per step and per robot i (all distances in metres; ``d(p, g)`` is the detour distance around
+the object, :class:`sim.geometry.DetourDistance` or its tabulated :class:`sim.geometry.DetourField`,
+or the straight one when none is given)::
 
-    cover   = 1/2 * ( mean_k min_i |g_k - p_i|  +  mean_i min_k |p_i - g_k| )     (team term)
+    cover   = 1/2 * ( mean_k min_i d(p_i, g_k)  +  mean_i min_k d(p_i, g_k) )     (team term)
     arrived = 1/N * #{k : min_i |g_k - p_i| <= tol}                               (team term)
     r_i     = - w_dist * cover
               + w_arrive * arrived
               - w_robot * [robot i touches another robot]
               - w_object * [robot i touches the object]
               - w_wall * [robot i touches a wall]
+
+The detour distance keeps the gradient of ``cover`` pointing around the object instead of into
+it (with straight distances the shortest way to a target runs through the object, a local
+optimum that costs a learner thousands of episodes to escape).
 
 ``cover`` is zero exactly when every target holds a robot and every robot sits on a target,
 which (targets farther apart than twice the tolerance) means a one-to-one assignment with
@@ -22,6 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
+from sim.geometry import DetourDistance, DetourField
 from sim.metrics import CollisionEvents, distance_matrix
 
 
@@ -37,18 +44,23 @@ class RewardWeights:
 
 
 def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: CollisionEvents,
-                     tolerance: float, weights: RewardWeights = RewardWeights()) -> torch.Tensor:
+                     tolerance: float, weights: RewardWeights = RewardWeights(),
+                     detour: DetourDistance | DetourField | None = None) -> torch.Tensor:
     """(E, N, 2) positions and targets -> (E, N) per-robot reward of this step."""
-    return reward_from_distances(distance_matrix(pos, targets), events, tolerance, weights)
+    d = distance_matrix(pos, targets)
+    return reward_from_distances(d, events, tolerance, weights,
+                                 None if detour is None else detour(pos))
 
 
 def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: float,
-                          weights: RewardWeights = RewardWeights()) -> torch.Tensor:
-    """(E, N robots, N targets) distances -> (E, N) per-robot reward (see the module docstring)."""
-    to_target = _min_over(d, -2)                           # (E, N targets)
-    to_robot = _min_over(d, -1)                            # (E, N robots)
+                          weights: RewardWeights = RewardWeights(),
+                          d_detour: torch.Tensor | None = None) -> torch.Tensor:
+    """(E, N robots, N targets) straight (and detour) distances -> (E, N) per-robot reward."""
+    path = d if d_detour is None else d_detour
+    to_target = _min_over(path, -2)                        # (E, N targets)
+    to_robot = _min_over(path, -1)                         # (E, N robots)
     cover = 0.5 * (to_target.mean(-1) + to_robot.mean(-1))  # (E,)
-    arrived = (to_target <= tolerance).float().mean(-1)    # (E,)
+    arrived = (_min_over(d, -2) <= tolerance).float().mean(-1)   # (E,)
     team = -weights.w_dist * cover + weights.w_arrive * arrived
     own = (weights.w_robot * events.robot.float() + weights.w_object * events.object.float()
            + weights.w_wall * events.wall.float())

@@ -1,8 +1,10 @@
+import functools
 import math
 
 import numpy as np
+import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from sim.geometry import Polygon, closest_point_on_polygon, pairwise_distances
@@ -89,3 +91,60 @@ def test_polygon_shape_error():
 
     with pytest.raises(ValueError, match=r"shape \(M >= 3, 2\)"):
         Polygon(torch.zeros(2, 2))
+
+
+@functools.cache
+def _detour():
+    from sim.geometry import DetourDistance
+
+    targets = torch.tensor([[0.33, 0.5], [0.33, 0.8]], dtype=torch.float64)
+    return DetourDistance(Polygon(BOX), targets, margin=0.05)
+
+
+def test_detour_corners_inflate_the_box():
+    # box 0.4..0.6 x 0.35..0.65 inflated by 0.05 on every side
+    assert torch.allclose(_detour().corners, torch.tensor(
+        [[0.35, 0.30], [0.65, 0.30], [0.65, 0.70], [0.35, 0.70]], dtype=torch.float64))
+
+
+def test_detour_distance_by_hand():
+    d = _detour()(torch.tensor([[0.67, 0.5], [0.67, 0.9], [0.2, 0.5]], dtype=torch.float64))
+    # (0.67, 0.5) -> (0.33, 0.5) is blocked: over the top via (0.65, 0.7) and (0.35, 0.7):
+    # hypot(0.02, 0.2) + 0.3 + hypot(0.02, 0.2)
+    assert d[0, 0].item() == pytest.approx(2 * math.hypot(0.02, 0.2) + 0.3)
+    # (0.67, 0.5) -> (0.33, 0.8): to the corner (0.65, 0.7), then straight to the target
+    assert d[0, 1].item() == pytest.approx(math.hypot(0.02, 0.2) + math.hypot(0.32, 0.1))
+    # (0.67, 0.9) sees the upper target straight, but the line to (0.33, 0.5) cuts the inflated
+    # box's upper-left corner: via (0.35, 0.7) instead
+    assert d[1, 1].item() == pytest.approx(math.hypot(0.34, 0.1))
+    assert d[1, 0].item() == pytest.approx(math.hypot(0.32, 0.2) + math.hypot(0.02, 0.2))
+    assert d[2, 1].item() == pytest.approx(math.hypot(0.13, 0.3))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.04, 0.96), st.floats(0.04, 0.96))
+def test_detour_is_never_shorter_than_straight_and_the_field_matches(x, y):
+    exact = _detour()
+    p = torch.tensor([[x, y]], dtype=torch.float64)
+    # a robot (radius 0.04) clear of the object
+    assume(Polygon(BOX).signed_distance_xy(p[:, 0], p[:, 1])[0].item() >= 0.04)
+    d = exact(p)
+    straight = (p.unsqueeze(-2) - exact.targets).norm(dim=-1)
+    assert (d >= straight - 1e-12).all()
+    assert torch.allclose(_field()(p.unsqueeze(0))[0], d, atol=0.005 / math.sqrt(2) + 1e-9)
+
+
+@functools.cache
+def _field():
+    from sim.geometry import DetourField
+
+    return DetourField(_detour(), (1.0, 1.0), resolution=0.005)
+
+
+def test_detour_falls_back_to_straight_for_non_convex_objects():
+    from sim.geometry import DetourDistance
+
+    targets = torch.tensor([[0.1, 0.9]], dtype=torch.float64)
+    dd = DetourDistance(Polygon(L_SHAPE), targets, 0.05)
+    p = torch.tensor([[0.9, 0.1]], dtype=torch.float64)
+    assert dd(p)[0, 0].item() == pytest.approx(math.hypot(0.8, 0.8))
