@@ -1,0 +1,319 @@
+"""A simulated fleet over Zenoh: :class:`sim.pymunk_world.PymunkWorld` as N robots.
+
+One process, one Zenoh session, one :class:`deploy.transport.RobotLink` per robot (robot
+``r<i>`` is row i of the scenario). Each tick every online robot publishes its measured
+state (position [m], velocity [m/s]); the world then advances one ``dt`` with, per robot,
+the acceleration chosen by its own watchdog (below).
+
+Pacing:
+    * real time: one tick every ``1 / rate_hz`` seconds of wall time;
+    * lock-step (tests): after publishing the states of tick k, wait until every online robot
+      holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
+      then advance. Deterministic when the controller is.
+
+Watchdog (per robot; ages in ticks of this process, converted with the tick period:
+``1 / rate_hz`` in real time, ``dt`` = sim time in lock-step)::
+
+    e-stop latched (ESTOP)                      -> brake               status ESTOPPED
+    watchdog latch set                          -> brake, hold at rest status WATCHDOG_BRAKING|FAULT
+    no command accepted yet                     -> brake (not armed)   status WATCHDOG_BRAKING
+    last command older than stop_after_s        -> set the latch       (armed robots only)
+    last command older than brake_after_ticks,
+      or past its ttl (real time only)          -> brake               status WATCHDOG_BRAKING
+    command flag BRAKE, or STOP held            -> brake
+    otherwise                                   -> the commanded acceleration
+
+``brake`` is ``a = -v / dt`` clipped to ``accel_limit`` (stop within the tick if possible).
+Re-arming the latch: the controller sees FAULT in the robot's state and sends a command with
+the STOP flag; the robot leaves the latch into STOP (held at rest) and moves again on the
+next command without STOP. While latched, other commands are ignored and counted.
+
+Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
+lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
+a robot whose first event is a join starts offline; an offline robot brakes and is not
+published).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from deploy.transport import RobotLink, TransportConfig
+from deploy.wire import CmdFlags, RobotRegistry, StateStatus
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import Scenario
+
+
+def robot_names(n: int) -> tuple[str, ...]:
+    """Robot ids of a simulated fleet: ``r0 .. r{n-1}`` (row order of the scenario)."""
+    return tuple(f"r{i}" for i in range(n))
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    """brake_after_ticks: ticks without a fresh command before braking; stop_after_s [s]:
+    silence before the latch (brake to rest, wait for a re-arm)."""
+
+    brake_after_ticks: int = 2
+    stop_after_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.brake_after_ticks, int) or self.brake_after_ticks < 1:
+            raise ValueError(f"brake_after_ticks must be an integer >= 1, got {self.brake_after_ticks!r}")
+        if not self.stop_after_s > 0:
+            raise ValueError(f"stop_after_s must be > 0 seconds, got {self.stop_after_s!r}")
+
+
+@dataclass
+class FleetSimConfig:
+    """See the module docstring. ``rate_hz=None`` selects lock-step."""
+
+    fleet: str
+    scenario: Scenario
+    transport: TransportConfig
+    model_error: ModelError = field(default_factory=ModelError)
+    seed: int = 0
+    rate_hz: float | None = 20.0
+    lockstep_timeout_s: float = 0.25
+    start_timeout_s: float = 30.0
+    max_ticks: int | None = None
+    drop_commands: float = 0.0
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    events: tuple[tuple[int, str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.rate_hz is not None and not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
+        if not 0.0 <= self.drop_commands < 1.0:
+            raise ValueError(f"drop_commands must be in [0, 1), got {self.drop_commands!r}")
+        names = robot_names(self.scenario.num_robots)
+        for tick, robot, kind in self.events:
+            if robot not in names or kind not in ("leave", "join") or tick < 0:
+                raise ValueError(f"event {(tick, robot, kind)!r}: write (tick >= 0, one of "
+                                 f"{names}, 'leave' | 'join')")
+
+
+@dataclass
+class _Robot:
+    name: str
+    link: RobotLink | None = None
+    seen: tuple[int, int] = (0, 0)  # (epoch, seq) of the newest command looked at
+    accel: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    flags: CmdFlags = CmdFlags(0)
+    cmd_tick: int | None = None
+    expires_ns: int = 0
+    stop_held: bool = False
+    latched: bool = False
+    estopped: bool = False
+    mode: str = "idle"
+
+
+class FleetSim:
+    """Run with :meth:`run`; stop from another thread (or a signal handler) with :meth:`stop`."""
+
+    def __init__(self, config: FleetSimConfig):
+        self.config = config
+        sc = config.scenario
+        self.world = PymunkWorld(sc, config.model_error, seed=config.seed)
+        self.names = robot_names(sc.num_robots)
+        self.registry = RobotRegistry(self.names)
+        self.period_s = 1.0 / config.rate_hz if config.rate_hz else sc.dynamics.dt
+        self.robots = [_Robot(name) for name in self.names]
+        self._rng = np.random.default_rng(config.seed + 1)
+        self._stop = threading.Event()
+        self.tick = 0
+        self.dropped = 0
+        self.ignored_while_latched = 0
+        self.lockstep_timeouts = 0
+        self.trace: list[dict[str, Any]] = []
+        self.closed_link_rejects: dict[str, int] = {}
+        self.session: zenoh.Session | None = None
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    # ------------------------------------------------------------------ links
+    def _open_link(self, robot: _Robot) -> None:
+        robot.link = RobotLink(self.config.fleet, robot.name, self.registry, self.session,
+                               shared_clock=False)
+        robot.seen = (0, 0)
+
+    def _close_link(self, robot: _Robot) -> None:
+        if robot.link is not None:
+            for reason, count in robot.link.rejects.snapshot().items():
+                self.closed_link_rejects[reason] = self.closed_link_rejects.get(reason, 0) + count
+            robot.link.close()
+            robot.link = None
+
+    def rejects(self) -> dict[str, int]:
+        """Rejected messages by reason over every robot link, open and closed."""
+        total = dict(self.closed_link_rejects)
+        for robot in self.robots:
+            if robot.link is not None:
+                for reason, count in robot.link.rejects.snapshot().items():
+                    total[reason] = total.get(reason, 0) + count
+        return total
+
+    # ------------------------------------------------------------------ watchdog
+    def _take_command(self, robot: _Robot) -> None:
+        link = robot.link
+        if link is None:
+            return
+        robot.estopped = link.estopped
+        received = link.latest_command
+        if received is None or (received.msg.epoch, received.msg.seq) == robot.seen:
+            return
+        robot.seen = (received.msg.epoch, received.msg.seq)
+        if self.config.drop_commands and self._rng.random() < self.config.drop_commands:
+            self.dropped += 1
+            return
+        flags = received.msg.flags
+        if robot.latched:
+            if not flags & CmdFlags.STOP:
+                self.ignored_while_latched += 1
+                return
+            robot.latched = False
+        robot.accel = np.asarray(received.msg.acceleration, dtype=np.float64)
+        robot.flags = flags
+        robot.stop_held = bool(flags & CmdFlags.STOP)
+        robot.cmd_tick = self.tick
+        robot.expires_ns = received.expires_at_ns
+
+    def _choose(self, robot: _Robot, velocity: np.ndarray, now_ns: int) -> tuple[np.ndarray, StateStatus]:
+        """The acceleration this robot applies this tick and its status bits."""
+        limit = self.config.scenario.dynamics.accel_limit
+        brake = -velocity / self.config.scenario.dynamics.dt
+        norm = float(np.linalg.norm(brake))
+        if norm > limit:
+            brake *= limit / norm
+        wd = self.config.watchdog
+        if robot.estopped:
+            robot.mode = "estop"
+            return brake, StateStatus.ESTOPPED
+        if robot.cmd_tick is None:
+            robot.mode = "idle"
+            return brake, StateStatus.WATCHDOG_BRAKING
+        age_s = (self.tick - robot.cmd_tick) * self.period_s
+        if not robot.latched and age_s >= wd.stop_after_s:
+            robot.latched = True
+        if robot.latched:
+            robot.mode = "latched"
+            return brake, StateStatus.WATCHDOG_BRAKING | StateStatus.FAULT
+        expired = self.config.rate_hz is not None and now_ns >= robot.expires_ns
+        if self.tick - robot.cmd_tick > wd.brake_after_ticks or expired:
+            robot.mode = "watchdog"
+            return brake, StateStatus.WATCHDOG_BRAKING
+        if robot.stop_held or robot.flags & CmdFlags.BRAKE:
+            robot.mode = "stop"
+            return brake, StateStatus(0)
+        robot.mode = "run"
+        return robot.accel, StateStatus(0)
+
+    # ------------------------------------------------------------------ loop
+    def _apply_events(self) -> None:
+        for tick, name, kind in self.config.events:
+            if tick == self.tick:
+                robot = self.robots[self.names.index(name)]
+                if kind == "leave":
+                    self._close_link(robot)
+                elif robot.link is None:
+                    self._open_link(robot)
+
+    def _wait_lockstep(self, answered: dict[str, int]) -> None:
+        deadline = time.monotonic() + self.config.lockstep_timeout_s
+        for robot in self.robots:
+            link, seq = robot.link, answered.get(robot.name)
+            if link is None or seq is None:
+                continue
+            ok = link.wait_for(lambda lk=link, s=seq: lk.latest_command is not None
+                               and lk.latest_command.msg.state_seq >= s,
+                               max(0.0, deadline - time.monotonic()))
+            if not ok:
+                self.lockstep_timeouts += 1
+                return
+
+    def run(self) -> dict[str, Any]:
+        """Run until :meth:`stop` or ``max_ticks``; return :meth:`summary`."""
+        cfg = self.config
+        self.session = cfg.transport.open()
+        try:
+            first_event = {}
+            for _, name, kind in sorted(cfg.events):
+                first_event.setdefault(name, kind)
+            for robot in self.robots:
+                if first_event.get(robot.name) != "join":
+                    self._open_link(robot)
+            online = [r.link for r in self.robots if r.link is not None]
+            if online:
+                online[0].wait_for(lambda: online[0].controller_alive or self._stop.is_set(),
+                                   cfg.start_timeout_s)
+            state = self.world.read_state()
+            next_time = time.monotonic()
+            while not self._stop.is_set() and (cfg.max_ticks is None or self.tick < cfg.max_ticks):
+                self._apply_events()
+                now_ns = time.monotonic_ns()
+                accels = np.zeros((len(self.robots), 2))
+                answered: dict[str, int] = {}
+                modes = []
+                for i, robot in enumerate(self.robots):
+                    self._take_command(robot)
+                    accels[i], status = self._choose(robot, state.velocities[i], now_ns)
+                    modes.append(robot.mode if robot.link is not None else "offline")
+                    if robot.link is not None:
+                        msg = robot.link.publish_state(state.positions[i], state.velocities[i], status)
+                        answered[robot.name] = msg.seq
+                true = self.world.true_state()
+                self.trace.append({"tick": self.tick, "t": round(true.time, 6), "modes": modes,
+                                   "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist()})
+                if cfg.rate_hz is None:
+                    self._wait_lockstep(answered)
+                    for i, robot in enumerate(self.robots):  # take the answers of this tick
+                        self._take_command(robot)
+                        accels[i], _ = self._choose(robot, state.velocities[i], now_ns)
+                else:
+                    next_time += self.period_s
+                    time.sleep(max(0.0, next_time - time.monotonic()))
+                    for i, robot in enumerate(self.robots):
+                        self._take_command(robot)
+                        accels[i], _ = self._choose(robot, state.velocities[i], time.monotonic_ns())
+                self.world.send_accelerations(accels)
+                state = self.world.step()
+                self.tick += 1
+        finally:
+            for robot in self.robots:
+                self._close_link(robot)
+            self.session.close()
+        return self.summary()
+
+    def summary(self) -> dict[str, Any]:
+        outcome = self.world.outcome()
+        counts = self.world.collision_counts
+        true = self.world.true_state()
+        return {"ticks": self.tick, "success": bool(outcome.success.item()),
+                "final_distance": float(outcome.final_distance.item()),
+                "collisions": {"robot": counts.robot, "object": counts.object, "wall": counts.wall},
+                "positions": true.positions.tolist(),
+                "speeds": np.linalg.norm(true.velocities, axis=1).tolist(),
+                "dropped_commands": self.dropped, "ignored_while_latched": self.ignored_while_latched,
+                "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),
+                "trace": self.trace}
+
+
+def write_json(path: str | Path, document: dict[str, Any]) -> None:
+    """Atomic JSON write (temp file + os.replace)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(document))
+    os.replace(tmp, path)
+
+
+__all__ = ["FleetSim", "FleetSimConfig", "WatchdogConfig", "robot_names", "write_json"]

@@ -1,0 +1,84 @@
+"""`formation fleet-sim`: the pymunk world as a fleet of robots over Zenoh.
+
+    formation fleet-sim --fleet lab --scenario paper-5 --rate-hz 20 --listen tcp/127.0.0.1:7447
+    formation fleet-sim --fleet lab --scenario paper-5 --lockstep --connect tcp/127.0.0.1:7447
+
+See deploy/fleet_sim.py for the watchdog (brake, latch, re-arm) and lock-step rules.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from pathlib import Path
+
+from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
+from deploy.transport import TransportConfig
+from sim.pymunk_world import ModelError
+from sim.scenario import make_scenario
+
+
+def _event(kind: str):
+    def parse(text: str) -> tuple[int, str, str]:
+        robot, _, tick = text.partition("@")
+        if not robot or not tick.isdigit():
+            raise argparse.ArgumentTypeError(f"expected ROBOT@TICK (e.g. r4@30), got {text!r}")
+        return int(tick), robot, kind
+    return parse
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fleet-sim", help="run the pymunk world as robots over Zenoh",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
+    p.add_argument("--scenario", default="paper-5", help="scenario preset (default paper-5)")
+    pace = p.add_mutually_exclusive_group()
+    pace.add_argument("--rate-hz", type=float, default=20.0, help="real-time tick rate")
+    pace.add_argument("--lockstep", action="store_true",
+                      help="advance when every command for the current states arrived")
+    p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
+    p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    p.add_argument("--model-error", default="{}",
+                   help='ModelError fields as JSON, e.g. \'{"gain": 0.8, "lag_tau": 0.05}\'')
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
+    p.add_argument("--lockstep-timeout", type=float, default=0.25, help="seconds per tick")
+    p.add_argument("--brake-after-ticks", type=int, default=2)
+    p.add_argument("--stop-after", type=float, default=0.5, help="watchdog latch [s]")
+    p.add_argument("--drop-commands", type=float, default=0.0,
+                   help="probability of discarding an arriving command (tests)")
+    p.add_argument("--leave", type=_event("leave"), action="append", default=[],
+                   metavar="ROBOT@TICK", help="close a robot's link at a tick")
+    p.add_argument("--join", type=_event("join"), action="append", default=[],
+                   metavar="ROBOT@TICK", help="open a robot's link at a tick")
+    p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    try:
+        model_error = ModelError(**json.loads(args.model_error))
+        config = FleetSimConfig(
+            fleet=args.fleet, scenario=make_scenario(args.scenario),
+            transport=TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect)),
+            model_error=model_error, seed=args.seed,
+            rate_hz=None if args.lockstep else args.rate_hz,
+            lockstep_timeout_s=args.lockstep_timeout, max_ticks=args.ticks,
+            drop_commands=args.drop_commands,
+            watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
+            events=tuple(args.leave + args.join))
+    except (ValueError, TypeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    sim = FleetSim(config)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: sim.stop())
+    print(f"fleet-sim {args.fleet}: {config.scenario.name}, "
+          f"{'lock-step' if args.lockstep else f'{args.rate_hz} Hz'}", file=sys.stderr, flush=True)
+    summary = sim.run()
+    if args.report:
+        write_json(args.report, summary)
+    print(json.dumps({k: v for k, v in summary.items() if k != "trace"}), flush=True)
+    return 0

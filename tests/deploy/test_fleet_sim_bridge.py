@@ -1,0 +1,190 @@
+"""fleet-sim and bridge as separate processes over Zenoh on 127.0.0.1 (lock-step, scouting off)."""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from deploy.transport import TransportConfig, free_tcp_port
+from deploy.wire import CMD_BODY, HEADER, MAGIC, STATE_BODY, WIRE_VERSION, MsgType
+
+ROOT = Path(__file__).resolve().parents[2]
+WAIT_S = 120.0  # generous: includes interpreter start-up on a loaded machine
+SCRIPTED = ["--policy", "scripted", "--no-safety", "--no-mec"]
+
+
+class Proc:
+    """A `formation` subcommand in its own process; stdout lines arrive on a queue."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "stack.cli", *args], cwd=ROOT,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.stderr: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        threading.Thread(target=lambda: self.stderr.extend(self.proc.stderr), daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.put(line)
+
+    def wait_tick(self, tick: int) -> None:
+        """Block until the bridge (run with --trace) has answered ``tick``."""
+        while True:
+            line = self.lines.get(timeout=WAIT_S)
+            if json.loads(line).get("tick", -1) >= tick:
+                return
+
+    def finish(self) -> int:
+        try:
+            return self.proc.wait(timeout=WAIT_S)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+
+
+def run_pair(tmp_path: Path, sim_args: list[str], bridge_args: list[str],
+             during=None) -> tuple[dict, dict | None, Proc]:
+    """Run fleet-sim (listening on ``port``) and a bridge connecting to it; ``during(bridge,
+    port, bridge_port)`` runs meanwhile (the bridge also listens on ``bridge_port``)."""
+    port, bridge_port = free_tcp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep",
+               "--listen", endpoint, "--report", str(tmp_path / "sim.json"), *sim_args)
+    bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--connect", endpoint,
+                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace",
+                  "--report", str(tmp_path / "bridge.json"), *bridge_args)
+    try:
+        if during is not None:
+            during(bridge, port, bridge_port)
+        assert sim.finish() == 0, "".join(sim.stderr)
+        if bridge.proc.poll() is None:
+            bridge.proc.send_signal(signal.SIGTERM)  # clean shutdown path
+        bridge.finish()
+    finally:
+        for p in (sim, bridge):
+            if p.proc.poll() is None:
+                p.proc.kill()
+    sim_report = json.loads((tmp_path / "sim.json").read_text())
+    bridge_path = tmp_path / "bridge.json"
+    bridge_report = json.loads(bridge_path.read_text()) if bridge_path.exists() else None
+    return sim_report, bridge_report, bridge
+
+
+def assert_task_done(report: dict) -> None:
+    assert report["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+    assert report["success"], report["final_distance"]
+
+
+def test_scripted_controller_brings_five_robots_home_without_collision(tmp_path):
+    sim, bridge, proc = run_pair(tmp_path, ["--ticks", "150"], SCRIPTED)
+    assert_task_done(sim)
+    assert sim["rejects"] == {} and bridge["rejects"] == {}
+    assert bridge["robot_counts"] == [[0, 5]]
+    assert bridge["estops"] == 0 and bridge["controller_faults"] == 0
+    assert proc.proc.returncode == 0  # SIGTERM: loop stopped, session closed, report written
+    running = [t for t in sim["trace"] if t["modes"] == ["run"] * 5]
+    assert len(running) >= 100  # commands arrived in lock-step nearly every tick
+
+
+@pytest.mark.slow
+def test_control_stack_with_safety_and_mec_over_zenoh(tmp_path):
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "150", "--model-error", '{"gain": 0.8}'],
+                              ["--policy", "scripted"])
+    assert_task_done(sim)
+    assert bridge["controller_faults"] == 0
+
+
+def test_task_completes_with_a_fifth_of_the_commands_dropped(tmp_path):
+    sim, _, _ = run_pair(tmp_path, ["--ticks", "180", "--drop-commands", "0.2"], SCRIPTED)
+    total = 180 * 5
+    assert 0.1 * total < sim["dropped_commands"] < 0.3 * total
+    assert_task_done(sim)
+
+
+def test_sigkill_of_the_bridge_stops_every_robot_within_half_a_second(tmp_path):
+    def kill_mid_run(bridge: Proc, port: int, bridge_port: int) -> None:
+        bridge.wait_tick(20)
+        bridge.proc.kill()
+
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "60", "--lockstep-timeout", "0.05"],
+                              SCRIPTED, during=kill_mid_run)
+    assert bridge is None  # killed: no report
+    trace = sim["trace"]
+    last_run = max(t["tick"] for t in trace if "run" in t["modes"])
+    at_kill = trace[last_run + 1]
+    assert max(at_kill["speeds"]) > 0.1  # robots were moving when the controller died
+    half_second = last_run + 1 + math.ceil(0.5 / 0.05)
+    assert all(m in ("watchdog", "latched") for m in trace[last_run + 3]["modes"])
+    assert max(trace[half_second]["speeds"]) < 1e-3
+    assert trace[-1]["modes"] == ["latched"] * 5
+    assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+
+
+def test_robots_leaving_and_rejoining_change_n_and_the_task_completes(tmp_path):
+    sim, bridge, _ = run_pair(
+        tmp_path, ["--ticks", "200", "--leave", "r4@30", "--join", "r4@50", "--leave", "r0@150"],
+        SCRIPTED)
+    counts = [n for _, n in bridge["robot_counts"]]
+    assert counts == [5, 4, 5, 4]
+    assert bridge["rearms"] >= 1  # r4 came back latched and was re-armed with STOP
+    modes = [t["modes"][4] for t in sim["trace"]]
+    assert modes[35] == "offline" and "latched" in modes[50:53]
+    assert_task_done(sim)
+
+
+def _cmd_bytes(robot_id: int, seq: int, acc=(0.0, 0.0), ttl_ms: int = 100) -> bytes:
+    return (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.CMD), robot_id, 0, 77, seq, 1)
+            + CMD_BODY.pack(*acc, 0, ttl_ms, 0))
+
+
+def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_path):
+    def inject(bridge: Proc, port: int, bridge_port: int) -> None:
+        bridge.wait_tick(10)
+        config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{bridge_port}"))
+        with zenoh.open(config.to_zenoh()) as session:
+            cmd_r1 = "formation/t/robot/r1/cmd"
+            bad_cmds = [b"garbage", _cmd_bytes(1, 5, (math.nan, 0.0)),  # NON_FINITE
+                        _cmd_bytes(3, 6),                             # ROBOT_MISMATCH
+                        _cmd_bytes(1, 7, ttl_ms=0),                   # BAD_TTL
+                        b"XX" + _cmd_bytes(1, 8)[2:]]                 # BAD_MAGIC
+            for payload in bad_cmds:
+                session.put(cmd_r1, payload)
+            state = (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.STATE), 9, 0, 5, 1, 1)
+                     + STATE_BODY.pack(0.5, 0.5, 0.0, 0.0, 0, 0))
+            session.put("formation/t/robot/r9/state", state)  # not a robot of this fleet
+            session.put("formation/t/robot/r2/state", state[:40])  # truncated
+            bridge.wait_tick(20)
+
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "150"], SCRIPTED, during=inject)
+    assert sim["rejects"] == {"BAD_SIZE": 1, "BAD_MAGIC": 1, "BAD_TTL": 1, "NON_FINITE": 1,
+                              "ROBOT_MISMATCH": 1}
+    assert_task_done(sim)
+    assert bridge["rejects"] == {"BAD_SIZE": 1, "UNKNOWN_ROBOT": 1}
+    assert bridge["ticks"] >= 140 and bridge["estops"] == 0
+
+
+@pytest.mark.slow
+def test_bridge_runs_an_exported_torchscript_policy_through_the_control_stack(tmp_path):
+    import torch
+
+    from controllers.policy import ActorConfig, build_actor
+    from deploy.export import export_policy
+
+    torch.manual_seed(0)
+    actor = build_actor(ActorConfig(embed_dim=32, velocity_damping=2.0), 5)
+    export_policy(actor, tmp_path / "policy.pt", dt=0.05, trained_robots=5)
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "30"],
+                              ["--policy", str(tmp_path / "policy.pt")])
+    assert bridge["controller_faults"] == 0 and bridge["ticks"] >= 29
+    assert sum(t["modes"] == ["run"] * 5 for t in sim["trace"]) >= 25
+    assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
