@@ -1,0 +1,143 @@
+"""Checkpoints: atomic writes, ``torch.load(weights_only=True)``, policy loading and transfer.
+
+A checkpoint is a dict of tensors and plain Python values only::
+
+    format, format_version          "formation-stack/mappo", 1
+    layout_version                  sim.observations.LAYOUT_VERSION the policy was trained on
+    num_robots, scenario            the training task
+    config                          MAPPOConfig.to_dict()
+    actor, critic, value_norm       state dicts
+    actor_optimizer, critic_optimizer
+    counters                        iteration, episodes, env_steps, last_eval_episodes, ...
+    convergence                     evaluation history (ConvergenceTracker.state_dict())
+    rng                             sampler and environment generator states (uint8 tensors)
+    env_state                       the training world mid-episode (so a resume is exact)
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from controllers.mappo.config import MAPPOConfig
+from controllers.policy import (
+    ActorConfig,
+    CriticConfig,
+    SlotSDPAActor,
+    build_actor,
+    build_critic,
+    grow_slot_actor,
+)
+from sim.batched_env import BatchedFormationEnv
+from sim.observations import LAYOUT_VERSION
+
+CHECKPOINT_FORMAT = "formation-stack/mappo"
+CHECKPOINT_VERSION = 1
+# The parts of BatchedFormationEnv that define where every episode stands.
+_ENV_TENSORS = ("pos", "vel", "t", "collided", "ret", "counts", "prev_contact")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used here; the message says why and what to do."""
+
+
+def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
+    """Write ``payload`` with ``torch.save`` to a temporary file, then ``os.replace`` it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save({"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION,
+                    "layout_version": LAYOUT_VERSION, **payload}, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load and check a checkpoint (``weights_only=True``: tensors and plain values only)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {str(path)!r} does not exist; give the path of a "
+                              "checkpoint.pt written by training")
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint")
+    if data.get("format_version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{str(path)!r} has checkpoint format version {data.get('format_version')}, "
+                              f"this code reads version {CHECKPOINT_VERSION}; retrain or convert it")
+    if data.get("layout_version") != LAYOUT_VERSION:
+        raise CheckpointError(
+            f"{str(path)!r} was trained on observation layout version {data.get('layout_version')} "
+            f"but sim.observations is version {LAYOUT_VERSION}; the policy would read wrong inputs, "
+            "retrain it on the current layout")
+    return data
+
+
+def checkpoint_config(data: dict[str, Any]) -> MAPPOConfig:
+    return MAPPOConfig.from_dict(dict(data["config"]))
+
+
+def load_actor(path: str | Path, num_robots: int | None = None, *, seed: int = 0) -> nn.Module:
+    """The trained actor of a checkpoint, in eval mode, for ``num_robots`` (default: as trained).
+
+    Typed actors run any N as they are; a slot actor is grown (new slots fresh, drawn with
+    ``seed``) for a different N; the MLP baseline only runs the N it was trained for.
+    """
+    data = load_checkpoint(path)
+    actor = actor_from_state(ActorConfig.from_dict(dict(data["config"]["actor"])), data["actor"],
+                             int(data["num_robots"]), num_robots, accel_limit=data["accel_limit"], seed=seed)
+    return actor.eval()
+
+
+def actor_from_state(config: ActorConfig, state: dict[str, torch.Tensor], trained_robots: int,
+                     num_robots: int | None, *, accel_limit: float, seed: int = 0) -> nn.Module:
+    """Rebuild an actor trained with ``trained_robots`` robots and adapt it to ``num_robots``."""
+    n = trained_robots if num_robots is None else num_robots
+    actor = build_actor(config, trained_robots, accel_limit)
+    actor.load_state_dict(state)
+    if n == trained_robots or config.variant == "typed":
+        return actor
+    if config.variant == "slot":
+        assert isinstance(actor, SlotSDPAActor)
+        return grow_slot_actor(actor, n, seed=seed)
+    raise CheckpointError(f"an MLP actor trained for {trained_robots} robots cannot run {n}: its input "
+                          "size is fixed by N; use actor.variant='typed' or 'slot' for transfer")
+
+
+def critic_from_state(config: CriticConfig, state: dict[str, torch.Tensor], trained_robots: int,
+                      num_robots: int) -> nn.Module:
+    """Rebuild a critic and check it can serve ``num_robots`` (the attention critic runs any N)."""
+    if config.variant == "mlp" and trained_robots != num_robots:
+        raise CheckpointError(f"an MLP critic trained for {trained_robots} robots cannot serve {num_robots}")
+    critic = build_critic(config, trained_robots if config.variant == "mlp" else num_robots)
+    critic.load_state_dict(state)
+    return critic
+
+
+def env_state_dict(env: BatchedFormationEnv) -> dict[str, torch.Tensor]:
+    """Everything that defines where each episode of ``env`` stands, plus its generator state."""
+    state = {name: getattr(env, name).detach().cpu().clone() for name in _ENV_TENSORS}
+    state["generator"] = env.generator.get_state()
+    return state
+
+
+def load_env_state(env: BatchedFormationEnv, state: dict[str, torch.Tensor]) -> None:
+    """Put ``env`` back into the state saved by :func:`env_state_dict`."""
+    for name in _ENV_TENSORS:
+        current = getattr(env, name)
+        saved = state[name]
+        if saved.shape != current.shape:
+            raise CheckpointError(f"saved environment {name} has shape {tuple(saved.shape)} but this run's "
+                                  f"is {tuple(current.shape)}; resume with the same num_envs and scenario")
+        current.copy_(saved.to(current.device))
+    env.generator.set_state(state["generator"])
+    env._frame = None
+    env._t_max = int(env.t.max())

@@ -1,0 +1,222 @@
+"""The one configuration of a MAPPO run (saved beside every run and inside every checkpoint)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from controllers.policy.config import (
+    ActorConfig,
+    CriticConfig,
+    PolicyConfigError,
+    dataclass_from_dict,
+)
+
+
+class TrainConfigError(PolicyConfigError):
+    """A training configuration that cannot run; the message names the field and the fix."""
+
+
+@dataclass(frozen=True)
+class MAPPOConfig:
+    """MAPPO with parameter sharing: one actor and one critic for all robots.
+
+    Counting: every finished parallel episode counts (``num_envs`` environments finishing =
+    ``num_envs`` episodes); ``env_steps`` counts environment steps (one per environment).
+
+    Attributes:
+        scenario: preset name for :func:`sim.scenario.make_scenario` (``paper-3``, ``transport-N``...)
+            or a full scenario as a dict (:meth:`sim.scenario.Scenario.to_dict`).
+        actor, critic: the networks (:class:`ActorConfig`, :class:`CriticConfig`).
+        reward_weights: overrides of :class:`sim.reward.RewardWeights` fields (e.g.
+            ``{"w_object": 2.0}``) for training and evaluation; empty keeps the shared defaults.
+        num_envs: parallel environments E of the training world.
+        rollout_steps: steps per environment between updates (S); a rollout holds S * E * N
+            robot transitions.
+        gamma: discount per step (dt = 0.05 s).
+        gae_lambda: GAE lambda.
+        bootstrap_time_limit: treat the end of an episode (always the 128-step time limit) as a
+            truncation and bootstrap from the value of the last observation; False treats it
+            as terminal (then the value depends on the time left, which no robot observes).
+        clip_coef: PPO ratio clip epsilon (the paper's Equation (1)).
+        value_clip: clip of the value update (PPO2), or None for the plain squared error.
+        ent_coef: weight of the entropy bonus.
+        vf_coef: weight of the value loss.
+        lr: Adam learning rate of the actor.
+        critic_lr: Adam learning rate of the critic (None: ``lr``).
+        anneal_lr: decay both rates linearly to 0 over ``total_episodes``.
+        update_epochs: passes over each rollout.
+        num_minibatches: minibatches per pass (split over (step, env) pairs, all robots of a
+            team stay together because the critic is centralised).
+        max_grad_norm: gradient norm clip, per network.
+        norm_adv: normalise advantages per minibatch.
+        value_norm: learn normalised values with running return statistics.
+        target_kl: stop the epochs of an update early above this approximate KL (None: never).
+        seed: seeds the networks, the sampling noise and the start jitter.
+        total_episodes: training budget in episodes.
+        eval_interval: evaluate at least every this many training episodes.
+        eval_episodes: deterministic evaluation episodes (fresh random starts) per evaluation.
+        success_threshold: convergence threshold of the success rate (see
+            :func:`controllers.mappo.evaluate.converged_episode`).
+        stop_at_convergence: end the run once the convergence rule is met.
+        checkpoint_interval: save ``checkpoint.pt`` every this many iterations (and at the end).
+        init_from: checkpoint of an M-robot run to start from (transfer learning), or None.
+        device: torch device.
+        torch_threads: ``torch.set_num_threads`` for the run (0 leaves it alone; 1 is fastest
+            for these small networks and robust on a busy machine).
+        progress: show a tqdm progress bar.
+    """
+
+    scenario: str | dict = "paper-3"
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    critic: CriticConfig = field(default_factory=CriticConfig)
+    reward_weights: dict = field(default_factory=dict)
+    num_envs: int = 16
+    rollout_steps: int = 32
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    bootstrap_time_limit: bool = True
+    clip_coef: float = 0.2
+    value_clip: float | None = None
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    lr: float = 5e-4
+    critic_lr: float | None = None
+    anneal_lr: bool = False
+    update_epochs: int = 5
+    num_minibatches: int = 4
+    max_grad_norm: float = 0.5
+    norm_adv: bool = True
+    value_norm: bool = True
+    target_kl: float | None = None
+    seed: int = 0
+    total_episodes: int = 2000
+    eval_interval: int = 50
+    eval_episodes: int = 100
+    success_threshold: float = 0.9
+    stop_at_convergence: bool = True
+    checkpoint_interval: int = 20
+    init_from: str | None = None
+    device: str = "cpu"
+    torch_threads: int = 1
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.actor, dict):
+            object.__setattr__(self, "actor", ActorConfig.from_dict(self.actor))
+        if isinstance(self.critic, dict):
+            object.__setattr__(self, "critic", CriticConfig.from_dict(self.critic))
+        if isinstance(self.scenario, dict):   # stored in its JSON form, so resumes compare equal
+            object.__setattr__(self, "scenario", _jsonable(self.build_scenario().to_dict()))
+        self.validate()
+
+    def build_scenario(self):
+        """The :class:`sim.scenario.Scenario` of this run."""
+        from sim.scenario import Scenario, ScenarioError, make_scenario
+
+        try:
+            if isinstance(self.scenario, dict):
+                return Scenario.from_dict(dict(self.scenario))
+            if isinstance(self.scenario, str):
+                return make_scenario(self.scenario)
+        except (ScenarioError, TypeError) as exc:
+            raise TrainConfigError(f"scenario: {exc}") from None
+        raise TrainConfigError(f"scenario must be a preset name or a scenario dict, got {self.scenario!r}")
+
+    def build_reward_weights(self):
+        """The :class:`sim.reward.RewardWeights` of this run (defaults plus ``reward_weights``)."""
+        from sim.reward import RewardWeights
+
+        if not isinstance(self.reward_weights, dict):
+            raise TrainConfigError(f"reward_weights must be a mapping of RewardWeights fields, "
+                                   f"got {self.reward_weights!r}")
+        known = {f.name for f in dataclasses.fields(RewardWeights)}
+        unknown = sorted(set(self.reward_weights) - known)
+        if unknown:
+            raise TrainConfigError(f"unknown reward_weights field(s) {unknown}; known: {sorted(known)}")
+        for name, value in self.reward_weights.items():
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise TrainConfigError(f"reward_weights.{name} must be a number >= 0, got {value!r}")
+        return RewardWeights(**{k: float(v) for k, v in self.reward_weights.items()})
+
+    @property
+    def scenario_name(self) -> str:
+        return self.scenario["name"] if isinstance(self.scenario, dict) else self.scenario
+
+    def validate(self) -> None:
+        self.build_scenario()
+        self.build_reward_weights()
+        for name in ("num_envs", "rollout_steps", "update_epochs", "num_minibatches", "total_episodes",
+                     "eval_interval", "eval_episodes", "checkpoint_interval"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise TrainConfigError(f"{name} must be a positive integer, got {value!r}")
+        if self.num_minibatches > self.num_envs * self.rollout_steps:
+            raise TrainConfigError(f"num_minibatches ({self.num_minibatches}) must be <= num_envs * "
+                                   f"rollout_steps ({self.num_envs * self.rollout_steps})")
+        for name, lo, hi in (("gamma", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("success_threshold", 0.0, 1.0)):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and lo <= value <= hi):
+                raise TrainConfigError(f"{name} must be in [{lo}, {hi}], got {value!r}")
+        for name in ("clip_coef", "lr", "max_grad_norm"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise TrainConfigError(f"{name} must be a positive number, got {value!r}")
+        for name in ("ent_coef", "vf_coef"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise TrainConfigError(f"{name} must be a number >= 0, got {value!r}")
+        for name in ("critic_lr", "value_clip", "target_kl"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int | float) and value > 0):
+                raise TrainConfigError(f"{name} must be a positive number or null, got {value!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise TrainConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if not isinstance(self.torch_threads, int) or self.torch_threads < 0:
+            raise TrainConfigError(f"torch_threads must be an integer >= 0 (0 = leave as is), "
+                                   f"got {self.torch_threads!r}")
+        if self.actor.obs_kind != self.critic.obs_kind:
+            raise TrainConfigError(
+                f"actor.variant {self.actor.variant!r} reads {self.actor.obs_kind} observations but "
+                f"critic.variant {self.critic.variant!r} reads {self.critic.obs_kind}; use "
+                "critic.variant='mlp' with actor.variant='mlp', else critic.variant='attention'")
+
+    # ---------------------------------------------------------------- (de)serialise
+    def to_dict(self) -> dict[str, Any]:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["actor"] = self.actor.to_dict()
+        d["critic"] = self.critic.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MAPPOConfig:
+        try:
+            return dataclass_from_dict(cls, data, "config")
+        except TrainConfigError:
+            raise
+        except PolicyConfigError as exc:
+            raise TrainConfigError(str(exc)) from None
+
+    def replace(self, **changes: Any) -> MAPPOConfig:
+        """A copy with ``changes`` applied (validated)."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def obs_kind(self) -> str:
+        return self.actor.obs_kind
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+# Fields that may differ when a run is resumed: they change how long or how visibly it runs,
+# never what it computes.
+RESUMABLE_CHANGES = ("total_episodes", "progress", "checkpoint_interval", "stop_at_convergence",
+                     "torch_threads")

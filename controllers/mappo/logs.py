@@ -1,0 +1,83 @@
+"""Metrics of a run as JSON lines and CSV side by side (``<name>.jsonl`` and ``<name>.csv``).
+
+Rows are flat dicts of numbers (None where undefined, e.g. no episode ended in an iteration);
+every row of a log has the same keys. On resume the log is cut back to the rows the
+checkpoint covers, so an interrupted and resumed run leaves the same curve as an
+uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class MetricsLog:
+    """Append-only ``<run_dir>/<name>.jsonl`` + ``.csv`` with a fixed column set."""
+
+    def __init__(self, run_dir: str | Path, name: str):
+        self.jsonl = Path(run_dir) / f"{name}.jsonl"
+        self.csv = Path(run_dir) / f"{name}.csv"
+        self.columns: list[str] | None = None
+        rows = self.read()
+        if rows:
+            self.columns = list(rows[0])
+
+    def read(self) -> list[dict[str, Any]]:
+        if not self.jsonl.exists():
+            return []
+        with self.jsonl.open() as f:
+            return [json.loads(line) for line in f if line.strip()]
+
+    def append(self, row: dict[str, Any]) -> None:
+        row = {k: _clean(v) for k, v in row.items()}
+        if self.columns is None:
+            self.columns = list(row)
+            with self.csv.open("w", newline="") as f:
+                csv.writer(f).writerow(self.columns)
+        elif list(row) != self.columns:
+            raise ValueError(f"{self.jsonl.name}: row keys {list(row)} differ from the columns {self.columns}")
+        with self.jsonl.open("a") as f:
+            f.write(json.dumps(row, allow_nan=False) + "\n")
+        with self.csv.open("a", newline="") as f:
+            csv.writer(f).writerow(["" if row[k] is None else row[k] for k in self.columns])
+
+    def truncate(self, keep: int) -> None:
+        """Keep only the first ``keep`` rows of both files (atomic rewrites)."""
+        rows = self.read()[:keep]
+        if not rows:
+            for path in (self.jsonl, self.csv):
+                path.unlink(missing_ok=True)
+            self.columns = None
+            return
+        self.columns = list(rows[0])
+        _write_atomic(self.jsonl, "".join(json.dumps(r, allow_nan=False) + "\n" for r in rows))
+        buffer = io.StringIO()
+        writer = csv.writer(buffer)
+        writer.writerow(self.columns)
+        for r in rows:
+            writer.writerow(["" if r[k] is None else r[k] for k in self.columns])
+        _write_atomic(self.csv, buffer.getvalue())
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,367 @@
+"""MAPPO training loop (CleanRL-style, top to bottom), with parameter sharing across robots.
+
+One iteration::
+
+    rollout   S steps of E environments: a ~ N(actor(o), exp(log_std)^2) per robot,
+              V(o) from the centralised critic (de-normalised)
+    GAE       advantages and returns per robot (controllers.mappo.losses.compute_gae)
+    update    update_epochs x num_minibatches Adam steps over (step, env) pairs, each holding
+              the whole team: clipped surrogate - ent_coef * entropy (actor),
+              vf_coef * value loss on normalised returns (critic), gradient norm clipping
+    evaluate  when due (at least every eval_interval episodes): eval_episodes deterministic
+              episodes on fresh starts; the convergence rule of controllers.mappo.evaluate
+
+Run directory: ``config.json``, ``train.jsonl/.csv`` (one row per iteration), ``eval.jsonl/.csv``
+(one row per evaluation), ``checkpoint.pt`` (latest), ``result.json`` (at the end).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from controllers.mappo.checkpoint import (
+    CheckpointError,
+    actor_from_state,
+    checkpoint_config,
+    critic_from_state,
+    env_state_dict,
+    load_checkpoint,
+    load_env_state,
+    save_checkpoint,
+)
+from controllers.mappo.config import RESUMABLE_CHANGES, MAPPOConfig, TrainConfigError
+from controllers.mappo.evaluate import (
+    ConvergenceTracker,
+    evaluate,
+    evaluation_due,
+    write_json_atomic,
+)
+from controllers.mappo.logs import MetricsLog
+from controllers.mappo.losses import (
+    ValueNormalizer,
+    clipped_surrogate_loss,
+    compute_gae,
+    explained_variance,
+    value_loss,
+)
+from controllers.policy import build_actor, build_critic, gaussian_entropy, gaussian_log_prob
+from sim.batched_env import BatchedFormationEnv
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+@dataclass
+class TrainResult:
+    """Summary of a run (also written to ``result.json``)."""
+
+    run_dir: str
+    converged_episode: int | None
+    episodes: int
+    iterations: int
+    env_steps: int
+    wall_time_s: float
+    last_eval: dict | None
+    checkpoint: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def train(config: MAPPOConfig, run_dir: str | Path, *, resume: bool = False) -> TrainResult:
+    """Train (or, with ``resume``, continue the run in ``run_dir``) and return the summary."""
+    return MAPPOTrainer(config, run_dir, resume=resume).run()
+
+
+class MAPPOTrainer:
+    """The state of one run; :meth:`run` trains until the budget or convergence."""
+
+    def __init__(self, config: MAPPOConfig, run_dir: str | Path, *, resume: bool = False):
+        self.config = cfg = config
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
+        self.device = torch.device(cfg.device)
+        self.scenario = cfg.build_scenario()
+        self.num_robots = self.scenario.num_robots
+        self.accel_limit = self.scenario.dynamics.accel_limit
+
+        torch.manual_seed(cfg.seed)
+        self.actor = build_actor(cfg.actor, self.num_robots, self.accel_limit).to(self.device)
+        self.critic = build_critic(cfg.critic, self.num_robots).to(self.device)
+        self.value_norm = ValueNormalizer(cfg.value_norm).to(self.device)
+        self.transferred_from: str | None = None
+        if cfg.init_from and not resume:
+            self._transfer(cfg.init_from)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr, eps=1e-5)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr or cfg.lr, eps=1e-5)
+        self.sampler = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+
+        self.reward_weights = cfg.build_reward_weights()
+        self.env = BatchedFormationEnv(self.scenario, cfg.num_envs, seed=cfg.seed, device=self.device,
+                                       obs=cfg.obs_kind, reward_weights=self.reward_weights)
+        self.obs, self.mask = self.env.reset()
+        self.iteration = self.episodes = self.env_steps = self.eval_count = self.last_eval_episodes = 0
+        self.wall_time_s = 0.0
+        self.tracker = ConvergenceTracker(cfg.success_threshold)
+        self.last_eval: dict | None = None
+        self.train_log = MetricsLog(self.run_dir, "train")
+        self.eval_log = MetricsLog(self.run_dir, "eval")
+        if resume:
+            self._resume()
+        elif self.train_log.read() or (self.run_dir / CHECKPOINT_NAME).exists():
+            raise TrainConfigError(f"run_dir {str(self.run_dir)!r} already holds a run; resume it "
+                                   "(resume=True) or choose an empty directory")
+        write_json_atomic(self.run_dir / "config.json", cfg.to_dict())
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> TrainResult:
+        cfg = self.config
+        bar = tqdm(total=cfg.total_episodes, initial=self.episodes, unit="ep", disable=not cfg.progress,
+                   dynamic_ncols=True, desc=f"MAPPO {cfg.scenario_name}")
+        shown = {"ret": "-", "succ": "-"}      # training return and success of the last finished batch
+        try:
+            if self.eval_count == 0:
+                self._evaluate()
+            while self.episodes < cfg.total_episodes and not self._stop():
+                before = self.episodes
+                row = self._iteration()
+                bar.update(self.episodes - before)
+                if evaluation_due(self.episodes, self.last_eval_episodes, cfg.eval_interval, cfg.num_envs):
+                    self._evaluate()
+                if self.iteration % cfg.checkpoint_interval == 0:
+                    self.save()
+                if row["episodes_finished"]:
+                    shown = {"ret": _fmt(row["return_mean"]), "succ": _fmt(row["success_rate"])}
+                bar.set_postfix(**shown, eval=_fmt(self.last_eval["success_rate"] if self.last_eval else None),
+                                refresh=False)
+        finally:
+            bar.close()
+        self.save()
+        result = TrainResult(run_dir=str(self.run_dir), converged_episode=self.tracker.converged_episode,
+                             episodes=self.episodes, iterations=self.iteration, env_steps=self.env_steps,
+                             wall_time_s=round(self.wall_time_s, 3), last_eval=self.last_eval,
+                             checkpoint=str(self.run_dir / CHECKPOINT_NAME))
+        write_json_atomic(self.run_dir / "result.json",
+                          {**result.to_dict(), "transferred_from": self.transferred_from,
+                           "evaluations": self.tracker.state_dict()})
+        return result
+
+    def _stop(self) -> bool:
+        return self.config.stop_at_convergence and self.tracker.converged_episode is not None
+
+    def _iteration(self) -> dict:
+        cfg = self.config
+        start = time.perf_counter()
+        s, e, n = cfg.rollout_steps, cfg.num_envs, self.num_robots
+        if cfg.anneal_lr:
+            frac = max(0.0, 1.0 - self.episodes / cfg.total_episodes)
+            for opt, lr in ((self.actor_optimizer, cfg.lr), (self.critic_optimizer, cfg.critic_lr or cfg.lr)):
+                opt.param_groups[0]["lr"] = frac * lr
+
+        obs_buf = self.obs.new_empty((s, *self.obs.shape))
+        mask_buf = None if self.mask is None else self.mask.new_empty((s, *self.mask.shape))
+        actions = self.obs.new_empty((s, e, n, 2))
+        log_probs, values, rewards = (self.obs.new_empty((s, e, n)) for _ in range(3))
+        dones = torch.zeros(s, e, dtype=torch.bool, device=self.device)
+        finished = []
+        with torch.no_grad():
+            log_std = self.actor.log_std
+            for t in range(s):
+                obs_buf[t] = self.obs
+                if mask_buf is not None:
+                    mask_buf[t] = self.mask
+                mean = self.actor(self.obs, self.mask)
+                noise = torch.randn(mean.shape, generator=self.sampler, device=self.device, dtype=mean.dtype)
+                action = mean + noise * log_std.exp()
+                actions[t] = action
+                log_probs[t] = gaussian_log_prob(action, mean, log_std)
+                values[t] = self.value_norm.denormalize(self.critic(self.obs, self.mask))
+                step = self.env.step(action)
+                rewards[t], dones[t] = step.reward, step.done
+                self.obs, self.mask = step.obs, step.mask
+                if len(step.finished):
+                    finished.append(step.finished)
+            next_values = self.value_norm.denormalize(self.critic(self.obs, self.mask))
+        # Episodes end only by the time limit, which the observation does not show: bootstrap
+        # the final step from the value of its own observation (one step before the end).
+        advantages, returns = compute_gae(rewards, values, dones, next_values, cfg.gamma, cfg.gae_lambda,
+                                          truncation_values=values if cfg.bootstrap_time_limit else None)
+        self.value_norm.update(returns)
+        stats = self._update(obs_buf, mask_buf, actions, log_probs, advantages,
+                             self.value_norm.normalize(returns), self.value_norm.normalize(values))
+
+        self.iteration += 1
+        self.env_steps += s * e
+        episodes_now = sum(len(f) for f in finished)
+        self.episodes += episodes_now
+        self.wall_time_s += time.perf_counter() - start
+        row = {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
+               "wall_time_s": round(self.wall_time_s, 3), "episodes_finished": episodes_now,
+               **_episode_summary(finished), "reward_mean": float(rewards.mean()),
+               "explained_variance": explained_variance(values.reshape(-1), returns.reshape(-1)),
+               "action_std": float(self.actor.log_std.detach().exp().mean()),
+               "lr": self.actor_optimizer.param_groups[0]["lr"], **stats}
+        self.train_log.append(row)
+        return row
+
+    def _update(self, obs, mask, actions, old_log_probs, advantages, returns_n, old_values_n) -> dict:
+        """PPO epochs over the rollout; minibatches of (step, env) pairs keep teams together."""
+        cfg = self.config
+        b = obs.shape[0] * obs.shape[1]
+        flat = {"obs": obs.flatten(0, 1), "actions": actions.flatten(0, 1),
+                "old_log_probs": old_log_probs.flatten(0, 1), "advantages": advantages.flatten(0, 1),
+                "returns": returns_n.flatten(0, 1), "old_values": old_values_n.flatten(0, 1)}
+        flat_mask = None if mask is None else mask.flatten(0, 1)
+        size = math.ceil(b / cfg.num_minibatches)
+        sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clipfrac": 0.0}
+        steps = 0
+        for _ in range(cfg.update_epochs):
+            order = torch.randperm(b, generator=self.sampler, device=self.device)
+            kl_epoch = []
+            for idx in order.split(size):
+                mb_mask = None if flat_mask is None else flat_mask[idx]
+                mean = self.actor(flat["obs"][idx], mb_mask)
+                new_log_prob = gaussian_log_prob(flat["actions"][idx], mean, self.actor.log_std)
+                log_ratio = new_log_prob - flat["old_log_probs"][idx]
+                adv = flat["advantages"][idx]
+                if cfg.norm_adv and adv.numel() > 1:
+                    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+                pg_loss = clipped_surrogate_loss(new_log_prob, flat["old_log_probs"][idx], adv, cfg.clip_coef)
+                entropy = gaussian_entropy(self.actor.log_std)
+                v_loss = value_loss(self.critic(flat["obs"][idx], mb_mask), flat["old_values"][idx],
+                                    flat["returns"][idx], cfg.value_clip)
+                self.actor_optimizer.zero_grad(set_to_none=True)
+                self.critic_optimizer.zero_grad(set_to_none=True)
+                (pg_loss - cfg.ent_coef * entropy + cfg.vf_coef * v_loss).backward()
+                torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+                torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
+                self.actor_optimizer.step()
+                self.critic_optimizer.step()
+                with torch.no_grad():
+                    ratio = log_ratio.exp()
+                    approx_kl = float(((ratio - 1) - log_ratio).mean())
+                    sums["clipfrac"] += float(((ratio - 1).abs() > cfg.clip_coef).float().mean())
+                kl_epoch.append(approx_kl)
+                sums["policy_loss"] += float(pg_loss.detach())
+                sums["value_loss"] += float(v_loss.detach())
+                sums["entropy"] += float(entropy.detach())
+                sums["approx_kl"] += approx_kl
+                steps += 1
+            if cfg.target_kl is not None and sum(kl_epoch) / len(kl_epoch) > cfg.target_kl:
+                break
+        return {k: v / steps for k, v in sums.items()}
+
+    # ------------------------------------------------------------ evaluation
+    def eval_seed(self, index: int) -> int:
+        """Seed of evaluation ``index``: fresh starts each time, reproducible per run."""
+        return 1_000_000 * (self.config.seed + 1) + 1_000 * index
+
+    def _evaluate(self) -> None:
+        cfg = self.config
+        start = time.perf_counter()
+        result = evaluate(self.actor, self.scenario, episodes=cfg.eval_episodes,
+                          seed=self.eval_seed(self.eval_count), device=self.device,
+                          reward_weights=self.reward_weights)
+        converged = self.tracker.add(self.episodes, result.success_rate)
+        self.eval_count += 1
+        self.last_eval_episodes = self.episodes
+        self.wall_time_s += time.perf_counter() - start
+        self.last_eval = {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
+                          "wall_time_s": round(self.wall_time_s, 3), "success_rate": result.success_rate,
+                          "final_distance": result.final_distance, "episode_return": result.episode_return,
+                          "robot_collisions": result.robot_collisions,
+                          "object_collisions": result.object_collisions,
+                          "wall_collisions": result.wall_collisions, "collision_rate": result.collision_rate,
+                          "eval_seed": result.seed, "converged_episode": converged}
+        self.eval_log.append(self.last_eval)
+
+    # ------------------------------------------------------------ checkpoints
+    def save(self, path: str | Path | None = None) -> Path:
+        path = Path(path) if path is not None else self.run_dir / CHECKPOINT_NAME
+        save_checkpoint(path, {
+            "num_robots": self.num_robots, "scenario": self.config.scenario_name, "accel_limit": self.accel_limit,
+            "config": self.config.to_dict(),
+            "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "value_norm": self.value_norm.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "counters": {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
+                         "eval_count": self.eval_count, "last_eval_episodes": self.last_eval_episodes,
+                         "wall_time_s": self.wall_time_s},
+            "convergence": self.tracker.state_dict(), "last_eval": self.last_eval,
+            "transferred_from": self.transferred_from,
+            "rng": {"sampler": self.sampler.get_state()}, "env_state": env_state_dict(self.env),
+        })
+        return path
+
+    def _resume(self) -> None:
+        data = load_checkpoint(self.run_dir / CHECKPOINT_NAME)
+        saved = checkpoint_config(data)
+        mine, theirs = self.config.to_dict(), saved.to_dict()
+        ignored = set(RESUMABLE_CHANGES) - ({"total_episodes"} if self.config.anneal_lr else set())
+        for key in mine:
+            if key not in ignored and mine[key] != theirs[key]:
+                raise TrainConfigError(f"cannot resume: config field {key!r} is {mine[key]!r} here but "
+                                       f"{theirs[key]!r} in the checkpoint; use the run's config.json "
+                                       f"(only {sorted(ignored)} may change)")
+        self.actor.load_state_dict(data["actor"])
+        self.critic.load_state_dict(data["critic"])
+        self.value_norm.load_state_dict(data["value_norm"])
+        self.actor_optimizer.load_state_dict(data["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(data["critic_optimizer"])
+        c = data["counters"]
+        self.iteration, self.episodes, self.env_steps = c["iteration"], c["episodes"], c["env_steps"]
+        self.eval_count, self.last_eval_episodes = c["eval_count"], c["last_eval_episodes"]
+        self.wall_time_s = c["wall_time_s"]
+        self.tracker = ConvergenceTracker.from_state_dict(data["convergence"])
+        self.last_eval = data["last_eval"]
+        self.transferred_from = data["transferred_from"]
+        self.sampler.set_state(data["rng"]["sampler"])
+        load_env_state(self.env, data["env_state"])
+        self.obs, self.mask = self.env.observe()
+        self.train_log.truncate(self.iteration)
+        self.eval_log.truncate(self.eval_count)
+
+    def _transfer(self, path: str) -> None:
+        """Start from the actor, critic and value statistics of an M-robot checkpoint."""
+        data = load_checkpoint(path)
+        source = checkpoint_config(data)
+        mine, theirs = self.config.actor.to_dict(), source.actor.to_dict()
+        for key in ("variant", "embed_dim", "num_heads", "hidden_sizes", "input_scale"):
+            if mine[key] != theirs[key]:
+                raise CheckpointError(f"init_from: actor.{key} is {theirs[key]!r} in {path!r} but {mine[key]!r} "
+                                      "here; use the source run's actor settings")
+        if self.config.critic.to_dict() != source.critic.to_dict():
+            raise CheckpointError(f"init_from: the critic settings of {path!r} differ from this run's; "
+                                  "use the source run's critic settings")
+        m = int(data["num_robots"])
+        self.actor = actor_from_state(source.actor, data["actor"], m, self.num_robots,
+                                      accel_limit=self.accel_limit, seed=self.config.seed).to(self.device)
+        self.critic = critic_from_state(source.critic, data["critic"], m, self.num_robots).to(self.device)
+        if source.value_norm == self.config.value_norm:
+            self.value_norm.load_state_dict(data["value_norm"])
+        self.transferred_from = str(path)
+
+
+def _episode_summary(finished: list) -> dict:
+    """Means over the episodes that ended in an iteration (None when none ended)."""
+    keys = ("return_mean", "success_rate", "final_distance", "collision_rate")
+    if not finished:
+        return dict.fromkeys(keys)
+    ret = torch.cat([f.episode_return for f in finished])
+    success = torch.cat([f.success for f in finished]).float()
+    dist = torch.cat([f.final_distance for f in finished])
+    coll = torch.cat([(f.robot_collisions + f.object_collisions + f.wall_collisions) > 0 for f in finished])
+    return dict(zip(keys, (float(ret.mean()), float(success.mean()), float(dist.mean()),
+                           float(coll.float().mean())), strict=True))
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3g}"

@@ -1,0 +1,155 @@
+"""Configuration of the policy networks (one dataclass per network, validated on creation)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+ACTOR_VARIANTS = ("typed", "slot", "mlp")
+CRITIC_VARIANTS = ("attention", "mlp")
+
+
+class PolicyConfigError(ValueError):
+    """A network configuration that cannot be built; the message names the field and the fix."""
+
+
+def _check_positive_int(owner: str, name: str, value: Any) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise PolicyConfigError(f"{owner}.{name} must be a positive integer, got {value!r}")
+
+
+def _check_hidden(owner: str, hidden: Any) -> tuple[int, ...]:
+    try:
+        sizes = tuple(hidden)
+    except TypeError:
+        raise PolicyConfigError(f"{owner}.hidden_sizes must be a list of positive integers, "
+                                f"got {hidden!r}") from None
+    if not sizes or any(not isinstance(h, int) or isinstance(h, bool) or h < 1 for h in sizes):
+        raise PolicyConfigError(f"{owner}.hidden_sizes must be a non-empty list of positive "
+                                f"integers, got {hidden!r}")
+    return sizes
+
+
+def dataclass_from_dict(cls, data: dict, owner: str):
+    """Build dataclass ``cls`` from a dict, rejecting unknown keys with a message naming them."""
+    if not isinstance(data, dict):
+        raise PolicyConfigError(f"{owner} must be a mapping of fields, got {type(data).__name__}")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise PolicyConfigError(f"unknown {owner} field(s) {unknown}; known fields: {sorted(known)}")
+    return cls(**data)
+
+
+@dataclass(frozen=True)
+class ActorConfig:
+    """The decentralised actor (one network shared by every robot).
+
+    Attributes:
+        variant: ``"typed"``: one linear embedding per token *type* (self, target, robot,
+            object), so the same weights run any number of robots; ``"slot"``: the paper's
+            Figure 1/2, one embedding per input *slot* (P, V, G_1..G_N, R_1..R_{N-1}, object),
+            grown for more robots with :func:`controllers.policy.grow_slot_actor`;
+            ``"mlp"``: the MLP-MAPPO baseline on the flat vector (fixed N).
+        embed_dim: width D of the token embeddings (attention variants).
+        num_heads: attention heads; must divide ``embed_dim``.
+        hidden_sizes: hidden ReLU layers of the head (the paper: one layer of 128).
+        init_log_std: initial log standard deviation of the Gaussian action noise [log m/s^2].
+        input_scale: observation features [m, m/s] are multiplied by this before embedding.
+        velocity_damping: k_v [1/s] of the output ``accel_limit * tanh((u - k_v v) / accel_limit)``
+            (v: the robot's own velocity); 0 gives the plain ``tanh`` output.
+    """
+
+    variant: str = "typed"
+    embed_dim: int = 64
+    num_heads: int = 4
+    hidden_sizes: tuple[int, ...] = (128,)
+    init_log_std: float = -0.5
+    input_scale: float = 1.0
+    velocity_damping: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden_sizes", _check_hidden("actor", self.hidden_sizes))
+        self.validate()
+
+    def validate(self) -> None:
+        if self.variant not in ACTOR_VARIANTS:
+            raise PolicyConfigError(f"actor.variant must be one of {ACTOR_VARIANTS}, got {self.variant!r}")
+        _check_positive_int("actor", "embed_dim", self.embed_dim)
+        _check_positive_int("actor", "num_heads", self.num_heads)
+        if self.embed_dim % self.num_heads:
+            raise PolicyConfigError(f"actor.num_heads ({self.num_heads}) must divide actor.embed_dim "
+                                    f"({self.embed_dim}); e.g. embed_dim=64, num_heads=4")
+        if not -5.0 <= float(self.init_log_std) <= 2.0:
+            raise PolicyConfigError(f"actor.init_log_std must be in [-5, 2], got {self.init_log_std!r}")
+        if not float(self.input_scale) > 0:
+            raise PolicyConfigError(f"actor.input_scale must be > 0, got {self.input_scale!r}")
+        if not 0.0 <= float(self.velocity_damping) <= 100.0:
+            raise PolicyConfigError(f"actor.velocity_damping must be in [0, 100] 1/s, got {self.velocity_damping!r}")
+
+    @property
+    def obs_kind(self) -> str:
+        """The observation the actor reads: ``"flat"`` for the MLP baseline, else ``"tokens"``."""
+        return "flat" if self.variant == "mlp" else "tokens"
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["hidden_sizes"] = list(self.hidden_sizes)
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ActorConfig:
+        return dataclass_from_dict(cls, data, "actor")
+
+
+@dataclass(frozen=True)
+class CriticConfig:
+    """The centralised critic (one network, a value per robot).
+
+    Attributes:
+        variant: ``"attention"`` (entity tokens, any N) or ``"mlp"`` (flat vectors, fixed N;
+            goes with the ``"mlp"`` actor).
+        embed_dim, num_heads, hidden_sizes: as in :class:`ActorConfig`.
+        value_mixing: epsilon of the paper's Equation (2),
+            ``V_joint^i = eps * V^i + (1 - eps) * mean_j V^j``; 1.0 turns mixing off.
+        input_scale: as in :class:`ActorConfig`.
+    """
+
+    variant: str = "attention"
+    embed_dim: int = 64
+    num_heads: int = 4
+    hidden_sizes: tuple[int, ...] = (128,)
+    value_mixing: float = 1.0
+    input_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "hidden_sizes", _check_hidden("critic", self.hidden_sizes))
+        self.validate()
+
+    def validate(self) -> None:
+        if self.variant not in CRITIC_VARIANTS:
+            raise PolicyConfigError(f"critic.variant must be one of {CRITIC_VARIANTS}, got {self.variant!r}")
+        _check_positive_int("critic", "embed_dim", self.embed_dim)
+        _check_positive_int("critic", "num_heads", self.num_heads)
+        if self.embed_dim % self.num_heads:
+            raise PolicyConfigError(f"critic.num_heads ({self.num_heads}) must divide critic.embed_dim "
+                                    f"({self.embed_dim})")
+        if not 0.0 <= float(self.value_mixing) <= 1.0:
+            raise PolicyConfigError(f"critic.value_mixing must be in [0, 1] (1 = no mixing), "
+                                    f"got {self.value_mixing!r}")
+        if not float(self.input_scale) > 0:
+            raise PolicyConfigError(f"critic.input_scale must be > 0, got {self.input_scale!r}")
+
+    @property
+    def obs_kind(self) -> str:
+        return "flat" if self.variant == "mlp" else "tokens"
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["hidden_sizes"] = list(self.hidden_sizes)
+        return d
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CriticConfig:
+        return dataclass_from_dict(cls, data, "critic")

@@ -1,0 +1,190 @@
+"""Building blocks shared by the actors and critics (TorchScript-friendly, tensor-only forwards).
+
+Shapes: ``B`` is a flat batch (``num_envs * num_robots`` for an actor), ``T`` tokens or slots,
+``F`` token features (4), ``D`` embedding width, ``H`` attention heads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def init_linear(layer: nn.Linear, gain: float) -> nn.Linear:
+    """Orthogonal weights with ``gain`` and zero bias (the usual PPO initialisation)."""
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def mlp(in_dim: int, hidden_sizes: tuple[int, ...], out_dim: int, out_gain: float) -> nn.Sequential:
+    """``in_dim -> hidden (ReLU) ... -> out_dim``; hidden layers gain sqrt(2), output ``out_gain``."""
+    layers: list[nn.Module] = []
+    width = in_dim
+    for h in hidden_sizes:
+        layers += [init_linear(nn.Linear(width, h), math.sqrt(2.0)), nn.ReLU()]
+        width = h
+    layers.append(init_linear(nn.Linear(width, out_dim), out_gain))
+    return nn.Sequential(*layers)
+
+
+class SlotLinear(nn.Module):
+    """One affine map per slot: ``(B, S, F) -> (B, S, D)``, ``y[b, s] = x[b, s] @ W[s] + b[s]``.
+
+    Initialised like :class:`torch.nn.Linear` (uniform in ``+-1/sqrt(F)``); ``S`` may be 0.
+    """
+
+    def __init__(self, num_slots: int, in_dim: int, out_dim: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(num_slots, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.empty(num_slots, out_dim))
+        self.reset_slots(0, num_slots)
+
+    @torch.jit.unused
+    def reset_slots(self, start: int, stop: int, generator: torch.Generator | None = None) -> None:
+        """Fresh initial weights for slots ``start..stop-1`` (new inputs of a grown model)."""
+        bound = 1.0 / math.sqrt(self.weight.shape[1])
+        with torch.no_grad():
+            for p in (self.weight, self.bias):
+                fresh = torch.rand(p[start:stop].shape, generator=generator, dtype=p.dtype)
+                p[start:stop] = (fresh * 2 - 1) * bound
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.einsum("bsf,sfd->bsd", x, self.weight) + self.bias
+
+
+class TypedEmbedding(nn.Module):
+    """One linear embedding per token type of the layout in :mod:`sim.observations`.
+
+    ``(B, T = 2n+1, F) -> (B, T, D)``: token 0 (self) through ``embed_self``, tokens
+    ``1..n`` (targets) through ``embed_target``, ``n+1..2n-1`` (other robots) through
+    ``embed_robot`` and token ``2n`` (object) through ``embed_object``. The weights do not
+    depend on n.
+    """
+
+    def __init__(self, in_dim: int, dim: int):
+        super().__init__()
+        self.embed_self = nn.Linear(in_dim, dim)
+        self.embed_target = nn.Linear(in_dim, dim)
+        self.embed_robot = nn.Linear(in_dim, dim)
+        self.embed_object = nn.Linear(in_dim, dim)
+
+    def forward(self, tokens: torch.Tensor, n: int) -> torch.Tensor:
+        return torch.cat((self.embed_self(tokens[:, :1]),
+                          self.embed_target(tokens[:, 1:n + 1]),
+                          self.embed_robot(tokens[:, n + 1:2 * n]),
+                          self.embed_object(tokens[:, 2 * n:])), 1)
+
+
+def check_tokens(obs: torch.Tensor, mask: torch.Tensor | None, feature_dim: int) -> None:
+    """Raise ValueError unless ``obs`` is (E, N, 2N+1, F) and ``mask`` None or (E, N, 2N+1)."""
+    if obs.dim() != 4 or obs.shape[3] != feature_dim or obs.shape[2] != 2 * obs.shape[1] + 1:
+        raise ValueError(f"obs must be entity tokens of shape (num_envs, num_robots, 2*num_robots+1, "
+                         f"{feature_dim}), got {obs.shape}")
+    if mask is not None and mask.shape != obs.shape[:3]:
+        raise ValueError(f"mask must have shape (num_envs, num_robots, 2*num_robots+1) = "
+                         f"{obs.shape[:3]}, got {mask.shape}")
+
+
+def keep_self_valid(mask: torch.Tensor | None, batch: int, width: int) -> torch.Tensor | None:
+    """(..., T) token mask -> (batch, width) bool with column 0 (the robot itself) always valid."""
+    if mask is None:
+        return None
+    m = mask.reshape(batch, width).to(torch.bool)
+    return torch.cat((torch.ones_like(m[:, :1]), m[:, 1:]), 1)
+
+
+class MultiHeadAttention(nn.Module):
+    """Multi-head scaled dot-product attention (Vaswani et al., the paper's Equation (4))::
+
+        q = W_q s,  k_t = W_k x_t,  v_t = W_v x_t          (each split into H heads of D/H)
+        out_h = softmax(q_h k_h^T / sqrt(D/H), over valid t) v_h,    out = concat_h out_h
+
+    Inputs: queries ``s`` (B, Q, D), keys/values ``x`` (B, T, D), ``mask`` (B, T) bool (True =
+    valid key) or None. Output (B, Q, D). Every row needs at least one valid key (callers keep
+    the robot's own token valid), otherwise the softmax has no support and gives NaN.
+    """
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.query = init_linear(nn.Linear(dim, dim), 1.0)
+        self.key = init_linear(nn.Linear(dim, dim), 1.0)
+        self.value = init_linear(nn.Linear(dim, dim), 1.0)
+
+    def _heads(self, y: torch.Tensor) -> torch.Tensor:
+        b, t, _ = y.shape                                     # (B, T, D) -> (B, H, T, D/H)
+        return y.view(b, t, self.num_heads, self.head_dim).transpose(1, 2)
+
+    def forward(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        q, k, v = self._heads(self.query(s)), self._heads(self.key(x)), self._heads(self.value(x))
+        attn_mask: torch.Tensor | None = None
+        if mask is not None:
+            attn_mask = mask.view(mask.shape[0], 1, 1, mask.shape[1])
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)   # (B, H, Q, D/H)
+        return out.transpose(1, 2).reshape(s.shape[0], s.shape[1], self.num_heads * self.head_dim)
+
+    @torch.jit.export
+    def weights(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """The attention weights (B, H, Q, T); each row sums to one over the valid keys."""
+        q, k = self._heads(self.query(s)), self._heads(self.key(x))
+        scores = torch.matmul(q, k.transpose(-2, -1)) / math.sqrt(self.head_dim)
+        if mask is not None:
+            scores = scores.masked_fill(~mask.view(mask.shape[0], 1, 1, mask.shape[1]), float("-inf"))
+        return torch.softmax(scores, dim=-1)
+
+
+class AttentionHead(nn.Module):
+    """Attention with the robot's own embedding as the query, then an MLP on ``[s, attended]``.
+
+    ``s`` (B, D) is the robot's own embedding, ``x`` (B, T, D) the embedded tokens (keys and
+    values), ``mask`` (B, T). Output (B, out_dim); :meth:`weights` gives (B, H, T).
+    """
+
+    def __init__(self, dim: int, num_heads: int, hidden_sizes: tuple[int, ...], out_dim: int,
+                 out_gain: float):
+        super().__init__()
+        self.attention = MultiHeadAttention(dim, num_heads)
+        self.mlp = mlp(2 * dim, hidden_sizes, out_dim, out_gain)
+
+    def forward(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        attended = self.attention(s.unsqueeze(1), x, mask).squeeze(1)
+        return self.mlp(torch.cat((s, attended), -1))
+
+    @torch.jit.export
+    def weights(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        return self.attention.weights(s.unsqueeze(1), x, mask).squeeze(2)
+
+
+def bounded_acceleration(u: torch.Tensor, velocity: torch.Tensor, damping: float, limit: float) -> torch.Tensor:
+    """The actor's mean acceleration [m/s^2] from the network output ``u`` (..., 2)::
+
+        a = limit * tanh((u - damping * v) / limit)
+
+    ``velocity`` v (..., 2) [m/s] is the robot's own velocity from its observation; with
+    ``damping`` k > 0 [1/s] a zero output brakes the robot (a = -k v for small v), so an
+    untrained or slightly biased network stops robots instead of driving them into a wall.
+    """
+    if damping != 0.0:
+        u = u - damping * velocity
+    return limit * torch.tanh(u / limit)
+
+
+def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """Log density of a diagonal Gaussian, summed over the last (action) dimension.
+
+    ``actions``, ``mean`` (..., A); ``log_std`` (A,). Returns (...,)::
+
+        log p = sum_a [ -(x_a - mu_a)^2 / (2 sigma_a^2) - log sigma_a - log(2 pi) / 2 ]
+    """
+    z = (actions - mean) * torch.exp(-log_std)
+    return (-0.5 * z * z - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    """Entropy of a diagonal Gaussian: ``sum_a (1/2 + log(2 pi)/2 + log sigma_a)`` (a scalar)."""
+    return (0.5 + 0.5 * math.log(2 * math.pi) + log_std).sum()

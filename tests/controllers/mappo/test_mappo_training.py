@@ -1,0 +1,194 @@
+import json
+
+import pytest
+import torch
+
+from controllers.mappo import (
+    CheckpointError,
+    MAPPOConfig,
+    MAPPOTrainer,
+    TrainConfigError,
+    evaluate,
+    load_actor,
+    load_checkpoint,
+    train,
+)
+from controllers.mappo.checkpoint import save_checkpoint
+from sim.batched_env import BatchedFormationEnv
+from sim.observations import LAYOUT_VERSION
+from sim.scenario import Scenario, make_scenario
+
+SMALL_NET = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
+
+
+def tiny(**changes) -> MAPPOConfig:
+    """A run of a few seconds: 4 envs, 32-step rollouts (4 iterations per episode), small nets."""
+    base = dict(scenario="paper-3", num_envs=4, rollout_steps=32, update_epochs=2, num_minibatches=2,
+                total_episodes=8, eval_interval=4, eval_episodes=4, checkpoint_interval=1,
+                stop_at_convergence=False, progress=False, actor=dict(SMALL_NET),
+                critic=dict(SMALL_NET))
+    base.update(changes)
+    return MAPPOConfig(**base)
+
+
+def rows(path, drop=("wall_time_s",)):
+    with open(path) as f:
+        return [{k: v for k, v in json.loads(line).items() if k not in drop} for line in f]
+
+
+def test_a_run_writes_config_logs_checkpoint_and_result(tmp_path):
+    result = train(tiny(), tmp_path)
+    assert result.episodes == 8 and result.iterations == 8 and result.env_steps == 8 * 32 * 4
+    config = json.loads((tmp_path / "config.json").read_text())
+    assert MAPPOConfig.from_dict(config) == tiny()
+    train_rows = rows(tmp_path / "train.jsonl")
+    assert [r["iteration"] for r in train_rows] == list(range(1, 9))
+    assert [r["episodes"] for r in train_rows] == [0, 0, 0, 4, 4, 4, 4, 8]
+    assert (tmp_path / "train.csv").read_text().splitlines()[0].startswith("iteration,episodes,env_steps")
+    assert len((tmp_path / "train.csv").read_text().splitlines()) == 9
+    evals = rows(tmp_path / "eval.jsonl")
+    assert [e["episodes"] for e in evals] == [0, 4, 8]              # at start, then every batch
+    assert all(0.0 <= e["success_rate"] <= 1.0 for e in evals)
+    saved = json.loads((tmp_path / "result.json").read_text())
+    assert saved["episodes"] == 8 and saved["evaluations"]["episodes"] == [0, 4, 8]
+    assert not list(tmp_path.glob(".*tmp"))                          # atomic writes left nothing behind
+
+    data = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert data["layout_version"] == LAYOUT_VERSION and data["num_robots"] == 3
+    assert data["counters"]["iteration"] == 8 and data["counters"]["episodes"] == 8
+    for key in ("config", "actor", "critic", "actor_optimizer", "critic_optimizer", "value_norm", "rng",
+                "env_state"):
+        assert key in data
+
+
+def test_resume_continues_the_same_curve(tmp_path):
+    whole = tmp_path / "whole"
+    train(tiny(), whole)
+    parts = tmp_path / "parts"
+    first = train(tiny(total_episodes=4), parts)
+    assert first.iterations == 4
+    # a crash after the checkpoint leaves rows the checkpoint does not cover: resume drops them
+    with open(parts / "train.jsonl", "a") as f:
+        f.write(json.dumps(rows(parts / "train.jsonl")[-1] | {"iteration": 5}) + "\n")
+    second = train(tiny(total_episodes=8), parts, resume=True)
+    assert second.iterations == 8 and second.episodes == 8
+    assert rows(parts / "train.jsonl") == rows(whole / "train.jsonl")
+    assert rows(parts / "eval.jsonl") == rows(whole / "eval.jsonl")
+    assert len((parts / "train.csv").read_text().splitlines()) == 9
+    a = load_checkpoint(whole / "checkpoint.pt")
+    b = load_checkpoint(parts / "checkpoint.pt")
+    for name in a["actor"]:
+        assert torch.equal(a["actor"][name], b["actor"][name]), name
+    assert torch.equal(a["rng"]["sampler"], b["rng"]["sampler"])
+
+
+def test_resume_rejects_a_changed_config_and_a_fresh_run_refuses_a_used_directory(tmp_path):
+    train(tiny(total_episodes=4), tmp_path)
+    with pytest.raises(TrainConfigError, match="'lr'"):
+        train(tiny(total_episodes=8, lr=1e-2), tmp_path, resume=True)
+    with pytest.raises(TrainConfigError, match="already holds a run"):
+        train(tiny(), tmp_path)
+
+
+@pytest.mark.parametrize("variant", ["typed", "slot"])
+def test_three_robot_checkpoint_starts_four_and_five_robot_runs(tmp_path, variant):
+    source = MAPPOTrainer(tiny(actor=SMALL_NET | {"variant": variant}), tmp_path / "three")
+    with torch.no_grad():                             # stand-in for training: move every weight
+        for p in [*source.actor.parameters(), *source.critic.parameters()]:
+            p.add_(0.05)
+    source.value_norm.update(torch.tensor([-3.0, -1.0]))
+    ckpt = source.save()
+    for n in (4, 5):
+        run = MAPPOTrainer(tiny(scenario=f"paper-{n}", init_from=str(ckpt),
+                                actor=SMALL_NET | {"variant": variant}), tmp_path / f"to{n}")
+        grown, trained = run.actor.state_dict(), source.actor.state_dict()
+        for name, value in trained.items():
+            if name.startswith(("embed_targets.", "embed_robots.")):
+                assert torch.equal(grown[name][:value.shape[0]], value)
+                assert grown[name].shape[0] == value.shape[0] + n - 3
+            else:
+                assert torch.equal(grown[name], value), name
+        for name, value in source.critic.state_dict().items():
+            assert torch.equal(run.critic.state_dict()[name], value)
+        assert run.value_norm.mean.item() == pytest.approx(-2.0)
+        row = run._iteration()                         # and it trains
+        assert row["iteration"] == 1 and torch.isfinite(torch.tensor(row["policy_loss"]))
+
+        zero_shot = load_actor(ckpt, num_robots=n)
+        result = evaluate(zero_shot, make_scenario(f"paper-{n}"), episodes=4, seed=1)
+        assert result.num_robots == n and result.episodes == 4
+
+
+def test_typed_zero_shot_policy_is_the_trained_one(tmp_path):
+    source = MAPPOTrainer(tiny(), tmp_path / "three")
+    ckpt = source.save()
+    five = load_actor(ckpt, num_robots=5)
+    obs, mask = BatchedFormationEnv(make_scenario("paper-5"), 2, seed=0).reset()
+    with torch.no_grad():
+        assert torch.equal(five(obs, mask), source.actor(obs, mask))
+
+
+def test_mlp_baseline_trains_on_flat_vectors_and_refuses_transfer(tmp_path):
+    mlp = tiny(actor={"variant": "mlp", "hidden_sizes": [32]}, critic={"variant": "mlp", "hidden_sizes": [32]},
+               total_episodes=4)
+    result = train(mlp, tmp_path / "mlp")
+    assert result.iterations == 4
+    with pytest.raises(CheckpointError, match="cannot run 4"):
+        MAPPOTrainer(mlp.replace(scenario="paper-4", init_from=result.checkpoint), tmp_path / "mlp4")
+    with pytest.raises(TrainConfigError, match="critic.variant"):
+        tiny(actor={"variant": "mlp"})
+
+
+def test_checkpoint_errors_name_the_problem(tmp_path):
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
+    save_checkpoint(tmp_path / "old.pt", {"config": {}})
+    data = torch.load(tmp_path / "old.pt", weights_only=True)
+    data["layout_version"] = LAYOUT_VERSION + 1
+    torch.save(data, tmp_path / "old.pt")
+    with pytest.raises(CheckpointError, match="observation layout version"):
+        load_checkpoint(tmp_path / "old.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a formation-stack/mappo checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
+
+
+def test_config_round_trip_and_errors():
+    cfg = tiny(scenario=make_scenario("line-1").to_dict())
+    assert MAPPOConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    with pytest.raises(TrainConfigError, match="unknown config field"):
+        MAPPOConfig.from_dict({"num_env": 4})
+    with pytest.raises(TrainConfigError, match="num_envs"):
+        MAPPOConfig(num_envs=0)
+    with pytest.raises(TrainConfigError, match="scenario"):
+        MAPPOConfig(scenario="paper-99")
+    with pytest.raises(TrainConfigError, match="gamma"):
+        MAPPOConfig(gamma=1.5)
+    with pytest.raises(TrainConfigError, match="unknown reward_weights field"):
+        MAPPOConfig(reward_weights={"w_collision": 1.0})
+    assert MAPPOConfig(reward_weights={"w_object": 2.0}).build_reward_weights().w_object == 2.0
+
+
+# One robot beside the object (the way is clear): a few dozen updates teach it to drive onto its
+# target and stop there.
+CLEAR_LANE = Scenario(name="clear-lane-1", num_robots=1, start_slots=((0.62, 0.15),),
+                      target_slots=((0.38, 0.15),)).to_dict()
+
+
+@pytest.mark.slow
+def test_short_training_run_beats_the_untrained_policy(tmp_path):
+    cfg = tiny(scenario=CLEAR_LANE, num_envs=8, total_episodes=120, eval_interval=40, eval_episodes=50,
+               update_epochs=5, num_minibatches=4, checkpoint_interval=100, lr=1e-3)
+    result = train(cfg, tmp_path)
+    evals = rows(tmp_path / "eval.jsonl")
+    assert evals[0]["episodes"] == 0 and evals[0]["success_rate"] == 0.0      # untrained: stays put
+    assert result.last_eval["success_rate"] >= 0.8
+    assert result.last_eval["final_distance"] < evals[0]["final_distance"] / 4
+
+
+def test_reward_weight_overrides_reach_the_training_world(tmp_path):
+    zero = dict.fromkeys(("w_dist", "w_arrive", "w_robot", "w_object", "w_wall"), 0.0)
+    silent = MAPPOTrainer(tiny(reward_weights=zero), tmp_path / "silent")
+    assert silent._iteration()["reward_mean"] == 0.0         # every term weighted by zero
+    plain = MAPPOTrainer(tiny(), tmp_path / "plain")
+    assert plain._iteration()["reward_mean"] < -0.1           # the robots start ~0.34 m from the targets
