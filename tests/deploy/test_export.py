@@ -28,14 +28,6 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make_actor(seed: int = 0, variant: str = "typed", n: int = 5):
     torch.manual_seed(seed)
     actor = build_actor(ActorConfig(variant=variant, embed_dim=32, velocity_damping=2.0), n)

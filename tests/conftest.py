@@ -1,3 +1,5 @@
+"""Shared fixtures for the whole suite."""
+
 import pytest
 import torch
 
