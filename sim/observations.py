@@ -22,6 +22,9 @@ Flat vector (the paper's Figure 1, for fixed-N baselines)
 
 from __future__ import annotations
 
+from functools import cache
+
+import numpy as np
 import torch
 
 from sim.geometry import Frame, Polygon, others_index
@@ -111,3 +114,44 @@ def flat(pos: torch.Tensor, vel: torch.Tensor, targets: torch.Tensor) -> torch.T
 
 def flat_dim(n: int) -> int:
     return 4 * n + 2
+
+
+def fleet_tokens_np(pos: np.ndarray, vel: np.ndarray, targets: np.ndarray, polygon: np.ndarray,
+                    arena: tuple[float, float]) -> np.ndarray:
+    """The same token layout for one fleet in numpy: (N, 2) arrays -> (N, 2N+1, 4) float64.
+
+    For the control tick (N of a few robots) this is several times cheaper than the batched
+    torch path, which is built for thousands of environments; a test holds the two equal.
+    """
+    n = len(pos)
+    out = np.zeros((n, 2 * n + 1, TOKEN_DIM))
+    out[:, 0, 0] = pos[:, 0] - arena[0] / 2
+    out[:, 0, 1] = pos[:, 1] - arena[1] / 2
+    out[:, 0, 2:] = vel
+    out[:, 1:n + 1, :2] = targets[None] - pos[:, None]
+    if n > 1:
+        others = _others_np(n)
+        out[:, n + 1:2 * n, :2] = pos[others] - pos[:, None]
+        out[:, n + 1:2 * n, 2:] = vel[others] - vel[:, None]
+    out[:, 2 * n, :2] = _centroid_np(polygon) - pos
+    out[:, 2 * n, 2:] = nearest_boundary_point_np(pos, polygon) - pos
+    return out
+
+
+@cache
+def _others_np(n: int) -> np.ndarray:
+    return others_index(n).numpy()
+
+
+def _centroid_np(poly: np.ndarray) -> np.ndarray:
+    return _centroid(torch.from_numpy(np.asarray(poly, dtype=np.float64))).numpy()
+
+
+def nearest_boundary_point_np(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(K, 2) nearest points on the boundary of an (M, 2) polygon to (K, 2) points."""
+    edge = np.roll(polygon, -1, axis=0) - polygon
+    rel = points[:, None, :] - polygon[None]                                       # (K, M, 2)
+    t = np.clip((rel * edge).sum(-1) / (edge * edge).sum(-1), 0.0, 1.0)            # (K, M)
+    foot = polygon[None] + t[..., None] * edge[None]                               # (K, M, 2)
+    d2 = ((points[:, None, :] - foot) ** 2).sum(-1)
+    return foot[np.arange(len(points)), d2.argmin(1)]

@@ -52,7 +52,7 @@ from controllers.safety import SafetyConfig, SafetyFilter, SafetyStatus, braking
 from controllers.safety.postcheck import clip_norm
 from sim.fleet import Fleet, FleetState
 from sim.metrics import collision_events, episode_outcome
-from sim.observations import flat
+from sim.observations import flat, fleet_tokens_np
 from sim.scenario import Dynamics, Scenario
 
 PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
@@ -196,13 +196,9 @@ class ControlStack:
         else:
             raise StackError(f"policy must be an nn.Module, a TorchScript/checkpoint path or a "
                              f"callable FleetState -> (N, 2); got {type(policy).__name__}")
-        poly = scenario.polygon
-        self._edge_start, self._edge = poly, np.roll(poly, -1, axis=0) - poly
-        self._centroid = scenario.object_center
-        self._half_arena = np.array(scenario.arena) / 2
+        self._polygon = scenario.polygon
         self._static_pose = np.array([*scenario.object_center, 0.0])
-        self._others: np.ndarray | None = None
-        self._mask = torch.ones(0, dtype=torch.bool)
+        self._mask = torch.ones(1, 0, 1, dtype=torch.bool)
         self.safety = SafetyFilter(scenario, self.config.safety_config) if self.config.safety else None
         self.mec = ModelErrorCompensator(self.dynamics, self.config.mec_config) if self.config.mec else None
         self.num_robots: int | None = None
@@ -220,9 +216,8 @@ class ControlStack:
     def observe(self, state: FleetState) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Policy input of ``state``: tokens (1, N, 2N+1, 4) and mask, or flat (1, N, 4N+2) and None.
 
-        Tokens are assembled in numpy (float64, then one cast to float32) in exactly the layout of
-        :func:`sim.observations.tokens` (a test holds the two equal); for N = 5 that is several
-        times cheaper than the batched torch path, which is built for thousands of environments.
+        Tokens come from :func:`sim.observations.fleet_tokens_np` (float64, then one cast to
+        float32), the numpy twin of the batched torch layout, several times cheaper for one fleet.
         """
         if self.obs_kind == "flat":
             stacked = torch.from_numpy(np.stack((state.positions, state.velocities, state.targets)))
@@ -233,19 +228,9 @@ class ControlStack:
     def _tokens(self, pos: np.ndarray, vel: np.ndarray,
                 targets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         n = len(pos)
-        if self._others is None or len(self._others) != n:
-            self._others = np.array([[j for j in range(n) if j != i] for i in range(n)],
-                                    dtype=np.int64).reshape(n, max(n - 1, 0))
+        if self._mask.shape[1] != n:
             self._mask = torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
-        out = np.zeros((n, 2 * n + 1, 4))
-        out[:, 0, :2] = pos - self._half_arena
-        out[:, 0, 2:] = vel
-        out[:, 1:n + 1, :2] = targets[None] - pos[:, None]
-        if n > 1:
-            out[:, n + 1:2 * n, :2] = pos[self._others] - pos[:, None]
-            out[:, n + 1:2 * n, 2:] = vel[self._others] - vel[:, None]
-        out[:, 2 * n, :2] = self._centroid - pos
-        out[:, 2 * n, 2:] = nearest_boundary_point(pos, self._edge_start, self._edge) - pos
+        out = fleet_tokens_np(pos, vel, targets, self._polygon, self.scenario.arena)
         return torch.from_numpy(out.astype(np.float32)).unsqueeze(0), self._mask
 
     def brake(self, vel: np.ndarray) -> np.ndarray:
@@ -325,19 +310,6 @@ class ControlStack:
         if self.mec is not None:
             self.mec.reset()
         self.num_robots = n
-
-
-def nearest_boundary_point(points: np.ndarray, edge_start: np.ndarray, edge: np.ndarray) -> np.ndarray:
-    """(K, 2) nearest points on a polygon's boundary to (K, 2) points.
-
-    ``edge_start`` (M, 2) are the vertices and ``edge`` (M, 2) the edge vectors to the next one;
-    each point is projected onto every edge (clamped to the segment) and the closest kept.
-    """
-    rel = points[:, None, :] - edge_start[None]                                  # (K, M, 2)
-    t = np.clip((rel * edge).sum(-1) / (edge * edge).sum(-1), 0.0, 1.0)            # (K, M)
-    foot = edge_start[None] + t[..., None] * edge[None]                            # (K, M, 2)
-    d2 = ((points[:, None, :] - foot) ** 2).sum(-1)
-    return foot[np.arange(len(points)), d2.argmin(1)]
 
 
 # ------------------------------------------------------------------- episodes
