@@ -82,7 +82,7 @@ class MAPPOConfig:
     value_clip: float | None = None
     ent_coef: float = 0.0
     vf_coef: float = 0.5
-    lr: float = 5e-4
+    lr: float = 1e-3
     critic_lr: float | None = None
     anneal_lr: bool = False
     update_epochs: int = 5
