@@ -192,12 +192,13 @@ class BatchedFormationEnv:
         events = frame_collisions(frame, self.radius, self.arena)
         events.wall = events.wall | hit_wall_axis.any(-1)
         contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)
-        onsets = (contact & ~self.prev_contact).sum(1)                           # (E,3)
+        new_contact = contact & ~self.prev_contact                               # (E,N,3)
         self.prev_contact = contact
-        self.counts += onsets
+        self.counts += new_contact.sum(1)
         self.collided |= contact.any(-1).any(-1)
         reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
-                                       self.reward_weights, self.detour(self.pos))
+                                       self.reward_weights, self.detour(self.pos),
+                                       new_contact.any(-1))
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1

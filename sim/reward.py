@@ -11,6 +11,7 @@ or the straight one when none is given)::
               - w_robot * [robot i touches another robot]
               - w_object * [robot i touches the object]
               - w_wall * [robot i touches a wall]
+              - w_onset * [robot i starts a new contact this step]
 
 The detour distance keeps the gradient of ``cover`` pointing around the object instead of into
 it (with straight distances the shortest way to a target runs through the object, a local
@@ -41,6 +42,7 @@ class RewardWeights:
     w_robot: float = 0.5
     w_object: float = 0.5
     w_wall: float = 0.2
+    w_onset: float = 0.0     # one-off cost of each new contact (0: off; needs the onset flags)
 
 
 def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: CollisionEvents,
@@ -54,7 +56,8 @@ def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: Collision
 
 def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: float,
                           weights: RewardWeights = RewardWeights(),
-                          d_detour: torch.Tensor | None = None) -> torch.Tensor:
+                          d_detour: torch.Tensor | None = None,
+                          onsets: torch.Tensor | None = None) -> torch.Tensor:
     """(E, N robots, N targets) straight (and detour) distances -> (E, N) per-robot reward."""
     path = d if d_detour is None else d_detour
     to_target = _min_over(path, -2)                        # (E, N targets)
@@ -64,6 +67,8 @@ def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: f
     team = -weights.w_dist * cover + weights.w_arrive * arrived
     own = (weights.w_robot * events.robot.float() + weights.w_object * events.object.float()
            + weights.w_wall * events.wall.float())
+    if onsets is not None and weights.w_onset:
+        own = own + weights.w_onset * onsets.float()
     return team.unsqueeze(-1) - own
 
 

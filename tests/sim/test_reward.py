@@ -46,3 +46,24 @@ def test_min_over_matches_torch_min():
         assert torch.equal(_min_over(x, dim), x.min(dim).values)
     big = torch.rand(2, 12, 12)
     assert torch.equal(_min_over(big, -1), big.min(-1).values)
+
+
+def test_onset_penalty_is_charged_once_per_new_contact():
+    from sim.batched_env import BatchedFormationEnv
+    from sim.scenario import make_scenario
+
+    sc = make_scenario("paper-3")
+    w = RewardWeights(w_onset=3.0)
+    env = BatchedFormationEnv(sc, 1, seed=0, reward_weights=w, dtype=torch.float64)
+    plain = BatchedFormationEnv(sc, 1, seed=0, dtype=torch.float64)
+    for e in (env, plain):
+        e.reset()
+        # robots 0 and 1 are 0.07 m apart (< 0.08): a standing contact from the first step
+        pos = torch.tensor([[[0.2, 0.2], [0.27, 0.2], [0.8, 0.15]]], dtype=torch.float64)
+        e.set_state(pos, torch.zeros_like(pos))
+    a = torch.zeros(1, 3, 2, dtype=torch.float64)
+    first, first_plain = env.step(a).reward, plain.step(a).reward
+    second, second_plain = env.step(a).reward, plain.step(a).reward
+    # the contact starts in step 1: robots 0 and 1 pay 3.0 once, robot 2 never
+    assert (first - first_plain)[0].tolist() == pytest.approx([-3.0, -3.0, 0.0])
+    assert (second - second_plain)[0].tolist() == pytest.approx([0.0, 0.0, 0.0])
