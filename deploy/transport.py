@@ -551,8 +551,14 @@ class RobotLink(_Link):
             thread.start()
 
     def _query_estop(self) -> None:
-        """Fetch the latched e-stop from the controller's queryable (retried if unanswered)."""
-        for _ in range(3):
+        """Fetch the latched e-stop from the controller's queryable, retried until it answers.
+
+        A robot that never syncs could miss a latched e-stop, so it keeps asking while the
+        controller is alive (a busy machine can leave the first queries unanswered)."""
+        while True:
+            with self._cond:
+                if self._closed or not self._controller_alive:
+                    return
             try:
                 replies = self.session.get(self.keys.estop, zenoh.handlers.RingChannel(8),
                                            timeout=self.estop_query_timeout_s,

@@ -33,14 +33,17 @@ def fleet():
     bridge = Bridge("bf", REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), controller,
                     targets=TARGETS, object_pose=np.zeros(3), config=config)
     robot_cfg = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
-    links = [RobotLink("bf", r, REGISTRY, robot_cfg) for r in ROBOTS]
-    for link in links:
-        assert link.wait_for(lambda lk=link: lk.controller_alive and lk.estop_synced, 10.0)
-    assert bridge.link.wait_for(lambda: bridge.link.alive_robots == set(ROBOTS), 10.0)
-    yield bridge, links, seen
-    for link in links:
-        link.close()
-    bridge.close()
+    links = []
+    try:   # close every session even when set-up fails, or the process aborts at exit
+        links.extend(RobotLink("bf", r, REGISTRY, robot_cfg) for r in ROBOTS)
+        for link in links:
+            assert link.wait_for(lambda lk=link: lk.controller_alive and lk.estop_synced, 20.0)
+        assert bridge.link.wait_for(lambda: bridge.link.alive_robots == set(ROBOTS), 20.0)
+        yield bridge, links, seen
+    finally:
+        for link in links:
+            link.close()
+        bridge.close()
 
 
 def _tick(bridge, links, publishing):
