@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -152,6 +153,12 @@ def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_
         bridge.wait_tick(10)
         config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{bridge_port}"))
         with zenoh.open(config.to_zenoh()) as session:
+            # messages put before the links to both nodes are up are dropped: wait for them
+            deadline = time.monotonic() + 20.0
+            while len(list(session.info.peers_zid())) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert len(list(session.info.peers_zid())) >= 2, "injector not linked to both nodes"
+            time.sleep(0.2)   # declarations travel right after the links come up
             cmd_r1 = "formation/t/robot/r1/cmd"
             bad_cmds = [b"garbage", _cmd_bytes(1, 5, (math.nan, 0.0)),  # NON_FINITE
                         _cmd_bytes(3, 6),                             # ROBOT_MISMATCH
