@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "stack.commands.fleet_sim",
     "stack.commands.bridge",
     "stack.commands.eval",
+    "stack.commands.train",
 ]
 
 DESCRIPTION = """\
