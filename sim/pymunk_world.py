@@ -63,7 +63,7 @@ from pymunk.autogeometry import convex_decomposition
 from sim.fleet import FleetState, check_accelerations
 from sim.geometry import Polygon
 from sim.metrics import EpisodeOutcome, collision_events, episode_outcome
-from sim.scenario import Scenario
+from sim.scenario import Scenario, clip_norm
 
 WALL_THICKNESS = 0.05      # [m] half-thickness of the wall segments, all outside the arena
 COLLISION_SLOP = 1e-4      # [m] overlap pymunk leaves in resting contact
@@ -153,12 +153,6 @@ class CollisionCounts:
     def any(self) -> bool:
         """True when any collision happened this episode (the episode then fails)."""
         return self.robot + self.object + self.wall > 0
-
-
-def clip_norm(x: np.ndarray, limit: float) -> np.ndarray:
-    """Scale each (..., 2) row down to norm <= limit, keeping its direction."""
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
-    return x * (limit / np.maximum(norm, limit))
 
 
 class PymunkWorld:

@@ -53,6 +53,13 @@ class Dynamics:
     speed_limit: float = 0.4
     damping: float = 0.5
 
+    def step_np(self, pos: np.ndarray, vel: np.ndarray,
+                acc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One tick of the nominal model (module docstring) on (N, 2) numpy arrays -> (p', v')."""
+        a = clip_norm(acc, self.accel_limit)
+        v = clip_norm(vel + self.dt * (a - self.damping * vel), self.speed_limit)
+        return pos + self.dt * v, v
+
     def validate(self) -> None:
         for name in ("dt", "accel_limit", "speed_limit"):
             value = getattr(self, name)
@@ -67,6 +74,12 @@ class Dynamics:
             )
         if int(self.episode_steps) != self.episode_steps or self.episode_steps < 1:
             raise ScenarioError(f"dynamics.episode_steps must be a positive integer, got {self.episode_steps!r}")
+
+
+def clip_norm(x: np.ndarray, limit: float) -> np.ndarray:
+    """Scale each (..., 2) row down to norm <= limit, keeping its direction."""
+    norm = np.hypot(x[..., 0], x[..., 1])[..., None]
+    return x * (limit / np.maximum(norm, limit))
 
 
 def rectangle(center: tuple[float, float], size: tuple[float, float]) -> tuple[tuple[float, float], ...]:

@@ -49,11 +49,10 @@ from torch import nn
 
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
 from controllers.safety import SafetyConfig, SafetyFilter, SafetyStatus, braking_acceleration
-from controllers.safety.postcheck import clip_norm
 from sim.fleet import Fleet, FleetState
 from sim.metrics import collision_events, episode_outcome
 from sim.observations import flat, fleet_tokens_np
-from sim.scenario import Dynamics, Scenario
+from sim.scenario import Dynamics, Scenario, clip_norm
 
 PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
 
@@ -320,9 +319,7 @@ def nominal_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
     ``a = clip_norm(acc, accel_limit)``, ``v' = clip_norm(v + dt (a - c v), speed_limit)``,
     ``p' = p + dt v'``; (N, 2) arrays in m, m/s, m/s^2 -> (p', v').
     """
-    a = clip_norm(acc, dynamics.accel_limit)
-    v = clip_norm(vel + dynamics.dt * (a - dynamics.damping * vel), dynamics.speed_limit)
-    return pos + dynamics.dt * v, v
+    return dynamics.step_np(pos, vel, acc)
 
 
 @dataclass

@@ -35,14 +35,7 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
-from sim.scenario import Dynamics
-
-
-def clip_norm(x: np.ndarray, limit: float) -> np.ndarray:
-    """Scale the rows of (N, 2) ``x`` whose norm exceeds ``limit`` down to it."""
-    norm = np.hypot(x[:, 0], x[:, 1])
-    scale = np.minimum(1.0, limit / np.maximum(norm, 1e-300))
-    return x * scale[:, None]
+from sim.scenario import Dynamics, clip_norm
 
 
 def braking_acceleration(vel: np.ndarray, dynamics: Dynamics) -> np.ndarray:

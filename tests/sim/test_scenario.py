@@ -109,3 +109,22 @@ def test_polygon_object_allowed():
 def test_unknown_preset():
     with pytest.raises(ScenarioError, match="unknown scenario 'paper-9'"):
         make_scenario("paper-9")
+
+
+def test_numpy_step_matches_the_batched_world():
+    import torch
+
+    from sim.batched_env import BatchedFormationEnv
+    from sim.scenario import clip_norm
+
+    sc = make_scenario("paper-3")
+    env = BatchedFormationEnv(sc, 1, seed=0, dtype=torch.float64)
+    env.reset()
+    pos = np.array([[0.2, 0.15], [0.5, 0.15], [0.8, 0.15]])
+    vel = np.array([[0.39, 0.1], [0.0, 0.0], [-0.1, 0.05]])
+    acc = np.array([[3.0, 4.0], [0.2, -0.1], [0.0, 1.0]])
+    env.set_state(torch.tensor(pos)[None], torch.tensor(vel)[None])
+    env.step(torch.tensor(acc)[None])
+    p1, v1 = sc.dynamics.step_np(pos, vel, acc)
+    assert np.allclose(p1, env.pos[0].numpy()) and np.allclose(v1, env.vel[0].numpy())
+    assert np.allclose(clip_norm(np.array([[3.0, 4.0], [0.3, 0.4]]), 1.0), [[0.6, 0.8], [0.3, 0.4]])
