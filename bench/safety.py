@@ -17,7 +17,11 @@
 (c) latency of ControlStack.tick (observe + policy + safety + MEC) for N robots, after warm-up,
     one torch thread, on states of scripted-controller episodes in pymunk with model error; the
     policy is the TorchScript of ``--policy`` or of an untrained typed SDPA actor. Parts are
-    reported too: policy (observe + network) and safety.
+    reported too: observe (tokens), policy (observe + network), safety and MEC.
+
+``--geometry`` picks the safety filter's path for (a) and (c): ``fused`` (default, the fast path
+of :mod:`controllers.safety.fused`) or the reference ``fcl`` / ``analytic`` path, which gives the
+same answers; run both to compare their latency.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...}}``.
@@ -51,7 +55,7 @@ from _common import (  # noqa: E402
 )
 from tqdm import tqdm  # noqa: E402
 
-from controllers.safety import SafetyFilter, analytic_distances  # noqa: E402
+from controllers.safety import SafetyConfig, SafetyFilter, analytic_distances  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
 from sim.pymunk_world import ModelError, PymunkWorld  # noqa: E402
@@ -118,9 +122,9 @@ def random_start(world: PymunkWorld, barrier: SafetyFilter, rng: np.random.Gener
 _NETWORK_CACHE: dict = {}
 
 
-def invariance_episode(task: tuple[int, int, str | None]) -> dict:
+def invariance_episode(task: tuple[int, int, str | None, str]) -> dict:
     """One seed, filter on and off: contacts and the filter's counters."""
-    seed, steps, policy_path = task
+    seed, steps, policy_path, geometry = task
     torch.set_num_threads(1)
     network = None
     if policy_path is not None:
@@ -138,7 +142,8 @@ def invariance_episode(task: tuple[int, int, str | None]) -> dict:
                         disturbance=tuple(float(rng.uniform(0, 0.05)) * np.array([math.cos(angle), math.sin(angle)])),
                         disturbance_std=0.02)
         world = PymunkWorld(sc, me)
-        stack = ControlStack(sc, AdversarialPolicy(sc, rng, network), StackConfig(safety=filt, mec=True))
+        stack = ControlStack(sc, AdversarialPolicy(sc, rng, network),
+                             StackConfig(safety=filt, mec=True, safety_config=SafetyConfig(geometry=geometry)))
         barrier = SafetyFilter(sc, stack.config.safety_config)
         m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
         key = "on" if filt else "off"
@@ -149,8 +154,9 @@ def invariance_episode(task: tuple[int, int, str | None]) -> dict:
     return out
 
 
-def run_invariance(episodes: int, steps: int, workers: int, seed: int, policy: str | None) -> dict:
-    tasks = [(seed + k, steps, policy) for k in range(episodes)]
+def run_invariance(episodes: int, steps: int, workers: int, seed: int, policy: str | None,
+                   geometry: str = "fused") -> dict:
+    tasks = [(seed + k, steps, policy, geometry) for k in range(episodes)]
     rows = []
     bar = tqdm(total=episodes, desc="invariance", unit="ep", file=sys.stderr)
     if workers > 1:
@@ -171,7 +177,8 @@ def run_invariance(episodes: int, steps: int, workers: int, seed: int, policy: s
             "intervened_tick_fraction": sum(r["interventions"] for r in rows) / ticks,
             "infeasible_tick_fraction": sum(r["infeasible"] for r in rows) / ticks,
             "fallback_tick_fraction": sum(r["fallbacks"] for r in rows) / ticks,
-            "robots": [MIN_ROBOTS, MAX_ROBOTS], "policy": policy or "adversarial+scripted"}
+            "robots": [MIN_ROBOTS, MAX_ROBOTS], "policy": policy or "adversarial+scripted",
+            "geometry": geometry}
 
 
 # ------------------------------------------------------------------------ (b) MEC
@@ -223,7 +230,8 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
 
 
 # -------------------------------------------------------------------- (c) latency
-def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int) -> dict:
+def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
+            geometry: str = "fused") -> dict:
     out = {}
     for n in robot_counts:
         sc = transport_scenario(n)
@@ -236,9 +244,10 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
 
             torch.manual_seed(seed)
             network = torch.jit.script(build_actor(ActorConfig(), n).eval())
-        stack = ControlStack(sc, network)
+        stack = ControlStack(sc, network, StackConfig(safety_config=SafetyConfig(geometry=geometry)))
         world = PymunkWorld(sc, MEC_ERROR)
-        samples: dict[str, list[int]] = {"total": [], "policy": [], "safety": [], "mec": []}
+        samples: dict[str, list[int]] = {"total": [], "observe": [], "policy": [], "safety": [],
+                                         "mec": []}
         intervened = 0
         episode = 0
         bar = tqdm(total=warmup + ticks, desc=f"latency N={n}", unit="tick", file=sys.stderr, leave=False)
@@ -255,6 +264,7 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
                 if count > warmup:
                     t = tick.timings_ns
                     samples["total"].append(t["total"])
+                    samples["observe"].append(t["observe"])
                     samples["policy"].append(t["observe"] + t["policy"])
                     samples["safety"].append(t["safety"])
                     samples["mec"].append(t["mec"])
@@ -272,6 +282,7 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
             row[f"{prefix}p99"] = float(np.percentile(ms, 99))
         row["ticks"] = ticks
         row["intervened_fraction"] = intervened / ticks
+        row["geometry"] = geometry
         out[str(n)] = row
     return out
 
@@ -289,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", default=None, help="checkpoint or TorchScript file (default: "
                         "adversarial + scripted commands in (a), an untrained actor in (c))")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--geometry", choices=["fused", "fcl", "analytic"], default="fused",
+                        help="safety filter path for (a) and (c): the fused fast path (default) or the "
+                             "reference path on FCL or closed-form distances (same answers, slower)")
     parser.add_argument("--only", choices=["invariance", "mec", "latency"], default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
@@ -301,14 +315,16 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict = {}
     if args.only in (None, "latency"):
         progress(f"(c) latency, N = {args.robots}, {threads} torch thread(s)")
-        doc["latency_ms"] = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed)
+        doc["latency_ms"] = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed,
+                                    args.geometry)
     if args.only in (None, "mec"):
         progress("(b) MEC tracking")
         doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
         doc["mec"]["saturated"] = mec_tracking(args.mec_episodes, args.seed, command_limit=1.0)
     if args.only in (None, "invariance"):
         progress(f"(a) invariance, {args.episodes} episodes x {args.steps} ticks, {args.workers} workers")
-        doc["invariance"] = run_invariance(args.episodes, args.steps, args.workers, args.seed, args.policy)
+        doc["invariance"] = run_invariance(args.episodes, args.steps, args.workers, args.seed, args.policy,
+                                           args.geometry)
     doc.update(threads=threads, wall_s=time.perf_counter() - start)
     if args.json:
         print_json(doc)
@@ -326,9 +342,10 @@ def main(argv: list[str] | None = None) -> int:
                      for m in (doc["mec"], doc["mec"]["saturated"])])
         print()
     if "latency_ms" in doc:
-        print_table(["robots", "tick p50 [ms]", "p99", "policy p50", "p99", "safety p50", "p99", "mec p50"],
-                    [[n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_p50", "policy_p99", "safety_p50",
-                                                    "safety_p99", "mec_p50"))]
+        print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",
+                     "p99", "mec p50", "geometry"],
+                    [[n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "observe_p50", "policy_p50", "policy_p99",
+                                                    "safety_p50", "safety_p99", "mec_p50")), r["geometry"]]
                      for n, r in doc["latency_ms"].items()])
     return 0
 

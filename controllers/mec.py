@@ -104,8 +104,11 @@ def steady_state_gain(dynamics: Dynamics, config: MecConfig) -> np.ndarray:
 
 
 def _clip_norm(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of (N, 2) ``x`` scaled down to norm <= limit, and (N,) which rows were scaled."""
     norm = np.hypot(x[:, 0], x[:, 1])
     clipped = norm > limit
+    if not clipped.any():
+        return x, clipped
     return x * np.minimum(1.0, limit / np.maximum(norm, 1e-300))[:, None], clipped
 
 
@@ -156,25 +159,30 @@ class ModelErrorCompensator:
             raise ValueError(f"ModelErrorCompensator.step: velocity and a_safe must both have shape "
                              f"(num_robots, 2), got {vel.shape} and {target.shape}")
         n = len(vel)
-        valid = np.all(np.isfinite(vel), axis=1)
+        all_valid = bool(np.isfinite(vel).all())          # the common case: no per-row masking
+        valid = all_valid or np.isfinite(vel).all(axis=1)
         status = MecStatus.OK
         if self.d_hat is None or len(self.d_hat) != n:
-            self.v_hat = np.where(valid[:, None], vel, 0.0)
+            self.v_hat = vel.copy() if all_valid else np.where(valid[:, None], vel, 0.0)
             self.d_hat = np.zeros((n, 2))
             status = MecStatus.RESET
         else:
             dt, c = self.dynamics.dt, self.dynamics.damping
             v_pred = (1.0 - c * dt) * self.v_hat + dt * (self.u_prev + self.d_hat)
-            innovation = np.where(valid[:, None], vel - v_pred, 0.0)
+            innovation = vel - v_pred
+            if not all_valid:
+                innovation = np.where(valid[:, None], innovation, 0.0)
             self.v_hat = v_pred + self.gain[0] * innovation
             self.d_hat, _ = _clip_norm(self.d_hat + self.gain[1] * innovation, self.max_disturbance)
-        good_cmd = np.all(np.isfinite(target), axis=1)
-        desired = np.where(good_cmd[:, None], target - self.d_hat, 0.0)
+        good_all = bool(np.isfinite(target).all())
+        desired = target - self.d_hat
+        if not good_all:
+            desired = np.where(np.isfinite(target).all(axis=1)[:, None], desired, 0.0)
         a_cmd, clipped = _clip_norm(desired, self.dynamics.accel_limit)
         self.u_prev = a_cmd
-        if not good_cmd.all():
+        if not good_all:
             status = MecStatus.INVALID_COMMAND
-        elif not valid.all():
+        elif not all_valid:
             status = MecStatus.INVALID_MEASUREMENT
         elif status is MecStatus.OK and clipped.any():
             status = MecStatus.CLIPPED

@@ -117,24 +117,31 @@ def flat_dim(n: int) -> int:
 
 
 def fleet_tokens_np(pos: np.ndarray, vel: np.ndarray, targets: np.ndarray, polygon: np.ndarray,
-                    arena: tuple[float, float]) -> np.ndarray:
-    """The same token layout for one fleet in numpy: (N, 2) arrays -> (N, 2N+1, 4) float64.
+                    arena: tuple[float, float], out: np.ndarray | None = None) -> np.ndarray:
+    """The same token layout for one fleet in numpy: (N, 2) arrays -> (N, 2N+1, 4).
 
     For the control tick (N of a few robots) this is several times cheaper than the batched
     torch path, which is built for thousands of environments; a test holds the two equal.
+    Every entry is computed in float64 and written into ``out`` (N, 2N+1, 4) when given (any
+    float dtype, e.g. a reused float32 buffer: one cast, no temporary copy), else into a new
+    float64 array; ``out`` is returned. The polygon's per-edge constants and centroid are
+    cached by its vertices.
     """
     n = len(pos)
-    out = np.zeros((n, 2 * n + 1, TOKEN_DIM))
-    out[:, 0, 0] = pos[:, 0] - arena[0] / 2
-    out[:, 0, 1] = pos[:, 1] - arena[1] / 2
-    out[:, 0, 2:] = vel
+    shape = (n, 2 * n + 1, TOKEN_DIM)
+    if out is None:
+        out = np.empty(shape)
+    elif out.shape != shape:
+        raise ValueError(f"out must have shape (N, 2N+1, {TOKEN_DIM}) = {shape}, got {out.shape}")
+    centroid, edges = _polygon_constants(polygon)
+    state = np.concatenate((pos, vel), axis=1)                                    # (N, 4)
+    out[:, 0] = state - (arena[0] / 2, arena[1] / 2, 0.0, 0.0)
     out[:, 1:n + 1, :2] = targets[None] - pos[:, None]
+    out[:, 1:n + 1, 2:] = 0.0
     if n > 1:
-        others = _others_np(n)
-        out[:, n + 1:2 * n, :2] = pos[others] - pos[:, None]
-        out[:, n + 1:2 * n, 2:] = vel[others] - vel[:, None]
-    out[:, 2 * n, :2] = _centroid_np(polygon) - pos
-    out[:, 2 * n, 2:] = nearest_boundary_point_np(pos, polygon) - pos
+        out[:, n + 1:2 * n] = state[_others_np(n)] - state[:, None]
+    out[:, 2 * n, :2] = centroid - pos
+    out[:, 2 * n, 2:] = _nearest_offset(pos, edges)
     return out
 
 
@@ -143,15 +150,58 @@ def _others_np(n: int) -> np.ndarray:
     return others_index(n).numpy()
 
 
+_POLYGON_CACHE: dict[bytes, tuple[np.ndarray, tuple[np.ndarray, ...]]] = {}
+
+
+def _polygon_constants(polygon: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """Centroid (2,) and per-edge rows ``(a_x, a_y, e_x, e_y, 1/|e|^2)`` (1, M) of a polygon,
+    cached by the vertices' bytes (the polygon is fixed between re-posings)."""
+    poly = np.asarray(polygon, dtype=np.float64)
+    key = poly.tobytes() + str(poly.shape).encode()
+    hit = _POLYGON_CACHE.get(key)
+    if hit is None:
+        if len(_POLYGON_CACHE) >= 64:
+            _POLYGON_CACHE.clear()
+        edge = np.roll(poly, -1, axis=0) - poly
+        rows = (poly[:, 0][None].copy(), poly[:, 1][None].copy(), edge[:, 0][None].copy(),
+                edge[:, 1][None].copy(), 1.0 / (edge * edge).sum(-1)[None])
+        lo, hi = poly.min(axis=0), poly.max(axis=0)
+        cross = edge[:, 0] * np.roll(edge[:, 1], -1) - edge[:, 1] * np.roll(edge[:, 0], -1)
+        box = (len(poly) == 4 and bool((cross > 0).all())
+               and bool(((poly == lo) | (poly == hi)).all()))
+        if box:   # axis-aligned box: the closed form of sim.geometry.Polygon (centre, half size)
+            rows = (*rows, (lo + hi) / 2, (hi - lo) / 2)
+        hit = (_centroid_np(poly), rows)
+        _POLYGON_CACHE[key] = hit
+    return hit
+
+
+def _nearest_offset(points: np.ndarray, edges: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(K, 2) ``s - p``: from each of the (K, 2) points to its nearest polygon boundary point.
+
+    An axis-aligned box (``edges`` then carries its centre and half size) takes the closed form
+    of :meth:`sim.geometry.Polygon.signed_distance_xy` while every point is outside: the point
+    clamped to the box. Points inside (or any other polygon) take the nearest edge projection.
+    """
+    if len(edges) == 7:
+        centre, half = edges[5], edges[6]
+        rel = points - centre
+        clamped = np.minimum(np.maximum(rel, -half), half)
+        offset = clamped - rel
+        if offset.any(axis=1).all():                           # every point strictly outside
+            return offset
+    ax, ay, ex, ey, inv_len2 = edges[:5]
+    rx, ry = points[:, :1] - ax, points[:, 1:] - ay                              # (K, M)
+    t = np.minimum(np.maximum((rx * ex + ry * ey) * inv_len2, 0.0), 1.0)
+    dx, dy = t * ex - rx, t * ey - ry                                            # foot - point
+    flat = np.arange(len(points)) * ax.shape[1] + (dx * dx + dy * dy).argmin(axis=1)
+    return np.stack((dx.take(flat), dy.take(flat)), axis=1)
+
+
 def _centroid_np(poly: np.ndarray) -> np.ndarray:
     return _centroid(torch.from_numpy(np.asarray(poly, dtype=np.float64))).numpy()
 
 
 def nearest_boundary_point_np(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     """(K, 2) nearest points on the boundary of an (M, 2) polygon to (K, 2) points."""
-    edge = np.roll(polygon, -1, axis=0) - polygon
-    rel = points[:, None, :] - polygon[None]                                       # (K, M, 2)
-    t = np.clip((rel * edge).sum(-1) / (edge * edge).sum(-1), 0.0, 1.0)            # (K, M)
-    foot = polygon[None] + t[..., None] * edge[None]                               # (K, M, 2)
-    d2 = ((points[:, None, :] - foot) ** 2).sum(-1)
-    return foot[np.arange(len(points)), d2.argmin(1)]
+    return points + _nearest_offset(points, _polygon_constants(polygon)[1])

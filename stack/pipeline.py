@@ -8,6 +8,9 @@ Data path of :meth:`ControlStack.tick` for N robots (N may change from one tick 
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
                    run under torch.inference_mode; or a plain callable FleetState -> (N, 2)
                    => a_nom (N, 2) [m/s^2]
+                   (the tick writes the tokens into a float32 buffer kept per N and, every token
+                   being valid, passes ``mask=None`` to a network whose forward accepts it, else
+                   an all-true mask kept per N; a TorchScript forward is called directly)
       -> safety:   controllers.safety.SafetyFilter.filter(pos, vel, a_nom)   (optional)
                    => a_safe (N, 2), SafetyStatus
       -> MEC:      controllers.mec.ModelErrorCompensator.step(measured vel, a_safe)   (optional;
@@ -34,8 +37,11 @@ synchronisation cost for tensors this small.
 
 from __future__ import annotations
 
+import inspect
+import json
 import math
 import time
+import warnings
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -51,7 +57,7 @@ from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
 from controllers.safety import SafetyConfig, SafetyFilter, SafetyStatus, braking_acceleration
 from sim.fleet import Fleet, FleetState
 from sim.metrics import collision_events, episode_outcome
-from sim.observations import flat, fleet_tokens_np
+from sim.observations import LAYOUT_VERSION, TOKEN_DIM, flat, fleet_tokens_np
 from sim.scenario import Dynamics, Scenario, clip_norm
 
 PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
@@ -128,14 +134,14 @@ class StackConfig:
     Attributes:
         safety: run the safety filter.
         mec: run the model error compensator.
-        safety_config: settings of the filter (default: analytic geometry, the faster backend
-            for the static polygon object; FCL gives the same distances).
+        safety_config: settings of the filter (default: the fused fast path, see
+            :mod:`controllers.safety.fused`; ``geometry="fcl"`` gives the same answers slower).
         mec_config: settings of the compensator.
     """
 
     safety: bool = True
     mec: bool = True
-    safety_config: SafetyConfig = field(default_factory=lambda: SafetyConfig(geometry="analytic"))
+    safety_config: SafetyConfig = field(default_factory=SafetyConfig)
     mec_config: MecConfig = field(default_factory=MecConfig)
 
 
@@ -149,13 +155,20 @@ def is_torchscript_file(path: str | Path) -> bool:
 
 
 def load_policy(path: str | Path, num_robots: int | None = None) -> nn.Module:
-    """A policy module from a TorchScript file or a training checkpoint, in eval mode."""
+    """A policy module from a TorchScript file or a training checkpoint, in eval mode.
+
+    A TorchScript file written by ``formation export`` carries ``meta.json``
+    (:mod:`deploy.export`); its format and observation layout version must be the ones this code
+    builds (:data:`sim.observations.LAYOUT_VERSION`), else :class:`StackError` says which differ:
+    a policy trained on another token layout would silently read the wrong features. A bare
+    ``torch.jit.save`` of an actor has no ``meta.json`` and no layout to check; it is loaded as is.
+    """
     path = Path(path)
     if not path.is_file():
         raise StackError(f"policy file {str(path)!r} does not exist; give a TorchScript file or a "
                          "checkpoint.pt written by training")
     if is_torchscript_file(path):
-        return torch.jit.load(str(path), map_location="cpu").eval()
+        return _load_torchscript(path)
     from controllers.mappo.checkpoint import CheckpointError, load_actor
 
     try:
@@ -165,6 +178,45 @@ def load_policy(path: str | Path, num_robots: int | None = None) -> nn.Module:
     except Exception as exc:  # a file torch cannot read at all: say what was expected
         raise StackError(f"{str(path)!r} is neither a TorchScript file nor a training checkpoint "
                          f"({type(exc).__name__}: {exc})") from None
+
+
+def _load_torchscript(path: Path) -> torch.jit.ScriptModule:
+    """Load a TorchScript policy and check its ``meta.json``, if it has one (see :func:`load_policy`)."""
+    from deploy.export import EXPORT_FORMAT, EXPORT_FORMAT_VERSION, META_FILE
+
+    extra = {META_FILE: ""}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=DeprecationWarning, module="torch.jit")
+        module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
+    if extra[META_FILE]:
+        try:
+            meta = json.loads(extra[META_FILE])
+        except ValueError:
+            raise StackError(f"{str(path)!r}: its {META_FILE} is not valid JSON; export the policy "
+                             "again with `formation export`") from None
+        if not isinstance(meta, dict):
+            raise StackError(f"{str(path)!r}: its {META_FILE} is not a JSON object; export it again")
+        fmt = (meta.get("format"), meta.get("format_version"))
+        if fmt != (EXPORT_FORMAT, EXPORT_FORMAT_VERSION):
+            raise StackError(f"{str(path)!r} is a {fmt[0]} v{fmt[1]} file, not {EXPORT_FORMAT} "
+                             f"v{EXPORT_FORMAT_VERSION}; export it again with `formation export`")
+        if meta.get("layout_version") != LAYOUT_VERSION:
+            raise StackError(f"{str(path)!r} was exported for observation layout "
+                             f"{meta.get('layout_version')!r} but this code builds layout "
+                             f"{LAYOUT_VERSION}; export a policy trained on layout {LAYOUT_VERSION}")
+        if meta.get("token_dim", TOKEN_DIM) != TOKEN_DIM:
+            raise StackError(f"{str(path)!r} expects {meta.get('token_dim')} features per token but "
+                             f"this code builds {TOKEN_DIM}; export a policy trained on this layout")
+    return module.eval()
+
+
+def _mask_is_optional(network: nn.Module) -> bool:
+    """True when ``network.forward(obs, mask)`` accepts ``mask=None`` (or takes no mask)."""
+    if isinstance(network, torch.jit.ScriptModule):
+        args = [a for a in network.forward.schema.arguments if a.name != "self"]
+        return len(args) < 2 or isinstance(args[1].type, torch.OptionalType)
+    params = list(inspect.signature(network.forward).parameters.values())
+    return len(params) < 2 or params[1].default is None
 
 
 class ControlStack:
@@ -196,8 +248,16 @@ class ControlStack:
             raise StackError(f"policy must be an nn.Module, a TorchScript/checkpoint path or a "
                              f"callable FleetState -> (N, 2); got {type(policy).__name__}")
         self._polygon = scenario.polygon
-        self._static_pose = np.array([*scenario.object_center, 0.0])
-        self._mask = torch.ones(1, 0, 1, dtype=torch.bool)
+        self._static_pose_list = [*map(float, scenario.object_center), 0.0]
+        # Per-N buffers of the tick: float32 tokens (numpy and a torch view of the same memory)
+        # and the mask to pass (None when the network accepts it: every token is valid).
+        self._buffers: dict[int, tuple[np.ndarray, torch.Tensor, torch.Tensor | None]] = {}
+        self._forward: Callable[..., torch.Tensor] | None = None
+        self._mask_optional = False
+        if self.network is not None:
+            scripted = isinstance(self.network, torch.jit.ScriptModule)
+            self._forward = self.network.forward if scripted else self.network
+            self._mask_optional = _mask_is_optional(self.network)
         self.safety = SafetyFilter(scenario, self.config.safety_config) if self.config.safety else None
         self.mec = ModelErrorCompensator(self.dynamics, self.config.mec_config) if self.config.mec else None
         self.num_robots: int | None = None
@@ -215,22 +275,38 @@ class ControlStack:
     def observe(self, state: FleetState) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Policy input of ``state``: tokens (1, N, 2N+1, 4) and mask, or flat (1, N, 4N+2) and None.
 
-        Tokens come from :func:`sim.observations.fleet_tokens_np` (float64, then one cast to
-        float32), the numpy twin of the batched torch layout, several times cheaper for one fleet.
+        Tokens come from :func:`sim.observations.fleet_tokens_np` (computed in float64, written
+        into a float32 array), the numpy twin of the batched torch layout, several times cheaper
+        for one fleet. Fresh tensors on every call; the tick itself reuses one buffer per N.
         """
         if self.obs_kind == "flat":
-            stacked = torch.from_numpy(np.stack((state.positions, state.velocities, state.targets)))
-            pos, vel, tgt = stacked.to(torch.float32).unsqueeze(1).unbind(0)
-            return flat(pos, vel, tgt), None
-        return self._tokens(state.positions, state.velocities, state.targets)
+            return self._flat(state), None
+        n = state.num_robots
+        out = fleet_tokens_np(state.positions, state.velocities, state.targets, self._polygon,
+                              self.scenario.arena, np.empty((n, 2 * n + 1, 4), dtype=np.float32))
+        return torch.from_numpy(out).unsqueeze(0), torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
 
-    def _tokens(self, pos: np.ndarray, vel: np.ndarray,
-                targets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        n = len(pos)
-        if self._mask.shape[1] != n:
-            self._mask = torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
-        out = fleet_tokens_np(pos, vel, targets, self._polygon, self.scenario.arena)
-        return torch.from_numpy(out.astype(np.float32)).unsqueeze(0), self._mask
+    @staticmethod
+    def _flat(state: FleetState) -> torch.Tensor:
+        stacked = torch.from_numpy(np.stack((state.positions, state.velocities, state.targets)))
+        pos, vel, tgt = stacked.to(torch.float32).unsqueeze(1).unbind(0)
+        return flat(pos, vel, tgt)
+
+    def _network_input(self, state: FleetState) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The tick's policy input: tokens written into this N's reused float32 buffer (the
+        returned tensor shares its memory: valid until the next tick) and the mask to pass."""
+        if self.obs_kind == "flat":
+            return self._flat(state), None
+        n = state.num_robots
+        buffers = self._buffers.get(n)
+        if buffers is None:
+            array = np.zeros((n, 2 * n + 1, 4), dtype=np.float32)
+            mask = None if self._mask_optional else torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
+            buffers = self._buffers[n] = (array, torch.from_numpy(array).unsqueeze(0), mask)
+        array, tensor, mask = buffers
+        fleet_tokens_np(state.positions, state.velocities, state.targets, self._polygon,
+                        self.scenario.arena, array)
+        return tensor, mask
 
     def brake(self, vel: np.ndarray) -> np.ndarray:
         """(N, 2) maximum-braking command (non-finite velocities -> 0)."""
@@ -257,11 +333,11 @@ class ControlStack:
                 t_obs = t0
                 raw = np.asarray(self.callable(state), dtype=np.float64)
             else:
-                obs, mask = self.observe(state)
+                obs, mask = self._network_input(state)
                 t_obs = time.perf_counter_ns()
                 with torch.inference_mode():
-                    out = self.network(obs, mask) if mask is not None else self.network(obs)
-                raw = out[0].to(torch.float64).numpy()
+                    out = self._forward(obs, mask) if mask is not None else self._forward(obs)
+                raw = out.numpy()[0].astype(np.float64)
             t_pol = time.perf_counter_ns()
             if raw.shape != (n, 2):
                 raise StackError(f"the policy returned shape {raw.shape} for {n} robots; it must "
@@ -275,7 +351,7 @@ class ControlStack:
         safety_status, safety_reason = None, ""
         if self.safety is not None:
             pose = state.object_pose
-            if np.array_equal(pose, self._static_pose):   # the scene's own pose: no re-posing
+            if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
                 pose = None
             result = self.safety.filter(pos, vel, a_nom, pose)
             a_safe, safety_status, safety_reason = result.a_safe, result.status, result.reason

@@ -87,7 +87,11 @@ class SafetyConfig:
         eps: OSQP absolute and relative tolerance.
         max_iter: OSQP iteration limit.
         slack_weight: penalty on squared barrier slack in the fallback QP.
-        geometry: ``"fcl"`` (FCL scene) or ``"analytic"`` (closed-form numpy) distances.
+        geometry: ``"fused"`` (default: closed-form distances, barrier rows and the sweep check
+            in one vectorised pass, :mod:`controllers.safety.fused`, FCL verifying the object sweep
+            near contact), or the reference path: ``"fcl"`` (FCL scene) or ``"analytic"``
+            (closed-form numpy) distances, then :func:`barrier_terms` and the
+            :class:`~controllers.safety.postcheck.SweepChecker`. All three give the same answers.
         postcheck: check the one-tick sweep and brake robots that would touch.
         postcheck_margin: clearance the post-check demands [m] (0 = no contact).
     """
@@ -102,7 +106,7 @@ class SafetyConfig:
     eps: float = 1e-7
     max_iter: int = 4000
     slack_weight: float = 1e6
-    geometry: str = "fcl"
+    geometry: str = "fused"
     postcheck: bool = True
     postcheck_margin: float = 0.0
 
@@ -122,8 +126,9 @@ class SafetyConfig:
             raise SafetyConfigError(f"safety.accel_fraction must be in (0, 1], got {self.accel_fraction}")
         if self.class_k not in ("linear", "cubic"):
             raise SafetyConfigError(f"safety.class_k must be 'linear' or 'cubic', got {self.class_k!r}")
-        if self.geometry not in ("fcl", "analytic"):
-            raise SafetyConfigError(f"safety.geometry must be 'fcl' or 'analytic', got {self.geometry!r}")
+        if self.geometry not in ("fused", "fcl", "analytic"):
+            raise SafetyConfigError(f"safety.geometry must be 'fused', 'fcl' or 'analytic', "
+                                    f"got {self.geometry!r}")
         if not (isinstance(self.max_iter, int) and self.max_iter > 0):
             raise SafetyConfigError(f"safety.max_iter must be a positive integer, got {self.max_iter!r}")
 

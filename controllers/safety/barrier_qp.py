@@ -1,4 +1,4 @@
-r"""The centralised safety filter: FCL distances -> barrier rows -> one OSQP QP -> post-check.
+r"""The centralised safety filter: distances -> barrier rows -> one OSQP QP -> post-check.
 
 For N robots the decision variable is ``u`` in R^{2N}, ``u = (u_0x, u_0y, u_1x, ...)`` [m/s^2]::
 
@@ -11,11 +11,18 @@ with the rows and bounds ``b_k`` of :mod:`controllers.safety.barrier` (the braki
 barrier of Wang, Ames and Egerstedt, IEEE T-RO 2017, derived there for damped double integrators
 with a safety margin). ``a_nom`` is first clipped to the actuator limit, as the plant would.
 
+Geometry and rows come from the fused fast path (:mod:`controllers.safety.fused`, the default
+``geometry="fused"``: closed-form distances, rows and sweep check in one vectorised pass, FCL's
+exact capsule distance verifying the object sweep of robots near contact) or from the reference
+path (``"fcl"``: the FCL scene, or ``"analytic"``; then :func:`barrier_terms` and the
+:class:`SweepChecker`). Both give the same rows and answers (tests hold them equal).
+
 Solve path, every outcome an explicit :class:`SafetyStatus`:
 
 1. ``UNCHANGED``: the clipped nominal command already satisfies every barrier row; returned as is.
 2. ``INTERVENED``: OSQP (one problem per N, set up once with a fixed sparsity pattern, then only
-   ``update(q=, l=, u=, Ax=)`` per tick, eps 1e-7 with polishing) solved and its answer satisfies
+   ``update(q=, l=, Ax=)`` per tick, warm-started, eps 1e-7 with polishing; no setup on the hot
+   path) solved and its answer satisfies
    every row within 1e-6.
 3. ``SLACK``: OSQP failed or was infeasible: the QP with one slack ``sigma_k >= 0`` per barrier row
    (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ slack_weight * |sigma|^2``, the
@@ -40,6 +47,7 @@ import qpsolvers
 import scipy.sparse as sp
 
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, barrier_terms, octagon_accel
+from controllers.safety.fused import FusedScene, FusedTerms
 from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
 from sim.scenario import Scenario
@@ -91,7 +99,7 @@ class SafetyResult:
 
 
 class _Problem:
-    """The OSQP problem, FCL scene and post-check for one robot count N (set up once)."""
+    """The OSQP problem, FCL scene, post-check and fused fast path for one robot count N (set up once)."""
 
     def __init__(self, scenario: Scenario, n: int, config: SafetyConfig):
         self.n = n
@@ -99,6 +107,7 @@ class _Problem:
         self.scene = CollisionScene(scenario, n)
         self.checker = SweepChecker(self.scene.object_parts, scenario.robot_radius, scenario.arena,
                                     dyn, config.postcheck_margin)
+        self.fused = FusedScene(scenario.robot_radius, scenario.arena, dyn, config, n)
         pi, pj = np.triu_indices(n, 1)
         p = len(pi)
         self.num_barrier = p + 5 * n
@@ -137,11 +146,21 @@ class _Problem:
                                  object_normal.ravel(), self.const_values])
         return values[self.perm]
 
+    def posed_polygon(self, object_pose: np.ndarray | None) -> np.ndarray:
+        """The (M, 2) world polygon, re-posing the FCL object (and polygon) when the pose changed."""
+        if object_pose is not None and not np.array_equal(object_pose, self.scene.object_pose):
+            self.scene.set_object_pose(object_pose)
+        return self.scene.polygon
+
     def solve(self, terms: BarrierTerms, a_nom: np.ndarray,
               tighten: float) -> tuple[np.ndarray | None, str]:
-        """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row."""
+        """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row.
+
+        Only the vectors and matrix values change between ticks (the upper bounds never do):
+        ``update(q, l, Ax)`` on the problem set up once; OSQP warm-starts from the last answer.
+        """
         self.lower[:self.num_barrier] = terms.bound + tighten
-        self.solver.update(q=-2.0 * a_nom.ravel(), l=self.lower, u=self.upper,
+        self.solver.update(q=-2.0 * a_nom.ravel(), l=self.lower,
                            Ax=self._ax(terms.pair_normal, terms.object_normal))
         res = self.solver.solve(raise_error=False)
         if res.info.status != "solved":
@@ -178,19 +197,21 @@ class SafetyFilter:
         return self._problems[n]
 
     def distances(self, pos: np.ndarray, object_pose: np.ndarray | None = None) -> SceneDistances:
-        """Signed distances of (N, 2) centres with the configured geometry backend."""
+        """Signed distances of (N, 2) centres: the FCL scene for ``geometry="fcl"``, else closed form."""
         prob = self.problem(len(pos))
         if self.config.geometry == "fcl":
             prob.scene.update(pos, object_pose)
             return prob.scene.distances()
-        if object_pose is not None:      # the analytic backend only needs the posed polygon
-            prob.scene.update(pos, object_pose)
         return analytic_distances(pos, self.scenario.robot_radius, self.scenario.arena,
-                                  prob.scene.polygon)
+                                  prob.posed_polygon(object_pose))
 
     def barrier(self, pos: np.ndarray, vel: np.ndarray,
                 object_pose: np.ndarray | None = None) -> BarrierTerms:
         """Barrier values and rows at (pos, vel), each (N, 2) [m, m/s]."""
+        if self.config.geometry == "fused":
+            pos, vel = np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
+            prob = self.problem(len(pos))
+            return prob.fused.terms(pos, vel, prob.posed_polygon(object_pose))
         return barrier_terms(self.distances(pos, object_pose), vel, self.dynamics, self.config)
 
     def filter(self, pos: np.ndarray, vel: np.ndarray, a_nom: np.ndarray,
@@ -205,29 +226,37 @@ class SafetyFilter:
         start = time.perf_counter()
         pos, vel, a_nom = (np.asarray(x, dtype=np.float64) for x in (pos, vel, a_nom))
         n = len(pos)
-        for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom)):
-            if arr.ndim != 2 or arr.shape != (n, 2):
-                raise ValueError(f"SafetyFilter.filter: {name} must have shape (num_robots, 2) = "
-                                 f"({n}, 2), got {arr.shape}")
+        if not pos.shape == vel.shape == a_nom.shape == (n, 2):
+            for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom)):
+                if arr.shape != (n, 2):
+                    raise ValueError(f"SafetyFilter.filter: {name} must have shape (num_robots, 2) = "
+                                     f"({n}, 2), got {arr.shape}")
         if n == 0:
             return SafetyResult(np.zeros((0, 2)), SafetyStatus.UNCHANGED, total_time_s=0.0)
-        finite = [name for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom))
-                  if not np.all(np.isfinite(arr))]
-        if object_pose is not None and not np.all(np.isfinite(object_pose)):
-            finite.append("object_pose")
-        if finite:
+        if not (np.isfinite(pos).all() and np.isfinite(vel).all() and np.isfinite(a_nom).all()
+                and (object_pose is None or np.isfinite(object_pose).all())):
+            finite = [name for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom),
+                                             ("object_pose", object_pose))
+                      if arr is not None and not np.all(np.isfinite(arr))]
             return self._brake_all(vel, f"non-finite input in {', '.join(finite)}", start)
 
-        dist = self.distances(pos, object_pose)
+        prob = self.problem(n)
+        fused = self.config.geometry == "fused"
+        dist: SceneDistances | None = None
         with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
-            terms = barrier_terms(dist, vel, self.dynamics, self.config)
-        if not (np.all(np.isfinite(terms.bound)) and np.all(np.isfinite(terms.h))):
+            if fused:
+                terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose))
+            else:
+                dist = self.distances(pos, object_pose)
+                terms = barrier_terms(dist, vel, self.dynamics, self.config)
+        clearance = float(terms.distance.min()) if fused else dist.min_clearance()
+        # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too
+        if not np.isfinite(terms.bound).all():
             return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
-                                   dist)
-        prob = self._problems[n]
+                                   clearance)
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
         status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
-        if np.all(terms.rows_times(nominal) >= terms.bound):
+        if (terms.rows_times(nominal) >= terms.bound).all():
             a = nominal
         else:
             t_solve = time.perf_counter()
@@ -239,19 +268,21 @@ class SafetyFilter:
                 status = SafetyStatus.SLACK
             solve_time = time.perf_counter() - t_solve
             if a is None:
-                return self._brake_all(vel, reason, start, dist, terms, solve_time)
+                return self._brake_all(vel, reason, start, clearance, terms, solve_time)
             a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
-        braked = np.zeros(n, dtype=bool)
-        contact = np.zeros(n, dtype=bool)
+        braked, contact = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if self.config.postcheck:
-            check = prob.checker.check(pos, vel, a, dist.object_distance)
+            if isinstance(terms, FusedTerms):
+                check = prob.fused.check(prob.checker, pos, vel, a, terms)
+            else:
+                check = prob.checker.check(pos, vel, a, dist.object_distance)
             a, braked, contact = check.acc, check.braked, check.contact
             if braked.any():
                 status = SafetyStatus.FALLBACK_BRAKE
                 reason = (reason + "; " if reason else "") + (
                     f"post-check braked robots {np.flatnonzero(braked).tolist()}")
         return SafetyResult(a_safe=a, status=status, reason=reason, braked=braked, contact=contact,
-                            min_barrier=float(terms.h.min()), min_clearance=dist.min_clearance(),
+                            min_barrier=float(terms.h.min()), min_clearance=clearance,
                             max_slack=slack, solve_time_s=solve_time,
                             total_time_s=time.perf_counter() - start)
 
@@ -287,13 +318,12 @@ class SafetyFilter:
             return None, 0.0, "DAQP answer outside the actuator limits"
         return u, float(sigma.max(initial=0.0)), "slack QP (DAQP)"
 
-    def _brake_all(self, vel: np.ndarray, reason: str, start: float,
-                   dist: SceneDistances | None = None, terms: BarrierTerms | None = None,
-                   solve_time: float = 0.0) -> SafetyResult:
+    def _brake_all(self, vel: np.ndarray, reason: str, start: float, clearance: float = math.nan,
+                   terms: BarrierTerms | None = None, solve_time: float = 0.0) -> SafetyResult:
         n = len(vel)
         return SafetyResult(
             a_safe=braking_acceleration(vel, self.dynamics), status=SafetyStatus.FALLBACK_BRAKE,
             reason=reason, braked=np.ones(n, dtype=bool), contact=np.zeros(n, dtype=bool),
             min_barrier=float(terms.h.min()) if terms is not None else math.nan,
-            min_clearance=dist.min_clearance() if dist is not None else math.nan,
+            min_clearance=clearance,
             solve_time_s=solve_time, total_time_s=time.perf_counter() - start)

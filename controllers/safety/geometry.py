@@ -277,6 +277,11 @@ class CollisionScene:
         self.polygon = self.polygon_local @ rot2.T + pose[:2]
         self.object_pose = np.asarray(pose, dtype=np.float64).copy()
 
+    def set_object_pose(self, pose: np.ndarray) -> None:
+        """Move the object to pose (x, y, theta) [m, rad] alone (the robots stay where they are)."""
+        self._set_object_pose(np.asarray(pose, dtype=np.float64))
+        self.manager.update()
+
     def update(self, positions: np.ndarray, object_pose: np.ndarray | None = None) -> None:
         """Move the robots to (N, 2) centres [m] (and the object to pose (x, y, theta) [m, rad])."""
         positions = np.asarray(positions, dtype=np.float64)

@@ -121,10 +121,10 @@ class SweepChecker:
         bad |= np.any(wall_gap.min(axis=0) < reach, axis=1)
         travel = np.hypot(*(end - pos).T) + bulge
         for i in np.flatnonzero(object_clearance - m <= travel):
-            bad[i] |= self._capsule_clearance(pos[i], end[i], r + bulge[i]) < m
+            bad[i] |= self.capsule_clearance(pos[i], end[i], r + bulge[i]) < m
         return bad
 
-    def _capsule_clearance(self, start: np.ndarray, end: np.ndarray, radius: float) -> float:
+    def capsule_clearance(self, start: np.ndarray, end: np.ndarray, radius: float) -> float:
         """FCL signed distance between the object and the disc of ``radius`` swept from start to end."""
         chord = end - start
         length = float(np.hypot(*chord))

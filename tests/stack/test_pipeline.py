@@ -213,3 +213,96 @@ def test_numpy_tokens_equal_sim_observations_tokens(n):
         assert got.shape == want.shape == (1, n, 2 * n + 1, 4) and got.dtype == torch.float32
         torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
         assert torch.equal(got_mask, want_mask)
+
+
+# ------------------------------------------------------------------ fast tick path
+def _states(sc, count, seed):
+    world = PymunkWorld(sc, WEAK_ROBOTS, seed=seed)
+    state = world.reset(seed=seed)
+    ctl = ScriptedController(sc)
+    out = []
+    for _ in range(count):
+        out.append(state)
+        world.send_accelerations(ctl(state))
+        state = world.step()
+    return out
+
+
+@pytest.mark.parametrize("scripted", [False, True])
+def test_tick_without_mask_equals_the_network_on_fresh_tokens_and_full_mask(scripted):
+    """The tick passes mask=None (all tokens valid) and reuses one token buffer per N: its a_nom
+    equals the network on freshly built tokens with the all-true mask, tick after tick, as N changes."""
+    from sim.observations import tokens
+
+    net = actor(2)
+    module = torch.jit.script(net) if scripted else net
+    stack = ControlStack(make_scenario("paper-3"), module)
+    for n in (3, 5, 3):
+        sc = transport_scenario(n)
+        for state in _states(sc, 4, seed=n):
+            got = stack.tick(state).a_nom
+            as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
+            obs, mask = tokens(as_t(state.positions), as_t(state.velocities), as_t(state.targets),
+                               torch.tensor(sc.polygon, dtype=torch.float32), sc.arena)
+            with torch.no_grad():
+                want = net(obs, mask)[0].double().numpy()
+            assert np.abs(want).max() > 0.05
+            np.testing.assert_allclose(got, want, atol=1e-6, rtol=0)
+
+
+def test_exported_policy_loads_runs_with_its_mask_and_a_layout_mismatch_is_refused(tmp_path):
+    from deploy.export import META_FILE, export_policy
+
+    torch.set_num_threads(1)
+    net = actor(3)
+    path = tmp_path / "policy.pt"
+    export_policy(net, path, dt=0.05, trained_robots=3)
+    sc = make_scenario("paper-3")
+    module = load_policy(path)
+    assert isinstance(module, torch.jit.ScriptModule)
+    state = _states(sc, 1, seed=4)[0]
+    # DeployedPolicy.forward(obs, mask) needs its mask: the stack passes the all-true one
+    got = ControlStack(sc, module).tick(state).a_nom
+    want = ControlStack(sc, net).tick(state).a_nom
+    np.testing.assert_allclose(got, want, atol=1e-6)
+
+    def rewrite(name, **changes):
+        extra = {META_FILE: ""}
+        loaded = torch.jit.load(str(path), _extra_files=extra)
+        meta = json.loads(extra[META_FILE]) | changes
+        out = tmp_path / name
+        torch.jit.save(loaded, str(out), _extra_files={META_FILE: json.dumps(meta)})
+        return out
+
+    with pytest.raises(StackError, match="observation layout 99 but this code builds layout 1"):
+        load_policy(rewrite("old_layout.pt", layout_version=99))
+    with pytest.raises(StackError, match="observation layout None"):
+        ControlStack(sc, rewrite("no_layout.pt", layout_version=None))
+    with pytest.raises(StackError, match="not formation-stack/torchscript-policy v1"):
+        load_policy(rewrite("other_format.pt", format_version=2))
+    with pytest.raises(StackError, match="7 features per token"):
+        load_policy(rewrite("wide_tokens.pt", token_dim=7))
+
+
+def test_fleet_tokens_np_into_a_float32_buffer_for_a_rotated_object():
+    """The general polygon path (a rotated box is no longer axis-aligned) against the torch tokens,
+    written into a reused float32 buffer that starts dirty."""
+    from sim.observations import fleet_tokens_np, tokens
+
+    sc = transport_scenario(4)
+    angle = 0.4
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    polygon = (sc.polygon - 0.5) @ rot.T + 0.5
+    rng = np.random.default_rng(9)
+    buf = np.full((4, 9, 4), np.nan, dtype=np.float32)
+    for _ in range(3):
+        pos, vel, targets = rng.uniform(0, 1, (4, 2)), rng.normal(0, 0.3, (4, 2)), rng.uniform(0, 1, (4, 2))
+        pos[1] = 0.5 + rng.uniform(-0.05, 0.05, 2)                      # inside the object
+        out = fleet_tokens_np(pos, vel, targets, polygon, sc.arena, out=buf)
+        assert out is buf
+        as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
+        want, _ = tokens(as_t(pos), as_t(vel), as_t(targets), torch.tensor(polygon, dtype=torch.float32),
+                         sc.arena)
+        torch.testing.assert_close(torch.from_numpy(buf)[None], want, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="out must have shape"):
+        fleet_tokens_np(pos, vel, targets, polygon, sc.arena, out=np.zeros((4, 8, 4)))
