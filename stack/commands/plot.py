@@ -1,0 +1,122 @@
+"""`formation plot`: figures of training runs as PNG files.
+
+Writes into --out (default RUN_DIR/plots of the first run):
+
+* curves.png        episode return, final distance [m] and evaluation success rate [%] against
+                    training episodes (the paper's Figures 8-13, 17-20), every RUN_DIR overlaid
+                    (e.g. a run from scratch and a transfer run), the converged episode marked;
+* trajectories.png  robot paths of --episodes deterministic episodes of the first run's policy
+                    (Figures 14-15, 21-22), starts drawn with --seed;
+* attention.png     the first run's attention weights, robots x tokens, at --step of the first
+                    of those episodes (Figure 5); not for the MLP baseline, which has none.
+
+Each RUN_DIR is a folder written by `formation train --out RUN_DIR` (train.jsonl, eval.jsonl,
+config.json, checkpoint.pt). --scenario runs the policy on another task, e.g. a 3-robot policy
+on paper-5 (typed actors run any N; slot actors get fresh slots for the new robots).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("plot", help="plot training curves, trajectories and attention of runs as PNG",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="run folders of `formation train`")
+    p.add_argument("--labels", nargs="+", metavar="LABEL",
+                   help="legend label per RUN_DIR (default: the folder names)")
+    p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/plots of the first run)")
+    p.add_argument("--episodes", type=int, default=4, help="episodes in trajectories.png (default 4, at most 16)")
+    p.add_argument("--scenario", help="scenario for trajectories and attention (default: the run's own)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start jitter (default 0)")
+    p.add_argument("--step", type=int, default=0, help="episode step of the attention snapshot (default 0)")
+    p.add_argument("--curves-only", action="store_true",
+                   help="only curves.png (runs without checkpoint.pt)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from controllers.mappo.checkpoint import CheckpointError
+    from sim.scenario import ScenarioError
+    from stack.plots import PlotError
+
+    try:
+        paths = make_plots(args)
+    except (PlotError, CheckpointError, ScenarioError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0
+
+
+def make_plots(args) -> list[Path]:
+    """Check the arguments, then write the figures; returns the PNG paths (raises on bad input)."""
+    from stack.plots import PlotError, load_run, plot_training_curves
+
+    labels = args.labels or [_default_label(d, args.run_dirs) for d in args.run_dirs]
+    if len(labels) != len(args.run_dirs):
+        raise PlotError(f"--labels has {len(labels)} labels for {len(args.run_dirs)} RUN_DIRs; give one per run")
+    if len(set(labels)) != len(labels):
+        raise PlotError(f"labels must differ, got {labels}; give --labels")
+    if not 1 <= args.episodes <= 16:
+        raise PlotError(f"--episodes must be in 1..16, got {args.episodes}")
+    if args.step < 0:
+        raise PlotError(f"--step must be >= 0, got {args.step}")
+    runs = {label: load_run(d, label) for label, d in zip(labels, args.run_dirs, strict=True)}
+    checkpoint = args.run_dirs[0] / "checkpoint.pt"
+    if not args.curves_only and not checkpoint.is_file():
+        raise PlotError(f"{str(checkpoint)!r} is missing: `formation train` writes it into the run folder; "
+                        "give --curves-only to plot the curves alone")
+    policy = None if args.curves_only else _load_policy(args, checkpoint)
+    out = args.out or args.run_dirs[0] / "plots"
+    paths = [plot_training_curves(runs, out / "curves.png")]
+    if policy is not None:
+        paths += _policy_plots(args, *policy, labels[0], out)
+    return paths
+
+
+def _load_policy(args, checkpoint: Path):
+    """(actor, scenario, note) for the policy figures; raises before anything is written."""
+    import torch
+
+    from controllers.mappo.checkpoint import checkpoint_config, load_actor, load_checkpoint
+    from sim.scenario import make_scenario
+
+    torch.set_num_threads(1)
+    trained = checkpoint_config(load_checkpoint(checkpoint)).build_scenario()
+    scenario = make_scenario(args.scenario) if args.scenario else trained
+    actor = load_actor(checkpoint, scenario.num_robots)
+    return actor, scenario, "" if scenario.name == trained.name else f" (trained on {trained.name})"
+
+
+def _policy_plots(args, actor, scenario, moved: str, label: str, out: Path) -> list[Path]:
+    from stack.plots import (
+        attention_snapshot,
+        plot_attention,
+        plot_trajectories,
+        record_trajectories,
+    )
+
+    traj = record_trajectories(actor, scenario, episodes=args.episodes, seed=args.seed)
+    paths = [plot_trajectories(traj, scenario, out / "trajectories.png",
+                               title=f"{label}: {scenario.name}{moved}, deterministic policy, "
+                                     f"starts drawn with seed {args.seed}")]
+    if not hasattr(actor, "attention"):
+        print(f"note: no attention.png: the {type(actor).__name__} has no attention weights", file=sys.stderr)
+        return paths
+    weights, tokens = attention_snapshot(actor, scenario, seed=args.seed, step=args.step)
+    paths.append(plot_attention(weights, tokens, out / "attention.png",
+                                title=f"{label}: attention on {scenario.name}{moved}, step {args.step} "
+                                      f"({args.step * scenario.dynamics.dt:g} s) of episode 1 (seed {args.seed})"))
+    return paths
+
+
+def _default_label(run_dir: Path, all_dirs: list[Path]) -> str:
+    """The folder name, or parent/name when two runs share a name."""
+    names = [d.resolve().name for d in all_dirs]
+    name = run_dir.resolve().name
+    return name if names.count(name) == 1 else f"{run_dir.resolve().parent.name}/{name}"

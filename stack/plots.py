@@ -1,0 +1,523 @@
+"""Figures of a run as PNG files, in the spirit of the paper's figures.
+
+* :func:`plot_training_curves` - episode return, final distance and evaluation success rate
+  against training episodes (Figures 8-13 and 17-20), several runs overlaid (e.g. "from scratch"
+  vs "transfer"), the converged episode marked.
+* :func:`record_trajectories` + :func:`plot_trajectories` - robot paths of a few deterministic
+  episodes (Figures 14-15 and 21-22): arena, object, start slots, targets with the tolerance
+  circle, robot discs at start and end, collisions marked.
+* :func:`attention_snapshot` + :func:`plot_attention` - a robots x tokens heatmap of the
+  attention weights (Figure 5).
+
+matplotlib is imported inside the plotting functions only (Figure objects drawn by the Agg canvas,
+no pyplot state), so importing this module needs numpy alone; torch is imported by the functions
+that run a policy. Units: metres, seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+DPI = 120
+
+
+class PlotError(ValueError):
+    """Input that cannot be plotted; the message names the file or value and the fix."""
+
+
+# ------------------------------------------------------------------ training curves
+@dataclass
+class RunCurves:
+    """The logs of one training run.
+
+    train: rows of ``train.jsonl`` (one per iteration; ``episodes``, ``return_mean``,
+        ``final_distance`` [m], None where no episode ended in the iteration).
+    eval: rows of ``eval.jsonl`` (one per evaluation; ``episodes``, ``success_rate`` in [0, 1],
+        ``final_distance`` [m], ``episode_return``).
+    converged_episode: training episodes at convergence (None: not converged).
+    """
+
+    label: str
+    train: list[dict]
+    eval: list[dict] = dataclasses.field(default_factory=list)
+    converged_episode: int | None = None
+    success_threshold: float = 0.9
+    target_tolerance: float | None = None
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    with path.open() as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def load_run(run_dir: str | Path, label: str | None = None) -> RunCurves:
+    """Read ``train.jsonl`` (required), ``eval.jsonl``, ``result.json`` and ``config.json`` of a run."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise PlotError(f"run folder {str(run_dir)!r} does not exist; give a folder written by "
+                        "`formation train --out DIR`")
+    train_path = run_dir / "train.jsonl"
+    if not train_path.is_file():
+        raise PlotError(f"{str(train_path)!r} is missing: it is the per-iteration log that "
+                        "`formation train` writes into its run folder")
+    eval_path, result_path, config_path = (run_dir / n for n in ("eval.jsonl", "result.json", "config.json"))
+    evals = _read_jsonl(eval_path) if eval_path.is_file() else []
+    converged = next((r["converged_episode"] for r in evals if r.get("converged_episode") is not None), None)
+    if result_path.is_file():
+        converged = json.loads(result_path.read_text()).get("converged_episode", converged)
+    threshold, tolerance = 0.9, None
+    if config_path.is_file():
+        config = json.loads(config_path.read_text())
+        threshold = float(config.get("success_threshold", threshold))
+        tolerance = _tolerance(config.get("scenario"))
+    return RunCurves(label or run_dir.name, _read_jsonl(train_path), evals, converged, threshold, tolerance)
+
+
+def _tolerance(scenario) -> float | None:
+    from sim.scenario import Scenario, ScenarioError, make_scenario
+
+    try:
+        if isinstance(scenario, dict):
+            return Scenario.from_dict(dict(scenario)).target_tolerance
+        return make_scenario(scenario).target_tolerance if isinstance(scenario, str) else None
+    except ScenarioError:
+        return None
+
+
+def _as_curves(label: str, source) -> RunCurves:
+    if isinstance(source, RunCurves):
+        return dataclasses.replace(source, label=label)
+    if isinstance(source, str | Path):
+        return load_run(source, label)
+    if isinstance(source, Mapping):
+        return RunCurves(label, list(source.get("train", [])), list(source.get("eval", [])),
+                         source.get("converged_episode"))
+    if isinstance(source, Sequence):
+        return RunCurves(label, list(source))
+    raise PlotError(f"run {label!r}: expected a run folder, RunCurves, a list of train rows or "
+                    f"{{'train': rows, 'eval': rows}}, got {type(source).__name__}")
+
+
+def _series(rows: list[dict], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(episodes, values) of the rows where ``key`` is defined."""
+    pts = [(r["episodes"], r[key]) for r in rows if r.get(key) is not None and r.get("episodes") is not None]
+    if not pts:
+        return np.zeros(0), np.zeros(0)
+    x, y = np.asarray(pts, dtype=float).T
+    return x, y
+
+
+def moving_mean(y: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving mean over ``window`` points; windows shrink at the ends (same length as y)."""
+    y = np.asarray(y, dtype=float)
+    if window <= 1:
+        return y.copy()
+    half = window // 2
+    c = np.concatenate(([0.0], np.cumsum(y)))
+    idx = np.arange(len(y))
+    lo, hi = np.maximum(idx - half, 0), np.minimum(idx + half + 1, len(y))
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
+def _figure(**kwargs):
+    """A matplotlib Figure drawn by the Agg canvas (no pyplot: no global backend or state)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(layout="constrained", **kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _colormap(name: str):
+    from matplotlib import colormaps
+
+    return colormaps[name]
+
+
+def _save(fig, out_png: str | Path) -> Path:
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=DPI, bbox_inches="tight", facecolor="white")
+    return out
+
+
+def plot_training_curves(runs: Mapping[str, object], out_png: str | Path, *, title: str | None = None,
+                         smooth: int | None = None) -> Path:
+    """Three panels against training episodes, one colour per run, written to ``out_png``.
+
+    Args:
+        runs: label -> run folder, :class:`RunCurves`, list of ``train.jsonl`` rows, or
+            ``{"train": rows, "eval": rows, "converged_episode": k}``.
+        smooth: moving-mean window in points for the training curves (default ~1/25 of them).
+
+    Panels: (1) episode return (undiscounted sum of rewards over an episode, mean over robots):
+    training episodes (faint, and smoothed) and deterministic evaluations (markers);
+    (2) final distance [m], the mean robot-to-assigned-target distance at the end, with the
+    target tolerance; (3) evaluation success rate [%] with the convergence threshold. A dotted
+    vertical line marks each run's converged episode.
+    """
+    if not runs:
+        raise PlotError("no runs to plot: give at least one run")
+    curves = [_as_curves(label, src) for label, src in runs.items()]
+    from matplotlib.lines import Line2D
+
+    fig = _figure(figsize=(17, 5.2))
+    axes = fig.subplots(1, 3)
+    colours = _colormap("tab10").colors
+    handles = []
+    for k, run in enumerate(curves):
+        colour = colours[k % len(colours)]
+        for ax, (train_key, eval_key) in zip(axes[:2], (("return_mean", "episode_return"),
+                                                         ("final_distance", "final_distance")), strict=True):
+            x, y = _series(run.train, train_key)
+            if len(x):
+                w = smooth or max(1, round(len(x) / 25)) | 1
+                ax.plot(x, y, color=colour, alpha=0.2, lw=0.8)
+                ax.plot(x, moving_mean(y, w), color=colour, lw=2)
+            ex, ey = _series(run.eval, eval_key)
+            if len(ex):
+                ax.plot(ex, ey, color=colour, ls="--", marker="o", ms=3.5, lw=1)
+        ex, ey = _series(run.eval, "success_rate")
+        if len(ex):
+            axes[2].plot(ex, 100 * ey, color=colour, marker="o", ms=3.5, lw=1.5)
+        conv = run.converged_episode
+        if conv is not None:
+            for ax in axes:
+                ax.axvline(conv, color=colour, ls=":", lw=1.6)
+            axes[2].annotate(f"converged\n@ {conv}", (conv, 100 * run.success_threshold), xytext=(4, -30),
+                             textcoords="offset points", color=colour, fontsize=8)
+        state = f"converged at episode {conv}" if conv is not None else "not converged"
+        handles.append(Line2D([], [], color=colour, lw=2, label=f"{run.label} ({state})"))
+    tolerance = next((r.target_tolerance for r in curves if r.target_tolerance is not None), None)
+    if tolerance is not None:
+        _reference_line(axes[1], tolerance, f"target tolerance {tolerance:g} m")
+    threshold = curves[0].success_threshold
+    _reference_line(axes[2], 100 * threshold, f"convergence threshold {100 * threshold:g} %")
+    axes[2].set_ylim(-3, 103)
+    axes[1].set_ylim(bottom=0)
+    labels = (("Episode return", "return per episode (sum of rewards, mean over robots)"),
+              ("Final distance", "final robot-target distance [m]"),
+              ("Evaluation success rate", "success rate [%] (deterministic episodes)"))
+    for ax, (name, ylabel) in zip(axes, labels, strict=True):
+        ax.set_title(name)
+        ax.set_xlabel("training episodes")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    styles = [Line2D([], [], color="0.4", lw=2, label="training (moving mean; raw faint)"),
+              Line2D([], [], color="0.4", ls="--", marker="o", ms=3.5, lw=1, label="evaluation (mean action)"),
+              Line2D([], [], color="0.4", ls=":", lw=1.6, label="converged episode")]
+    fig.legend(handles=handles + styles, loc="outside lower center", ncol=min(3, len(handles) + 3),
+               frameon=False)
+    fig.suptitle(title or "Training curves: " + " vs ".join(r.label for r in curves), fontsize=13)
+    return _save(fig, out_png)
+
+
+def _reference_line(ax, y: float, text: str) -> None:
+    ax.axhline(y, color="0.3", ls="-.", lw=1)
+    ax.annotate(text, (0.01, y), xycoords=("axes fraction", "data"), xytext=(0, 3), textcoords="offset points",
+                fontsize=8, color="0.3", bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.8, "pad": 1})
+
+
+# ------------------------------------------------------------------ trajectories
+@dataclass
+class Trajectories:
+    """Recorded episodes of one scenario.
+
+    positions: (K, S+1, N, 2) robot centres [m]; index 0 is the start, S the end.
+    contacts: (K, S, N, 3) bool, robot / object / wall contact after each step.
+    success: (K,) bool; final_distance: (K,) mean assigned distance at the end [m];
+    assignment: (K, N) target index of each robot at the end (min-sum matching).
+    seed: the seed the starts were drawn with.
+    """
+
+    positions: np.ndarray
+    contacts: np.ndarray
+    success: np.ndarray
+    final_distance: np.ndarray
+    assignment: np.ndarray
+    seed: int = 0
+
+
+def _rollout_env(scenario, episodes: int, seed: int, steps: int, obs_kind: str):
+    """A batched world of ``episodes`` envs whose episodes outlast ``steps`` (no auto-reset)."""
+    from sim.batched_env import BatchedFormationEnv
+
+    long = dataclasses.replace(scenario, dynamics=dataclasses.replace(scenario.dynamics, episode_steps=steps + 1))
+    return BatchedFormationEnv(long, episodes, seed=seed, obs=obs_kind)
+
+
+def record_trajectories(actor, scenario, *, episodes: int = 4, seed: int = 0,
+                        steps: int | None = None) -> Trajectories:
+    """Roll out ``actor``'s mean action for ``episodes`` episodes of ``scenario`` and record them.
+
+    ``actor(obs, mask) -> (E, N, 2)`` [m/s^2] with ``obs_kind`` ``"tokens"`` or ``"flat"`` (eager
+    or TorchScript). The starts are the scenario's start slots jittered with ``seed``; ``steps``
+    defaults to the scenario's episode length. The world is :class:`sim.batched_env.BatchedFormationEnv`
+    (nominal dynamics, no safety filter, no contact forces: overlaps are only recorded as
+    contacts); success and final distance follow :mod:`sim.metrics`.
+    """
+    import torch
+
+    from sim.metrics import episode_outcome
+
+    if not isinstance(episodes, int) or episodes < 1:
+        raise PlotError(f"episodes must be a positive integer, got {episodes!r}")
+    steps = scenario.dynamics.episode_steps if steps is None else int(steps)
+    if steps < 1:
+        raise PlotError(f"steps must be a positive integer, got {steps}")
+    env = _rollout_env(scenario, episodes, seed, steps, getattr(actor, "obs_kind", "tokens"))
+    positions = torch.empty(steps + 1, episodes, scenario.num_robots, 2)
+    contacts = torch.empty(steps, episodes, scenario.num_robots, 3, dtype=torch.bool)
+    with torch.inference_mode():
+        obs, mask = env.reset()
+        positions[0] = env.pos
+        for t in range(steps):
+            result = env.step(actor(obs, mask))
+            obs, mask = result.obs, result.mask
+            positions[t + 1], contacts[t] = env.pos, env.prev_contact
+        out = episode_outcome(env.pos, env.targets, contacts.flatten(2).any(-1).any(0),
+                              scenario.target_tolerance)
+    return Trajectories(positions.transpose(0, 1).double().numpy(), contacts.transpose(0, 1).numpy(),
+                        out.success.numpy(), out.final_distance.double().numpy(), out.assignment.numpy(), seed)
+
+
+def robot_colours(n: int) -> list:
+    """N distinct colours: the paper's red, blue, yellow, green, purple first."""
+    base = ["#d62728", "#1f77b4", "#e6b800", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b",
+            "#e377c2", "#7f7f7f"]
+    if n <= len(base):
+        return base[:n]
+    return [_colormap("turbo")(k / max(1, n - 1)) for k in range(n)]
+
+
+def _draw_scene(ax, scenario) -> None:
+    from matplotlib.patches import Circle, Polygon, Rectangle
+
+    w, h = scenario.arena
+    ax.add_patch(Rectangle((0, 0), w, h, fill=False, lw=2, color="black"))
+    ax.add_patch(Polygon(scenario.polygon, closed=True, facecolor="0.8", edgecolor="0.3", hatch="//", lw=1.2))
+    ax.text(*scenario.object_center, "object", ha="center", va="center", fontsize=8, color="0.2",
+            bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.7, "pad": 1})
+    j = scenario.start_jitter
+    for x, y in scenario.starts:
+        ax.add_patch(Rectangle((x - j, y - j), 2 * j, 2 * j, fill=False, ls=":", lw=0.8, color="0.4", zorder=1))
+        ax.plot(x, y, "+", color="0.45", ms=4, mew=0.7, zorder=1)
+    side = 0.05 / math.sqrt(2)   # the paper's target points: 0.05 across
+    for x, y in scenario.targets:
+        ax.add_patch(Circle((x, y), scenario.target_tolerance, fill=False, ls="--", lw=0.9, color="0.2"))
+        ax.add_patch(Rectangle((x - side / 2, y - side / 2), side, side, facecolor="0.15", edgecolor="none"))
+    ax.set_xlim(-0.02, w + 0.02)
+    ax.set_ylim(-0.02, h + 0.02)
+    ax.set_aspect("equal")
+
+
+def plot_trajectories(traj: Trajectories, scenario, out_png: str | Path, *, title: str | None = None,
+                      max_cols: int = 4) -> Path:
+    """A grid of the recorded episodes, one panel each, written to ``out_png``.
+
+    Each panel: the arena (W x H m), the object (hatched), start slots (+, dotted jitter box),
+    target slots (black squares, dashed circle = target tolerance), robot paths (one colour per
+    robot), robot discs (diameter 2 r) numbered at the start (faint) and solid at the end, and
+    collision onsets (X robot-robot, diamond robot-object, square wall).
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle, Patch
+
+    pos = np.asarray(traj.positions)
+    if pos.ndim != 4 or pos.shape[-1] != 2 or pos.shape[2] != scenario.num_robots:
+        raise PlotError(f"positions must have shape (episodes, steps+1, {scenario.num_robots}, 2), "
+                        f"got {pos.shape}")
+    k, _, n, _ = pos.shape
+    cols = min(k, max_cols)
+    rows = math.ceil(k / cols)
+    fig = _figure(figsize=(4.3 * cols + 2.5 * (cols == 1), 4.5 * rows + 0.9))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    colours = robot_colours(n)
+    r = scenario.robot_radius
+    contacts = np.asarray(traj.contacts, dtype=bool)
+    onset = contacts & ~np.concatenate((np.zeros_like(contacts[:, :1]), contacts[:, :-1]), 1)   # (K,S,N,3)
+    for e, ax in enumerate(axes.flat):
+        if e >= k:
+            ax.axis("off")
+            continue
+        _draw_scene(ax, scenario)
+        for i in range(n):
+            path = pos[e, :, i]
+            ax.plot(path[:, 0], path[:, 1], color=colours[i], lw=1.6, alpha=0.9)
+            ax.add_patch(Circle(path[0], r, facecolor=colours[i], alpha=0.3, edgecolor=colours[i], zorder=2))
+            ax.text(*path[0], str(i + 1), ha="center", va="center", fontsize=8, fontweight="bold", zorder=5)
+            ax.add_patch(Circle(path[-1], r, facecolor=colours[i], alpha=0.95, edgecolor="black", lw=0.8,
+                                zorder=4))
+            ax.text(*path[-1], str(i + 1), ha="center", va="center", fontsize=8, color="white",
+                    fontweight="bold", zorder=5)
+            for kind, marker in enumerate(("X", "D", "s")):
+                steps = np.flatnonzero(onset[e, :, i, kind]) + 1
+                if len(steps):
+                    ax.plot(pos[e, steps, i, 0], pos[e, steps, i, 1], marker, ms=8, mfc="none", mec="red", mew=1.6)
+        n_coll = int(onset[e].any(-1).sum())
+        verdict = "success" if bool(traj.success[e]) else "failed"
+        ax.set_title(f"episode {e + 1}: {verdict}\nfinal distance {traj.final_distance[e]:.3f} m, "
+                     f"{n_coll} collision onset{'s' * (n_coll != 1)}", fontsize=10,
+                     color="darkgreen" if bool(traj.success[e]) else "darkred")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    legend = [Line2D([], [], color="0.3", marker="+", ls="none", ms=8, label="start slot (dotted: jitter)"),
+              Line2D([], [], color="0.15", marker="s", ls="none", ms=6, label="target slot"),
+              Line2D([], [], color="0.2", ls="--", label=f"target tolerance {scenario.target_tolerance:g} m"),
+              Patch(facecolor="0.6", alpha=0.4, label=f"robot at start (diameter {2 * r:g} m)"),
+              Patch(facecolor="0.3", edgecolor="black", label="robot at end"),
+              Patch(facecolor="0.8", edgecolor="0.3", hatch="//", label="object"),
+              Line2D([], [], color="red", marker="X", mfc="none", ls="none", ms=8, label="robot-robot contact"),
+              Line2D([], [], color="red", marker="D", mfc="none", ls="none", ms=7, label="robot-object contact"),
+              Line2D([], [], color="red", marker="s", mfc="none", ls="none", ms=7, label="wall contact")]
+    if n <= 6:   # more robots: the numbers on the discs tell them apart
+        legend += [Line2D([], [], color=colours[i], lw=2, label=f"robot {i + 1}") for i in range(n)]
+    if cols > 1:
+        fig.legend(handles=legend, loc="outside lower center", ncol=5, frameon=False, fontsize=8)
+    else:
+        fig.legend(handles=legend, loc="outside right center", frameon=False, fontsize=8)
+    steps = pos.shape[1] - 1
+    dt = scenario.dynamics.dt
+    fig.suptitle(title or f"{scenario.name}: {n} robots, {steps} steps ({steps * dt:g} s), "
+                 f"deterministic policy, starts drawn with seed {traj.seed}", fontsize=12)
+    return _save(fig, out_png)
+
+
+# ------------------------------------------------------------------ attention
+def attention_weights(actor, obs, mask=None) -> np.ndarray:
+    """Attention weights of one observation: ``obs`` (N, T, 4) or (1, N, T, 4) -> (N, H, T') numpy.
+
+    T' = T for the typed actor (tokens self, G_1..G_N, other robots, object) and T + 1 for the
+    slot actor (slots P, V, G_1..G_N, other robots, O). Each row sums to one over valid tokens.
+    """
+    import torch
+
+    if not hasattr(actor, "attention"):
+        raise PlotError(f"{type(actor).__name__} has no attention weights (the MLP baseline has none); "
+                        "use an SDPA actor (variant typed or slot)")
+    obs = torch.as_tensor(obs, dtype=torch.float32)
+    if obs.dim() == 3:
+        obs = obs.unsqueeze(0)
+        mask = None if mask is None else torch.as_tensor(mask).unsqueeze(0)
+    if obs.dim() != 4 or obs.shape[0] != 1:
+        raise PlotError(f"obs must be one observation (N, T, 4) or (1, N, T, 4), got {tuple(obs.shape)}")
+    with torch.inference_mode():
+        return actor.attention(obs, None if mask is None else torch.as_tensor(mask, dtype=torch.bool))[0].double().numpy()
+
+
+def by_entity(weights: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Rearrange (N, H, T') token weights so that column ``R_j`` is robot j for every row.
+
+    A robot's own tokens list the other robots in ascending order skipping itself; here each
+    robot j gets its own column ``R_j`` and the cell (i, R_i) is NaN. Returns (N, H, C) weights
+    and the C column labels: ``self`` (typed) or ``P``, ``V`` (slot), ``G_1..G_N``, ``R_1..R_N``, ``O``.
+    """
+    w = np.asarray(weights, dtype=float)
+    n, _, t = w.shape
+    lead = {2 * n + 1: ["self"], 2 * n + 2: ["P", "V"]}.get(t)
+    if lead is None:
+        raise PlotError(f"weights for {n} robots must have 2N+1 (typed) or 2N+2 (slot) tokens, got {t}")
+    s = len(lead)
+    out = np.full((n, w.shape[1], s + 2 * n + 1), np.nan)
+    out[:, :, :s + n] = w[:, :, :s + n]
+    for i in range(n):
+        for slot, j in enumerate(j for j in range(n) if j != i):   # others ascending, skipping i
+            out[i, :, s + n + j] = w[i, :, s + n + slot]
+    out[:, :, -1] = w[:, :, -1]
+    labels = lead + [f"G{k + 1}" for k in range(n)] + [f"R{k + 1}" for k in range(n)] + ["O"]
+    return out, labels
+
+
+def attention_snapshot(actor, scenario, *, seed: int = 0, step: int = 0) -> tuple[np.ndarray, list[str]]:
+    """Roll the actor's mean action ``step`` steps from a start drawn with ``seed``; return the
+    attention of that observation rearranged by :func:`by_entity`: (N, H, C) weights, C labels."""
+    import torch
+
+    if step < 0:
+        raise PlotError(f"step must be >= 0, got {step}")
+    env = _rollout_env(scenario, 1, seed, max(step, 1), "tokens")
+    with torch.inference_mode():
+        obs, mask = env.reset()
+        for _ in range(step):
+            result = env.step(actor(obs, mask))
+            obs, mask = result.obs, result.mask
+    return by_entity(attention_weights(actor, obs, mask))
+
+
+def plot_attention(weights: np.ndarray, token_labels: Sequence[str], out_png: str | Path, *,
+                   title: str | None = None, row_labels: Sequence[str] | None = None) -> Path:
+    """Heatmap of attention weights, robots (rows) x tokens (columns), written to ``out_png``.
+
+    ``weights`` is (N, T) or (N, H, T) with H heads: a large panel of the mean over heads and a
+    small panel per head when H > 1. NaN cells (a robot's own column ``R_i``) are grey; values
+    are printed in the cells of small maps.
+    """
+    w = np.asarray(weights, dtype=float)
+    if w.ndim == 2:
+        w = w[:, None]
+    if w.ndim != 3 or w.shape[2] != len(token_labels):
+        raise PlotError(f"weights must be (N, T) or (N, H, T) with T = {len(token_labels)} token labels, "
+                        f"got shape {w.shape}")
+    n, h, t = w.shape
+    cell_w, cell_h = (0.36, 0.32) if t <= 16 else (0.22, 0.2)
+    unit_w, unit_h = cell_w * t + 0.8, cell_h * n + 1.2
+    heads = [f"h{k}" for k in range(h)] if h > 1 else []
+    if t <= 16:   # the mean on the left (two units wide), the heads in a grid of two rows on the right
+        grid_rows = 1 if h <= 2 else 2
+        grid_cols = math.ceil(len(heads) / grid_rows)
+        mosaic = [["mean"] + [heads[r * grid_cols + c] if r * grid_cols + c < len(heads) else "."
+                              for c in range(grid_cols)] for r in range(grid_rows)]
+        ratios = {"width_ratios": [2 if heads else 1] + [1] * grid_cols}
+        figsize = (unit_w * (2 + grid_cols if heads else 1) + 1.0, unit_h * max(grid_rows, 1.6) + 0.6)
+    else:         # many tokens: the mean on top, the heads two per row below it
+        pairs = [heads[k:k + 2] + ["."] * (2 - len(heads[k:k + 2])) for k in range(0, len(heads), 2)]
+        mosaic = [["mean", "mean"]] + pairs
+        ratios = {"height_ratios": [2] + [1] * len(pairs)}
+        figsize = (unit_w + 1.0, unit_h * (1 + len(pairs) / 2) + 0.6)
+    fig = _figure(figsize=figsize)
+    axes = fig.subplot_mosaic(mosaic, **ratios)
+    rows = list(row_labels) if row_labels is not None else [f"robot {i + 1}" for i in range(n)]
+    finite = w[np.isfinite(w)]
+    vmax = float(finite.max()) if finite.size else 1.0
+    cmap = _colormap("viridis").with_extremes(bad="0.85")
+    panels = [("mean", "mean over heads" if h > 1 else "attention", np.mean(w, axis=1), 8)]
+    panels += [(key, f"head {k + 1}", w[:, k], 6) for k, key in enumerate(heads)]
+    image = None
+    for key, name, m, size in panels:
+        size = size if t <= 16 else 5
+        ax = axes[key]
+        image = ax.imshow(np.ma.masked_invalid(m), cmap=cmap, vmin=0.0, vmax=vmax, aspect="auto")
+        ax.set_xticks(range(t), token_labels, fontsize=size + 1, rotation=90 if t > 16 else 0)
+        ax.set_yticks(range(n), rows, fontsize=size + 1 if n <= 8 else size)
+        ax.set_title(name, fontsize=11 if key == "mean" else 9)
+        if key == "mean":
+            ax.set_xlabel("token")
+            ax.set_ylabel("robot (query)")
+        if n * t <= 300:
+            for i in range(n):
+                for j in range(t):
+                    text = "-" if not np.isfinite(m[i, j]) else f"{m[i, j]:.2f}"
+                    light = np.isfinite(m[i, j]) and m[i, j] < 0.6 * vmax
+                    ax.text(j, i, text, ha="center", va="center", fontsize=size,
+                            color="white" if light else "black")
+        for boundary in _groups(token_labels):
+            ax.axvline(boundary - 0.5, color="white", lw=2)
+    fig.colorbar(image, ax=list(axes.values()), label="attention weight (each row sums to 1)", shrink=0.9)
+    fig.suptitle(title or "Attention weights of each robot over its tokens", fontsize=12)
+    fig.supxlabel("tokens: G_k target k, R_j robot j (grey: the robot itself), O object, "
+                  "self / P, V the robot's own state", fontsize=8, color="0.3")
+    return _save(fig, out_png)
+
+
+def _groups(labels: Sequence[str]) -> list[int]:
+    """Column indices where the token group (own state, G, R, O) changes."""
+    group = [label[0] if label[0] in "GRO" and label[1:].isdigit() or label == "O" else "S" for label in labels]
+    return [j for j in range(1, len(group)) if group[j] != group[j - 1]]
