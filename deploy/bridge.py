@@ -16,6 +16,12 @@ One tick (:meth:`Bridge.step`):
        with ``ttl_ms`` and the answered ``state_seq``. A controller error, a wrong shape or a
        non-finite value sends BRAKE to every present robot instead (counted); a robot
        reporting FAULT (its watchdog latch) gets a STOP command, which re-arms it.
+
+Episodes (``BridgeConfig.episode_ticks`` = T): a fleet that resets its world every T ticks
+without closing its links (:mod:`deploy.fleet_sim` with ``episodes``) publishes state ``seq``
+t + 1 at its tick t, so the burst answered belongs to episode ``(max seq - 1) // T``. When that
+index changes, ``on_episode(k)`` runs before the controller (e.g. to reset its estimators);
+the count is in-band, so it stays right when a burst goes unanswered.
 """
 
 from __future__ import annotations
@@ -42,14 +48,21 @@ ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because the states ar
 @dataclass(frozen=True)
 class BridgeConfig:
     """ttl_ms: command validity; stale_after_s / estop_after_s: state ages [s];
-    gather_s: how long a tick waits for the rest of a burst of states [s]."""
+    gather_s: how long a tick waits for the rest of a burst of states [s];
+    episode_ticks: ticks per fleet episode (see the module docstring), or None."""
 
     ttl_ms: int = 150
     stale_after_s: float = 0.3
     estop_after_s: float = 1.0
     gather_s: float = 0.01
+    episode_ticks: int | None = None
 
     def __post_init__(self) -> None:
+        if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
+                self.episode_ticks, int) or self.episode_ticks < 1):
+            raise ValueError(f"episode_ticks must be a positive integer or None, got {self.episode_ticks!r}")
+        if not self.gather_s >= 0:
+            raise ValueError(f"gather_s must be >= 0 seconds, got {self.gather_s!r}")
         if not 1 <= self.ttl_ms <= 65535:
             raise ValueError(f"ttl_ms must be in 1..65535, got {self.ttl_ms!r}")
         if not 0 < self.stale_after_s <= self.estop_after_s:
@@ -78,12 +91,13 @@ class BridgeStats:
 
 class Bridge:
     """Controller side of a fleet. ``targets`` maps each robot to its target slot (2,) [m];
-    ``object_pose`` is (3,) [m, m, rad]."""
+    ``object_pose`` is (3,) [m, m, rad]; ``on_episode(k)`` see the module docstring."""
 
     def __init__(self, fleet: str, registry: RobotRegistry,
                  transport: TransportConfig, controller: Controller, *,
                  targets: Mapping[str, np.ndarray], object_pose: np.ndarray,
-                 config: BridgeConfig = BridgeConfig()):
+                 config: BridgeConfig = BridgeConfig(),
+                 on_episode: Callable[[int], Any] | None = None):
         missing = [r for r in registry.names if r not in targets]
         if missing:
             raise ValueError(f"targets are missing for robots {missing}; give one (x, y) per robot")
@@ -97,6 +111,8 @@ class Bridge:
         self._answered: dict[str, int] = {}  # robot -> state seq last answered
         self._stop = threading.Event()
         self._start = time.monotonic()
+        self.on_episode = on_episode
+        self.episode: int | None = None  # fleet episode of the last burst answered
 
     # ------------------------------------------------------------------ helpers
     def _fresh(self, states: Mapping[str, ReceivedState], robot: str) -> bool:
@@ -140,6 +156,12 @@ class Bridge:
         controller_s = 0.0
         if present:
             rows = [states[r].msg for r in present]
+            if self.config.episode_ticks is not None:
+                episode = (max(m.seq for m in rows) - 1) // self.config.episode_ticks
+                if episode != self.episode:
+                    self.episode = episode
+                    if self.on_episode is not None:
+                        self.on_episode(episode)
             fleet_state = FleetState(
                 time=time.monotonic() - self._start, step=self.stats.ticks,
                 positions=np.array([m.position for m in rows]),

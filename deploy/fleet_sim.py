@@ -11,6 +11,15 @@ Pacing:
       holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
       then advance. Deterministic when the controller is.
 
+Episodes (``episodes=K``): the world is reset with seed ``seed + k`` at the start of episode
+k and runs the scenario's ``episode_steps`` ticks T; the run ends after K episodes. Global
+tick t belongs to episode ``t // T``; every robot link stays open, so robot state ``seq``
+(1, 2, ... per link) is ``t + 1`` while no robot leaves, and a controller can tell episode
+boundaries from it (``(seq - 1) // T``, see :class:`deploy.bridge.BridgeConfig`). Each finished
+episode is judged on the true state (success, final distance, assignment, collision onsets)
+and keeps its true positions (T+1, N, 2) [m], contacts (T, N, 3) (robot, object, wall) and,
+in lock-step, the round trip of each tick [ms]: first state published -> every command in.
+
 Watchdog (per robot; ages in ticks of this process, converted with the tick period:
 ``1 / rate_hz`` in real time, ``dt`` = sim time in lock-step)::
 
@@ -40,6 +49,7 @@ import json
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -89,8 +99,12 @@ class FleetSimConfig:
     drop_commands: float = 0.0
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     events: tuple[tuple[int, str, str], ...] = ()
+    episodes: int | None = None
 
     def __post_init__(self) -> None:
+        if self.episodes is not None and (isinstance(self.episodes, bool)
+                                          or not isinstance(self.episodes, int) or self.episodes < 1):
+            raise ValueError(f"episodes must be a positive integer (or None), got {self.episodes!r}")
         if self.rate_hz is not None and not self.rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
         if not 0.0 <= self.drop_commands < 1.0:
@@ -118,9 +132,14 @@ class _Robot:
 
 
 class FleetSim:
-    """Run with :meth:`run`; stop from another thread (or a signal handler) with :meth:`stop`."""
+    """Run with :meth:`run`; stop from another thread (or a signal handler) with :meth:`stop`.
 
-    def __init__(self, config: FleetSimConfig):
+    ``on_episode(record)``, if given, is called with each finished episode's record (episodes
+    mode), e.g. to report progress.
+    """
+
+    def __init__(self, config: FleetSimConfig,
+                 on_episode: Callable[[dict[str, Any]], Any] | None = None):
         self.config = config
         sc = config.scenario
         self.world = PymunkWorld(sc, config.model_error, seed=config.seed)
@@ -135,6 +154,11 @@ class FleetSim:
         self.ignored_while_latched = 0
         self.lockstep_timeouts = 0
         self.trace: list[dict[str, Any]] = []
+        self.on_episode = on_episode
+        self.episode_ticks = sc.dynamics.episode_steps
+        self.episodes: list[dict[str, Any]] = []
+        self._episode: dict[str, list] | None = None
+        self._timeouts_before = 0
         self.closed_link_rejects: dict[str, int] = {}
         self.session: zenoh.Session | None = None
 
@@ -218,6 +242,44 @@ class FleetSim:
         robot.mode = "run"
         return robot.accel, StateStatus(0)
 
+    # ------------------------------------------------------------------ episodes
+    def _start_episode(self):
+        """Reset the world for episode ``len(self.episodes)``; return its measured state."""
+        state = self.world.reset(seed=self.config.seed + len(self.episodes))
+        self._episode = {"positions": [self.world.true_state().positions.round(6).tolist()],
+                         "contacts": [], "round_trip_ms": [], "timeout_ticks": []}
+        return state
+
+    def _record_tick(self, round_trip_ms: float | None) -> None:
+        ep = self._episode
+        c = self.world.contacts
+        ep["positions"].append(self.world.true_state().positions.round(6).tolist())
+        ep["contacts"].append(np.stack((c.robot, c.object, c.wall), -1).astype(int).tolist())
+        if round_trip_ms is not None:
+            ep["round_trip_ms"].append(round(round_trip_ms, 4))
+        elif self.config.rate_hz is None:
+            ep["timeout_ticks"].append(len(ep["contacts"]) - 1)
+
+    def _finish_episode(self) -> None:
+        outcome = self.world.outcome()
+        counts = self.world.collision_counts
+        ep, self._episode = self._episode, None
+        rtt = np.asarray(ep["round_trip_ms"]) if ep["round_trip_ms"] else None
+        record = {"episode": len(self.episodes), "seed": self.config.seed + len(self.episodes),
+                  "ticks": len(ep["contacts"]), "success": bool(outcome.success.item()),
+                  "final_distance": float(outcome.final_distance.item()),
+                  "assignment": outcome.assignment[0].tolist(),
+                  "collisions": {"robot": counts.robot, "object": counts.object, "wall": counts.wall},
+                  "lockstep_timeouts": self.lockstep_timeouts - self._timeouts_before,
+                  "timeout_ticks": ep["timeout_ticks"],
+                  "round_trip_ms": None if rtt is None else {
+                      "p50": float(np.percentile(rtt, 50)), "p99": float(np.percentile(rtt, 99)),
+                      "max": float(rtt.max())},
+                  "positions": ep["positions"], "contacts": ep["contacts"]}
+        self.episodes.append(record)
+        if self.on_episode is not None:
+            self.on_episode(record)
+
     # ------------------------------------------------------------------ loop
     def _apply_events(self) -> None:
         for tick, name, kind in self.config.events:
@@ -228,7 +290,8 @@ class FleetSim:
                 elif robot.link is None:
                     self._open_link(robot)
 
-    def _wait_lockstep(self, answered: dict[str, int]) -> None:
+    def _wait_lockstep(self, answered: dict[str, int]) -> bool:
+        """Wait for every answer (see the module docstring); False on a timeout."""
         deadline = time.monotonic() + self.config.lockstep_timeout_s
         for robot in self.robots:
             link, seq = robot.link, answered.get(robot.name)
@@ -239,7 +302,8 @@ class FleetSim:
                                max(0.0, deadline - time.monotonic()))
             if not ok:
                 self.lockstep_timeouts += 1
-                return
+                return False
+        return True
 
     def run(self) -> dict[str, Any]:
         """Run until :meth:`stop` or ``max_ticks``; return :meth:`summary`."""
@@ -259,8 +323,14 @@ class FleetSim:
             state = self.world.read_state()
             next_time = time.monotonic()
             while not self._stop.is_set() and (cfg.max_ticks is None or self.tick < cfg.max_ticks):
+                if cfg.episodes is not None and self._episode is None:
+                    if len(self.episodes) >= cfg.episodes:
+                        break
+                    state = self._start_episode()
+                    self._timeouts_before = self.lockstep_timeouts
                 self._apply_events()
                 now_ns = time.monotonic_ns()
+                published_ns = None
                 accels = np.zeros((len(self.robots), 2))
                 answered: dict[str, int] = {}
                 modes = []
@@ -269,13 +339,16 @@ class FleetSim:
                     accels[i], status = self._choose(robot, state.velocities[i], now_ns)
                     modes.append(robot.mode if robot.link is not None else "offline")
                     if robot.link is not None:
+                        published_ns = published_ns or time.perf_counter_ns()
                         msg = robot.link.publish_state(state.positions[i], state.velocities[i], status)
                         answered[robot.name] = msg.seq
                 true = self.world.true_state()
                 self.trace.append({"tick": self.tick, "t": round(true.time, 6), "modes": modes,
                                    "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist()})
+                round_trip_ms = None
                 if cfg.rate_hz is None:
-                    self._wait_lockstep(answered)
+                    if self._wait_lockstep(answered) and published_ns is not None:
+                        round_trip_ms = (time.perf_counter_ns() - published_ns) / 1e6
                     for i, robot in enumerate(self.robots):  # take the answers of this tick
                         self._take_command(robot)
                         accels[i], _ = self._choose(robot, state.velocities[i], now_ns)
@@ -288,6 +361,10 @@ class FleetSim:
                 self.world.send_accelerations(accels)
                 state = self.world.step()
                 self.tick += 1
+                if self._episode is not None:
+                    self._record_tick(round_trip_ms)
+                    if len(self._episode["contacts"]) >= self.episode_ticks:
+                        self._finish_episode()
         finally:
             for robot in self.robots:
                 self._close_link(robot)
@@ -305,7 +382,7 @@ class FleetSim:
                 "speeds": np.linalg.norm(true.velocities, axis=1).tolist(),
                 "dropped_commands": self.dropped, "ignored_while_latched": self.ignored_while_latched,
                 "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),
-                "trace": self.trace}
+                "episodes": self.episodes, "trace": self.trace}
 
 
 def write_json(path: str | Path, document: dict[str, Any]) -> None:

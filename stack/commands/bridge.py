@@ -6,6 +6,10 @@
 The controller is a ControlStack (policy -> safety filter -> MEC); ``--policy scripted`` uses
 the scripted reference controller as the policy. Robots are ``r0..r{N-1}`` of the scenario;
 any subset may be present, and the count changes as robots join or leave.
+
+With --episode-ticks T (a fleet that resets every T ticks, e.g. `fleet-sim --episodes`), the
+stack is reset at each fleet episode and the --report gains "episodes": per episode the ticks
+answered, safety events, the MEC tracking error and the stack's tick time (EpisodeRecorder).
 SIGINT/SIGTERM stop the loop and close the Zenoh session.
 """
 
@@ -66,19 +70,91 @@ def register(sub) -> None:
     p.add_argument("--stale-after", type=float, default=0.3, help="state age to leave a robot out [s]")
     p.add_argument("--estop-after", type=float, default=1.0, help="state age to e-stop the fleet [s]")
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
+    p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
+                   help="the fleet resets every T ticks: reset the stack, report per episode")
+    p.add_argument("--gather", type=float, default=0.01,
+                   help="seconds a tick waits for the rest of a burst of states")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.add_argument("--trace", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...]}')
     p.set_defaults(func=run)
 
 
-def build_controller(scenario: Scenario, policy: str, safety: bool, mec: bool):
-    """ControlStack(policy -> safety -> MEC) as a callable FleetState -> (N, 2)."""
+def build_stack(scenario: Scenario, policy: str, safety: bool, mec: bool):
+    """ControlStack(policy -> safety -> MEC); ``policy`` a file or 'scripted'."""
     from stack.pipeline import ControlStack, StackConfig
 
     source = ScriptedFleetController(scenario) if policy == "scripted" else policy
-    stack = ControlStack(scenario, source, StackConfig(safety=safety, mec=mec))
+    return ControlStack(scenario, source, StackConfig(safety=safety, mec=mec))
+
+
+def build_controller(scenario: Scenario, policy: str, safety: bool, mec: bool):
+    """ControlStack(policy -> safety -> MEC) as a callable FleetState -> (N, 2)."""
+    stack = build_stack(scenario, policy, safety, mec)
     return lambda state: stack.tick(state).a_cmd
+
+
+class EpisodeRecorder:
+    """A ControlStack as the bridge's controller, with counters per fleet episode.
+
+    ``start_episode(k)`` (the bridge's ``on_episode``) closes the running episode and resets the
+    stack. Per tick it counts the safety events of :class:`stack.pipeline.TickResult`, keeps the
+    stack's tick time and the one-tick tracking error ``mean_i |p_i(k+1) - p^_i(k+1)|`` [m],
+    where ``p^(k+1)`` is :func:`stack.pipeline.nominal_step` from the measured state of tick k
+    driven by ``a_safe`` (what the MEC makes the robots follow); it is measured only between two
+    ticks of the same episode with the same robots.
+    """
+
+    COUNTERS = ("interventions", "infeasible", "fallbacks", "braking")
+
+    def __init__(self, stack):
+        self.stack = stack
+        self.episodes: list[dict] = []
+        self._current: dict | None = None
+        self._predicted: tuple[tuple[str, ...], np.ndarray] | None = None
+
+    def start_episode(self, k: int) -> None:
+        self._close()
+        self.stack.reset()
+        self._predicted = None
+        self._current = {"episode": int(k), "ticks": 0, **dict.fromkeys(self.COUNTERS, 0),
+                         "tracking": [], "tick_ns": []}
+
+    def __call__(self, state: FleetState) -> np.ndarray:
+        from stack.pipeline import nominal_step
+
+        if self._current is None:
+            self.start_episode(0)
+        ep = self._current
+        if self._predicted is not None and self._predicted[0] == state.robot_ids:
+            err = np.linalg.norm(state.positions - self._predicted[1], axis=1).mean()
+            ep["tracking"].append(float(err))
+        tick = self.stack.tick(state)
+        predicted, _ = nominal_step(state.positions, state.velocities, tick.a_safe,
+                                    self.stack.dynamics)
+        self._predicted = (state.robot_ids, predicted)
+        ep["ticks"] += 1
+        for key, event in zip(self.COUNTERS, ("intervened", "infeasible", "fallback", "braking"),
+                              strict=True):
+            ep[key] += bool(getattr(tick, event))
+        ep["tick_ns"].append(tick.timings_ns["total"])
+        return tick.a_cmd
+
+    def _close(self) -> None:
+        ep, self._current = self._current, None
+        if ep is None:
+            return
+        ms = np.asarray(ep.pop("tick_ns"), dtype=np.float64) / 1e6
+        tracking = ep.pop("tracking")
+        ep["tracking_error"] = float(np.mean(tracking)) if tracking else None
+        ep["tick_ms"] = ({"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)),
+                          "max": float(ms.max())} if len(ms) else None)
+        self.episodes.append(ep)
+
+    def summary(self) -> list[dict]:
+        """Every episode's record (the running one closed first)."""
+        self._close()
+        return self.episodes
 
 
 def _print_tick(record) -> None:
@@ -89,15 +165,19 @@ def run(args) -> int:
     torch.set_num_threads(1)
     try:
         scenario = make_scenario(args.scenario)
-        controller = build_controller(scenario, args.policy, not args.no_safety, not args.no_mec)
+        stack = build_stack(scenario, args.policy, not args.no_safety, not args.no_mec)
+        recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
+        controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)
         transport = TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect))
         config = BridgeConfig(ttl_ms=args.ttl_ms, stale_after_s=args.stale_after,
-                              estop_after_s=args.estop_after)
+                              estop_after_s=args.estop_after, gather_s=args.gather,
+                              episode_ticks=args.episode_ticks)
         c = scenario.object_center
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),
-                        object_pose=np.array([c[0], c[1], 0.0]), config=config)
+                        object_pose=np.array([c[0], c[1], 0.0]), config=config,
+                        on_episode=recorder.start_episode if recorder else None)
     except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -107,6 +187,8 @@ def run(args) -> int:
     with bridge:
         bridge.run(max_ticks=args.ticks, on_tick=_print_tick if args.trace else None)
         summary = bridge.summary()
+    if recorder is not None:
+        summary["episodes"] = recorder.summary()
     if args.report:
         write_json(args.report, summary)
     print(json.dumps(summary), flush=True)

@@ -1,63 +1,189 @@
-"""`formation demo`: the main job, end to end, on embedded defaults.
+"""`formation demo`: the main job, end to end, in resumable stages.
 
-Until the learned pipeline is wired in (training to convergence, transfer, export, fleet over
-Zenoh), this runs the best end-to-end path that exists and says so: the scripted controller
-through the full ControlStack (barrier-QP safety filter + Kalman MEC) on the paper's 3, 4 and
-5 robot presets in the pymunk world with model error (actuator gain 0.7-0.9, 50 ms lag, floor
-friction, measurement noise), judged by the shared metrics.
+    1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged (budget --budget-3)
+    2 train-5   zero-shot success of that policy on 5 robots, then transfer training on
+                paper-5 from the 3-robot checkpoint until converged (budget --budget-5)
+    3 export    the 5-robot policy as TorchScript (policy.pt), verified against the eager actor
+    4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy -> safety filter ->
+                MEC) as separate processes on loopback Zenoh for --episodes episodes
+    5 report    report.md, report.html (figures embedded), metrics.json
+
+Convergence: evaluations of 100 deterministic episodes at least every 50 training episodes; the
+first with success >= 0.9 whose next one is also >= 0.9. Everything goes into --out (default
+runs/demo-<timestamp>); stages.json marks finished stages. Ctrl-C stops every process and keeps
+finished stages (exit code 130); `--resume` continues (an interrupted training continues from its
+checkpoint). --quick is the reduced run for CI (tiny budgets, 2 fleet episodes).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import os
+import argparse
+import sys
 import time
 from pathlib import Path
 
-import numpy as np
-from tqdm import tqdm
+from stack.demo.state import (
+    FULL,
+    QUICK,
+    STAGES,
+    Children,
+    DemoError,
+    DemoSettings,
+    StageBook,
+    interrupt_guard,
+)
 
-from controllers.scripted import ScriptedController
-from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import make_scenario
-from stack.pipeline import ControlStack, StackConfig, run_episode
-
-MODEL_ERROR = ModelError(gain=0.8, gain_spread=0.1, lag_tau=0.05, floor_friction=0.05,
-                         position_noise_std=0.001, velocity_noise_std=0.005)
+OPTION_FIELDS = {"seed": "seed", "budget_3": "budget_3", "budget_5": "budget_5",
+                 "episodes": "fleet_episodes"}
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="run the main job end to end and write a report",
-                       description=__doc__)
+    p = sub.add_parser("demo", help="train, transfer, export and run a fleet over Zenoh; write a report",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/demo-<timestamp>)")
-    p.add_argument("--episodes", type=int, default=10, help="episodes per preset (default 10)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out, skipping finished stages")
+    p.add_argument("--quick", action="store_true", help="reduced run for CI (tiny budgets, 2 fleet episodes)")
+    p.add_argument("--budget-3", type=int, default=None, metavar="EPISODES",
+                   help=f"episode cap of paper-3 training (default {FULL.budget_3}; quick {QUICK.budget_3})")
+    p.add_argument("--budget-5", type=int, default=None, metavar="EPISODES",
+                   help=f"episode cap of the 5-robot transfer (default {FULL.budget_5}; quick {QUICK.budget_5})")
+    p.add_argument("--episodes", type=int, default=None,
+                   help=f"fleet episodes over Zenoh (default {FULL.fleet_episodes}; quick {QUICK.fleet_episodes})")
+    p.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
-    out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+def resolve_settings(args, out: Path) -> StageBook:
+    """A new stage book for a fresh run, or the saved one with --resume (its settings win;
+    an option given now that differs from them is an error)."""
+    given = {field: getattr(args, opt) for opt, field in OPTION_FIELDS.items()
+             if getattr(args, opt) is not None}
+    if args.resume:
+        book = StageBook.load(out)
+        saved = book.settings.to_dict()
+        option = {field: opt for opt, field in OPTION_FIELDS.items()}
+        differ = [f"--{option[k].replace('_', '-')}" for k, v in given.items() if saved[k] != v]
+        if args.quick and not book.settings.quick:
+            differ.append("--quick")
+        if differ:
+            raise DemoError(f"{out} was started with other settings ({', '.join(differ)} differ); "
+                            "--resume keeps the settings saved in its stages.json: drop those options")
+        return book
+    if out.exists() and any(out.iterdir()):
+        raise DemoError(f"{out} is not empty: continue the run in it with --resume, or give an "
+                        "empty or new --out")
+    base = QUICK if args.quick else FULL
+    settings = DemoSettings(**{**base.to_dict(), **given})
     out.mkdir(parents=True, exist_ok=True)
-    print("formation demo: the learned pipeline is not wired in yet; running the scripted "
-          "controller through the safety filter and the MEC in the pymunk world with model error.")
-    results = {}
-    for name in ("paper-3", "paper-4", "paper-5"):
-        sc = make_scenario(name)
-        fleet = PymunkWorld(sc, MODEL_ERROR)
-        stack = ControlStack(sc, ScriptedController(sc), StackConfig(safety=True, mec=True))
-        runs = [run_episode(fleet, stack, seed=ep)
-                for ep in tqdm(range(args.episodes), desc=name, unit="ep")]
-        results[name] = {"episodes": args.episodes,
-                         "success_rate": float(np.mean([r.success for r in runs])),
-                         "final_distance": float(np.mean([r.final_distance for r in runs])),
-                         "collision_episodes": int(sum(r.collided for r in runs)),
-                         "safety_interventions": int(sum(r.interventions for r in runs))}
-    print(f"{'preset':<8} {'success':>8} {'final dist [m]':>15} {'collisions':>10} {'interventions':>13}")
-    for name, r in results.items():
-        print(f"{name:<8} {r['success_rate']:>8.2f} {r['final_distance']:>15.4f} "
-              f"{r['collision_episodes']:>10d} {r['safety_interventions']:>13d}")
-    tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps({"controller": "scripted", "world": "pymunk", "model_error": dataclasses.asdict(MODEL_ERROR), "results": results}, indent=2))
-    os.replace(tmp, out / "metrics.json")
-    print(f"wrote {out / 'metrics.json'}")
+    book = StageBook(out, settings)
+    book.save()
+    return book
+
+
+def run_stage(name: str, book: StageBook, children: Children) -> dict:
+    from stack.demo import fleet, report, stages
+
+    settings, out = book.settings, book.out
+    if name == "train-3":
+        return stages.train_stage(settings, "3", out)
+    if name == "train-5":
+        return stages.transfer_stage(settings, out)
+    if name == "export":
+        return stages.export_stage(settings, out)
+    if name == "fleet":
+        return fleet.fleet_stage(settings, out, children)
+    if name == "report":
+        return report.report_stage(book)
+    raise ValueError(name)
+
+
+def run(args) -> int:
+    import torch
+
+    from stack.demo.report import save_metrics
+
+    torch.set_num_threads(1)
+    out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+    if args.resume and args.out is None:
+        print("error: --resume needs --out, the folder of the demo to continue", file=sys.stderr)
+        return 2
+    try:
+        book = resolve_settings(args, out)
+    except DemoError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    s = book.settings
+    print(f"formation demo -> {out}{' (quick)' if s.quick else ''}: budgets {s.budget_3} / {s.budget_5} "
+          f"episodes, {s.fleet_episodes} fleet episodes, seed {s.seed}", flush=True)
+    children = Children()
+    current = None
+    with interrupt_guard(children):
+        try:
+            for k, name in enumerate(STAGES, 1):
+                if book.done(name):
+                    print(f"[{k}/{len(STAGES)}] {name}: done earlier, skipped", flush=True)
+                    continue
+                current = name
+                print(f"[{k}/{len(STAGES)}] {name}", flush=True)
+                start = time.perf_counter()
+                result = run_stage(name, book, children)
+                book.finish(name, result, time.perf_counter() - start)
+                save_metrics(book, complete=all(book.done(n) for n in STAGES))
+                current = None
+        except KeyboardInterrupt:
+            children.terminate_all()
+            print(f"\ninterrupted during stage {current}: every child process stopped; finished "
+                  f"stages are kept in {out / 'stages.json'}. Continue with:\n"
+                  f"  formation demo --out {out} --resume", file=sys.stderr, flush=True)
+            return 130
+        except DemoError as exc:
+            children.terminate_all()
+            print(f"error in stage {current}: {exc}", file=sys.stderr)
+            return 1
+        finally:
+            children.terminate_all()
+    print_summary(book)
     return 0
+
+
+def print_summary(book: StageBook) -> None:
+    """The table of the run and where its files are."""
+    from stack.demo.report import build_metrics, convergence_sentences
+
+    m = build_metrics(book, complete=True)
+    t3, t5, ex, fl = m["train"]["3"], m["train"]["5"], m["export"], m["fleet"]
+
+    def conv(t):
+        return str(t["converged_episode"]) if t["converged"] else f"not converged ({t['budget']} cap)"
+
+    def ms(d):
+        return "-" if not d or d.get("p50") is None else f"{d['p50']:.2f} / {d['p99']:.2f}"
+
+    def mm(x):
+        return "-" if x is None else f"{1000 * x:.2f}"
+
+    rows = [("paper-3 converged episode", conv(t3), "1200"),
+            ("paper-3 eval success", f"{t3['success']:.2f}", "all reach their targets"),
+            ("paper-5 transfer converged episode", conv(t5), "850"),
+            ("paper-5 transfer eval success", f"{t5['success']:.2f}", "all reach their targets"),
+            ("zero-shot 3 -> 5 success", f"{m['zero_shot_3to5']:.2f}", "-"),
+            ("export verified (max abs diff)", f"{ex['verified']} ({ex['max_abs_diff']:.2g})", "-"),
+            ("fleet success rate", f"{fl['success_rate']:.2f} of {fl['episodes']}", "-"),
+            ("fleet final distance [mm]", mm(fl["final_distance"]), "-"),
+            ("fleet collisions", str(fl["collisions"]), "-"),
+            ("fleet safety interventions [ticks]", str(fl["interventions"]), "-"),
+            ("fleet MEC tracking error [mm]", mm(fl["tracking_error_m"]), "-"),
+            ("fleet tick time p50 / p99 [ms]", ms(fl["tick_ms"]), "-"),
+            ("fleet Zenoh round trip p50 / p99 [ms]", ms(fl["round_trip_ms"]), "-")]
+    w = max(len(r[0]) for r in rows)
+    v = max(len(r[1]) for r in rows)
+    print()
+    print(f"{'':<{w}}  {'ours':<{v}}  paper")
+    for name, ours, paper in rows:
+        print(f"{name:<{w}}  {ours:<{v}}  {paper}")
+    print()
+    for sentence in convergence_sentences(m):
+        print(sentence)
+    out = book.out
+    print(f"\nreport:   {out / 'report.md'}\n          {out / 'report.html'}\nmetrics:  {out / 'metrics.json'}\n"
+          f"policy:   {out / ex['policy']}\ncheckpoints: {out / t3['checkpoint']}, {out / t5['checkpoint']}")

@@ -2,6 +2,12 @@
 
     formation fleet-sim --fleet lab --scenario paper-5 --rate-hz 20 --listen tcp/127.0.0.1:7447
     formation fleet-sim --fleet lab --scenario paper-5 --lockstep --connect tcp/127.0.0.1:7447
+    formation fleet-sim --fleet lab --lockstep --episodes 5 --listen tcp/127.0.0.1:7447
+
+With --episodes K the world is reset (seed + k) every episode of the scenario and the process
+ends after K episodes; each finished episode prints one JSON line on stdout
+({"episode": k, "success": ..., "final_distance": ..., "collisions": ...}) and the --report
+holds every episode's record (positions, contacts, round trips).
 
 See deploy/fleet_sim.py for the watchdog (brake, latch, re-arm) and lock-step rules.
 """
@@ -44,7 +50,11 @@ def register(sub) -> None:
                    help='ModelError fields as JSON, e.g. \'{"gain": 0.8, "lag_tau": 0.05}\'')
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="run this many episodes (world reset each), then stop")
     p.add_argument("--lockstep-timeout", type=float, default=0.25, help="seconds per tick")
+    p.add_argument("--start-timeout", type=float, default=30.0,
+                   help="seconds to wait for the controller before the first tick")
     p.add_argument("--brake-after-ticks", type=int, default=2)
     p.add_argument("--stop-after", type=float, default=0.5, help="watchdog latch [s]")
     p.add_argument("--drop-commands", type=float, default=0.0,
@@ -57,6 +67,11 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _print_episode(record: dict) -> None:
+    keys = ("episode", "ticks", "success", "final_distance", "collisions", "lockstep_timeouts")
+    print(json.dumps({k: record[k] for k in keys}), flush=True)
+
+
 def run(args) -> int:
     try:
         model_error = ModelError(**json.loads(args.model_error))
@@ -66,13 +81,14 @@ def run(args) -> int:
             model_error=model_error, seed=args.seed,
             rate_hz=None if args.lockstep else args.rate_hz,
             lockstep_timeout_s=args.lockstep_timeout, max_ticks=args.ticks,
-            drop_commands=args.drop_commands,
+            drop_commands=args.drop_commands, episodes=args.episodes,
+            start_timeout_s=args.start_timeout,
             watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
             events=tuple(args.leave + args.join))
     except (ValueError, TypeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    sim = FleetSim(config)
+    sim = FleetSim(config, on_episode=_print_episode)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sim.stop())
     print(f"fleet-sim {args.fleet}: {config.scenario.name}, "
@@ -80,5 +96,5 @@ def run(args) -> int:
     summary = sim.run()
     if args.report:
         write_json(args.report, summary)
-    print(json.dumps({k: v for k, v in summary.items() if k != "trace"}), flush=True)
+    print(json.dumps({k: v for k, v in summary.items() if k not in ("trace", "episodes")}), flush=True)
     return 0

@@ -1,0 +1,81 @@
+"""Ctrl-C during the fleet stage of `formation demo`: every child process stops cleanly, finished
+stages are kept, and `--resume` finishes the run from there."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from stack.cli import main
+from stack.demo.state import STAGES
+
+ROOT = Path(__file__).resolve().parents[2]
+WAIT_S = 300.0
+
+
+def processes_naming(text: str, exclude: int) -> dict[int, list[str]]:
+    """Live processes (other than ``exclude``) whose command line contains ``text``."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == exclude:
+            continue
+        try:
+            args = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:
+            continue
+        if any(text in a for a in args):
+            found[int(entry.name)] = args
+    return found
+
+
+def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path):
+    out = tmp_path / "run"
+    log = (tmp_path / "demo.log").open("w")
+    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--quick", "--episodes", "6",
+                             "--out", str(out)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + WAIT_S
+        children: dict[int, list[str]] = {}
+        while time.monotonic() < deadline:   # until the fleet is mid-run: one episode finished
+            assert demo.poll() is None, (tmp_path / "demo.log").read_text()
+            children = processes_naming(str(out), exclude=demo.pid)
+            sim_log = out / "fleet" / "sim.log"
+            if len(children) == 2 and sim_log.is_file() and '"episode": 0' in sim_log.read_text():
+                break
+            time.sleep(0.05)
+        commands = sorted(" ".join(args) for args in children.values())
+        assert len(commands) == 2 and "bridge" in commands[0] and "fleet-sim" in commands[1], commands
+        os.kill(demo.pid, signal.SIGINT)
+        assert demo.wait(timeout=120) == 130, (tmp_path / "demo.log").read_text()
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+        log.close()
+    assert processes_naming(str(out), exclude=demo.pid) == {}   # no orphans
+    assert "formation demo --out" in (tmp_path / "demo.log").read_text()   # tells how to resume
+
+    book = json.loads((out / "stages.json").read_text())
+    assert list(book["stages"]) == ["train-3", "train-5", "export"]
+    partial = json.loads((out / "metrics.json").read_text())
+    assert partial["complete"] is False and set(partial["train"]) == {"3", "5"}
+    assert partial["export"]["verified"] is True and "fleet" not in partial
+    # Both children took their clean path on SIGTERM: they wrote their reports on the way out.
+    sim = json.loads((out / "fleet" / "sim.json").read_text())
+    assert 1 <= len(sim["episodes"]) < 6
+    assert (out / "fleet" / "bridge.json").is_file()
+
+    assert main(["demo", "--out", str(out), "--resume"]) == 0
+    finished = json.loads((out / "stages.json").read_text())
+    assert list(finished["stages"]) == list(STAGES)
+    for name in ("train-3", "train-5", "export"):   # kept, not redone
+        assert finished["stages"][name] == book["stages"][name]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["complete"] is True and metrics["fleet"]["episodes"] == 6
+    assert len(metrics["fleet"]["per_episode"]) == 6
+    assert (out / "report.html").is_file() and (out / "report.md").is_file()

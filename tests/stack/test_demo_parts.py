@@ -1,0 +1,116 @@
+"""Parts of `formation demo` on hand-worked cases: the bridge's per-episode recorder, the
+tracking-error noise floor, training-stage resume, settings on --resume."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from controllers.mappo import train
+from sim.fleet import FleetState
+from sim.scenario import make_scenario
+from stack.cli import main
+from stack.commands.bridge import EpisodeRecorder
+from stack.demo.fleet import tracking_noise_floor
+from stack.demo.stages import train_config, train_stage
+from stack.demo.state import DemoSettings, StageBook
+from stack.pipeline import ControlStack, StackConfig
+
+
+def test_recorder_tracking_error_is_the_hand_worked_gain_error():
+    """A robot reaching half the commanded acceleration a drifts from the nominal model by
+    dt^2 (1 - g) |a| per tick: 0.05^2 * 0.5 * 0.5 = 0.625 mm (the damping terms cancel)."""
+    sc = make_scenario("paper-3")
+    dyn = sc.dynamics
+    a = np.tile([0.3, 0.4], (3, 1))   # |a| = 0.5 m/s^2, below accel_limit
+    stack = ControlStack(sc, lambda state: a.copy(), StackConfig(safety=False, mec=False))
+    recorder = EpisodeRecorder(stack)
+    for episode in (4, 5):
+        recorder.start_episode(episode)
+        pos, vel = sc.starts.copy(), np.zeros((3, 2))
+        for k in range(5):
+            state = FleetState(k * dyn.dt, k, pos, vel, sc.targets, np.array([*sc.object_center, 0.0]))
+            cmd = recorder(state)
+            np.testing.assert_array_equal(cmd, a)
+            pos, vel = dyn.step_np(pos, vel, 0.5 * cmd)
+    episodes = recorder.summary()
+    assert [e["episode"] for e in episodes] == [4, 5]
+    for e in episodes:
+        assert e["ticks"] == 5 and e["interventions"] == 0 and e["braking"] == 0
+        assert e["tracking_error"] == pytest.approx(dyn.dt ** 2 * 0.5 * 0.5, rel=1e-9)
+        assert 0 < e["tick_ms"]["p50"] <= e["tick_ms"]["p99"] <= e["tick_ms"]["max"]
+
+
+def test_recorder_tracking_error_is_zero_for_a_nominal_robot():
+    sc = make_scenario("paper-3")
+    dyn = sc.dynamics
+    stack = ControlStack(sc, lambda state: np.tile([0.3, -0.2], (3, 1)), StackConfig(safety=False, mec=False))
+    recorder = EpisodeRecorder(stack)
+    pos, vel = sc.starts.copy(), np.zeros((3, 2))
+    for k in range(4):
+        cmd = recorder(FleetState(k * dyn.dt, k, pos, vel, sc.targets, np.zeros(3)))
+        pos, vel = dyn.step_np(pos, vel, cmd)
+    [episode] = recorder.summary()
+    assert episode["episode"] == 0 and episode["tracking_error"] == pytest.approx(0.0, abs=1e-15)
+
+
+def test_noise_floor_matches_a_sampled_estimate():
+    """The closed form against the error of exact nominal motion measured with noise."""
+    me = {"position_noise_std": 0.001, "velocity_noise_std": 0.005}
+    dt, c = 0.05, 0.5
+    rng = np.random.default_rng(0)
+    m = 200_000
+    n_p0, n_p1 = rng.normal(0, 0.001, (2, m, 2))
+    n_v = rng.normal(0, 0.005, (m, 2))
+    err = n_p1 - n_p0 - dt * (1 - c * dt) * n_v
+    sampled = np.linalg.norm(err, axis=1).mean()
+    assert tracking_noise_floor(me, dt, c) == pytest.approx(sampled, rel=0.01)
+    assert tracking_noise_floor(me, dt, c) == pytest.approx(
+        math.sqrt(2e-6 + (0.04875 * 0.005) ** 2) * math.sqrt(math.pi / 2))
+
+
+def test_an_interrupted_training_stage_continues_from_its_checkpoint(tmp_path):
+    settings = DemoSettings(quick=True, budget_3=32, budget_5=16, eval_episodes=4, eval_interval=16,
+                            zero_shot_episodes=4, fleet_episodes=1)
+    # The run as it stands after an interruption at 16 of 32 episodes (checkpoint written).
+    first = train(train_config(settings, "3", tmp_path).replace(total_episodes=16, progress=False),
+                  tmp_path / "train-3")
+    assert first.episodes == 16
+    rows_before = (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()
+    result = train_stage(settings, "3", tmp_path)
+    rows = [json.loads(r) for r in (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()]
+    assert result["episodes"] == 32 and result["budget"] == 32
+    assert [r["iteration"] for r in rows] == list(range(1, len(rows) + 1))
+    assert [json.dumps(r) for r in rows[:len(rows_before)]] == [json.dumps(json.loads(r)) for r in rows_before]
+    assert rows[-1]["episodes"] == 32
+
+
+def test_a_run_folder_without_checkpoint_starts_again(tmp_path):
+    settings = DemoSettings(quick=True, budget_3=16, budget_5=16, eval_episodes=4, eval_interval=16,
+                            zero_shot_episodes=4, fleet_episodes=1)
+    (tmp_path / "train-3").mkdir()
+    (tmp_path / "train-3" / "train.jsonl").write_text('{"iteration": 99}\n')
+    result = train_stage(settings, "3", tmp_path)
+    rows = [json.loads(r) for r in (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()]
+    assert result["episodes"] == 16 and rows[0]["iteration"] == 1
+
+
+def test_resume_keeps_the_saved_settings_and_refuses_others(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    StageBook(out, DemoSettings(budget_3=8)).save()
+    before = (out / "stages.json").read_text()
+    assert main(["demo", "--out", str(out), "--resume", "--budget-3", "9"]) == 2
+    assert "--budget-3" in capsys.readouterr().err
+    assert main(["demo", "--out", str(out), "--resume", "--quick"]) == 2   # saved as a full run
+    assert "--quick" in capsys.readouterr().err
+    assert (out / "stages.json").read_text() == before
+
+
+def test_resume_needs_a_demo_folder(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "nothing"), "--resume"]) == 2
+    assert "stages.json" in capsys.readouterr().err
+    assert not (tmp_path / "nothing").exists()
