@@ -4,8 +4,12 @@ State is ``(num_envs, num_robots, 2)`` positions and velocities. ``step`` has no
 environments or robots: the dynamics of :class:`sim.scenario.Dynamics`, the walls (an inelastic
 stop: the disc is put back inside and its velocity into the wall removed, and the touch counts as a
 wall collision), collision detection, reward and the automatic reset of finished environments are
-all tensor operations. Robots pass through each other and the object (no contact forces): every
-overlap counts as a collision, is penalised, and makes the episode a failure.
+all tensor operations. The object is solid, as in the pymunk world: a disc that would overlap it
+is put back on its boundary (centre at distance r along the outward normal) and stopped (the
+wheels of a robot pushed against the load lose their grip: no sliding along it), and the
+touch counts as an object collision. Robots pass through each
+other (no contact forces between robots): every overlap counts as a collision, is penalised,
+and makes the episode a failure.
 
 Episodes last ``dynamics.episode_steps`` steps. When an environment finishes, its outcome
 (:class:`EpisodeStats`) is returned in ``StepResult.finished`` and it restarts from jittered
@@ -21,10 +25,8 @@ import torch
 from sim import observations
 from sim.geometry import DetourDistance, DetourField, Frame, Polygon
 from sim.metrics import episode_outcome, frame_collisions
-from sim.reward import RewardWeights, reward_from_distances
+from sim.reward import RewardWeights, proximity_ramp, reward_from_distances
 from sim.scenario import Scenario
-
-DETOUR_CLEARANCE = 0.01   # the reward's detour path keeps this far from the object [m]
 
 
 @dataclass
@@ -99,7 +101,7 @@ class BatchedFormationEnv:
         self.start_slots = torch.as_tensor(scenario.starts, **kw)
         self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
         self.detour = DetourField(DetourDistance(self.polygon, self.targets[0],
-                                                 scenario.robot_radius + DETOUR_CLEARANCE), self.arena)
+                                                 scenario.robot_radius + reward_weights.detour_clearance), self.arena)
         e, n = num_envs, self.num_robots
         self.pos = torch.zeros(e, n, 2, **kw)
         self.vel = torch.zeros(e, n, 2, **kw)
@@ -108,6 +110,7 @@ class BatchedFormationEnv:
         self.ret = torch.zeros(e, **kw)
         self.counts = torch.zeros(e, 3, dtype=torch.long, device=self.device)
         self.prev_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
+        self.prev_near_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
         self._t_max = 0   # host-side upper bound of self.t, so most steps skip the done check
         self._not_done = torch.zeros(e, dtype=torch.bool, device=self.device)
         none = torch.zeros(0, dtype=torch.long, device=self.device)
@@ -143,6 +146,7 @@ class BatchedFormationEnv:
         self.ret[ids] = 0
         self.counts[ids] = 0
         self.prev_contact[ids] = False
+        self.prev_near_contact[ids] = False
         self._t_max = int(self.t.max())
 
     # ------------------------------------------------------------ observation
@@ -183,6 +187,7 @@ class BatchedFormationEnv:
         a = _clip_norm(a, dyn.accel_limit)
         vel = _clip_norm(self.vel + self.dt * (a - dyn.damping * self.vel), dyn.speed_limit)
         pos = self.pos + self.dt * vel
+        pos, vel, hit_object = self._stop_at_object(pos, vel)
         inside = pos.clamp(self._lo, self._hi)
         hit_wall_axis = inside != pos
         vel = torch.where(hit_wall_axis, torch.zeros_like(vel), vel)
@@ -191,14 +196,26 @@ class BatchedFormationEnv:
         frame = Frame(self.pos, self.vel, self.targets, self.polygon)
         events = frame_collisions(frame, self.radius, self.arena)
         events.wall = events.wall | hit_wall_axis.any(-1)
+        events.object = events.object | hit_object
         contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)
         new_contact = contact & ~self.prev_contact                               # (E,N,3)
         self.prev_contact = contact
         self.counts += new_contact.sum(1)
         self.collided |= contact.any(-1).any(-1)
+        margin = self.reward_weights.contact_margin
+        if margin > 0:   # the reward judges contact on discs grown by the margin (stats do not)
+            events = frame_collisions(frame, self.radius + margin, self.arena)
+            events.wall = events.wall | hit_wall_axis.any(-1)
+            events.object = events.object | hit_object
+            near_contact = torch.stack((events.robot, events.object, events.wall), -1)
+            new_contact = near_contact & ~self.prev_near_contact
+            self.prev_near_contact = near_contact
         reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
                                        self.reward_weights, self.detour(self.pos),
-                                       new_contact.any(-1))
+                                       new_contact.any(-1),
+                                       proximity_ramp(frame, self.radius, self.arena,
+                                                      self.reward_weights.near_margin)
+                                       if self.reward_weights.w_near else None)
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1
@@ -211,6 +228,25 @@ class BatchedFormationEnv:
         self._frame = frame if len(finished) == 0 else None
         obs, mask = self.observe()
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
+
+    def _stop_at_object(self, pos: torch.Tensor, vel: torch.Tensor):
+        """Stop at the object: centres closer than r to it go back to distance r along the
+        outward normal n, with zero velocity. Returns ``(pos, vel, hit)``, ``hit`` (E, N) bool.
+
+        Stopping (rather than removing only the velocity into the object) keeps a touch from
+        being a free guide rail around the object: a learner that grazes it loses time."""
+        px, py = pos[..., 0], pos[..., 1]
+        sd, sx, sy = self.polygon.signed_distance_xy(px, py)
+        hit = sd < self.radius
+        if not bool(hit.any()):
+            return pos, vel, hit
+        dx, dy = px - sx, py - sy
+        norm = (dx * dx + dy * dy).sqrt().clamp_min(1e-12)
+        sign = torch.where(sd < 0, -1.0, 1.0).to(pos)          # inside: the normal points from p to s
+        nx, ny = sign * dx / norm, sign * dy / norm
+        pushed = torch.stack((sx + self.radius * nx, sy + self.radius * ny), -1)
+        h = hit.unsqueeze(-1)
+        return torch.where(h, pushed, pos), torch.where(h, torch.zeros_like(vel), vel), hit
 
     def _finish(self, done: torch.Tensor) -> EpisodeStats:
         ids = done.nonzero().squeeze(-1)

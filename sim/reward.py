@@ -12,6 +12,24 @@ or the straight one when none is given)::
               - w_object * [robot i touches the object]
               - w_wall * [robot i touches a wall]
               - w_onset * [robot i starts a new contact this step]
+              - w_own * min_k d(p_i, g_k)                                         (own term)
+              - w_assigned * d(p_i, g_sigma(i))     sigma: min-sum one-to-one assignment (own term)
+              - w_near * near_i
+
+    near_i  = sum_j ramp(|p_i - p_j| - 2r) + ramp(sd_object(p_i) - r) + sum_walls ramp(gap_wall)
+    ramp(g) = clamp(1 - g / near_margin, 0, 1)     (1 at contact, 0 beyond ``near_margin``)
+
+With ``contact_margin`` m > 0 the collision indicators of the reward (not the episode's success,
+not the collision statistics) are those of discs of radius r + m: a learner penalised for
+coming within m of anything keeps that margin, so a deterministic policy does not graze the
+object the way a policy trained on the exact contact does (it sits right at the edge).
+
+``own`` and ``assigned`` give each robot credit for its own approach (the team terms reward every robot
+alike for what any of them did); ``near`` is a soft barrier that costs proximity before contact,
+so a learner is pushed off a collision course while the push is still a gradient, not a cliff.
+Nearest-target terms (``cover``, ``own``) have a local optimum where two robots share a target
+and a third waits between slots; the assignment term pulls every robot to a distinct target
+(exact enumeration of the N! assignments for N <= 6, :func:`sim.metrics.optimal_assignment`).
 
 The detour distance keeps the gradient of ``cover`` pointing around the object instead of into
 it (with straight distances the shortest way to a target runs through the object, a local
@@ -29,8 +47,8 @@ from dataclasses import dataclass
 
 import torch
 
-from sim.geometry import DetourDistance, DetourField
-from sim.metrics import CollisionEvents, distance_matrix
+from sim.geometry import DetourDistance, DetourField, Frame
+from sim.metrics import CollisionEvents, distance_matrix, optimal_assignment
 
 
 @dataclass(frozen=True)
@@ -43,6 +61,12 @@ class RewardWeights:
     w_object: float = 0.5
     w_wall: float = 0.2
     w_onset: float = 0.0     # one-off cost of each new contact (0: off; needs the onset flags)
+    w_own: float = 0.0       # per-robot distance to its nearest target (0: off)
+    w_assigned: float = 0.0  # per-robot distance to its assigned target (0: off)
+    w_near: float = 0.0      # soft proximity cost (0: off; needs the proximity ramp)
+    near_margin: float = 0.03  # gap [m] at which the proximity cost starts
+    detour_clearance: float = 0.01  # gap [m] the detour path keeps from the object
+    contact_margin: float = 0.0     # the penalties count a gap below this [m] as contact
 
 
 def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: CollisionEvents,
@@ -57,7 +81,8 @@ def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: Collision
 def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: float,
                           weights: RewardWeights = RewardWeights(),
                           d_detour: torch.Tensor | None = None,
-                          onsets: torch.Tensor | None = None) -> torch.Tensor:
+                          onsets: torch.Tensor | None = None,
+                          near: torch.Tensor | None = None) -> torch.Tensor:
     """(E, N robots, N targets) straight (and detour) distances -> (E, N) per-robot reward."""
     path = d if d_detour is None else d_detour
     to_target = _min_over(path, -2)                        # (E, N targets)
@@ -69,7 +94,28 @@ def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: f
            + weights.w_wall * events.wall.float())
     if onsets is not None and weights.w_onset:
         own = own + weights.w_onset * onsets.float()
+    if weights.w_own:
+        own = own + weights.w_own * to_robot
+    if weights.w_assigned:
+        sigma = optimal_assignment(path)                                   # (E, N)
+        own = own + weights.w_assigned * torch.gather(path, -1, sigma.unsqueeze(-1)).squeeze(-1)
+    if near is not None and weights.w_near:
+        own = own + weights.w_near * near
     return team.unsqueeze(-1) - own
+
+
+def proximity_ramp(frame: Frame, radius: float, arena: tuple[float, float], margin: float) -> torch.Tensor:
+    """(E, N) ``near_i`` of the module docstring: summed ramps of the gaps to the other robots,
+    the object and the four walls, each 1 at contact and 0 at a gap of ``margin`` [m] or more."""
+    if margin <= 0:
+        raise ValueError(f"near_margin must be > 0, got {margin!r}")
+    inv = 1.0 / margin
+    gap_rr = frame.others_d2.sqrt() - 2 * radius                  # (E, N, N-1)
+    near = (1 - gap_rr * inv).clamp(0, 1).sum(-1)
+    near = near + (1 - (frame.obj_sd - radius) * inv).clamp(0, 1)
+    for gap in (frame.px - radius, frame.py - radius, arena[0] - radius - frame.px, arena[1] - radius - frame.py):
+        near = near + (1 - gap * inv).clamp(0, 1)
+    return near
 
 
 def _min_over(x: torch.Tensor, dim: int) -> torch.Tensor:

@@ -39,7 +39,7 @@ from sim.observations import LAYOUT_VERSION
 CHECKPOINT_FORMAT = "formation-stack/mappo"
 CHECKPOINT_VERSION = 1
 # The parts of BatchedFormationEnv that define where every episode stands.
-_ENV_TENSORS = ("pos", "vel", "t", "collided", "ret", "counts", "prev_contact")
+_ENV_TENSORS = ("pos", "vel", "t", "collided", "ret", "counts", "prev_contact", "prev_near_contact")
 
 
 class CheckpointError(ValueError):
@@ -133,6 +133,9 @@ def load_env_state(env: BatchedFormationEnv, state: dict[str, torch.Tensor]) -> 
     """Put ``env`` back into the state saved by :func:`env_state_dict`."""
     for name in _ENV_TENSORS:
         current = getattr(env, name)
+        if name not in state and name == "prev_near_contact":   # checkpoints from before the margin
+            current.copy_(env.prev_contact)
+            continue
         saved = state[name]
         if saved.shape != current.shape:
             raise CheckpointError(f"saved environment {name} has shape {tuple(saved.shape)} but this run's "

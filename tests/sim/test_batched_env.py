@@ -51,12 +51,12 @@ def test_terminal_speed(accel, damping, expected):
     dyn = Dynamics(damping=damping, episode_steps=10_000)
     sc = transport_scenario(1, dynamics=dyn)
     env = _env(sc)
-    _place(env, [[0.05, 0.05]])
+    _place(env, [[0.05, 0.15]])        # along y = 0.15, clear of the (solid) object
     speeds = []
     for _ in range(300):
-        env.step(torch.tensor([[[accel / math.sqrt(2)] * 2]], dtype=torch.float64))
+        env.step(torch.tensor([[[accel, 0.0]]], dtype=torch.float64))
         if env.pos[0, 0, 0] > 0.9:       # restart before the wall, keep the velocity
-            env.set_state(torch.tensor([[[0.05, 0.05]]], dtype=torch.float64), env.vel.clone())
+            env.set_state(torch.tensor([[[0.05, 0.15]]], dtype=torch.float64), env.vel.clone())
         speeds.append(env.vel[0, 0].norm().item())
     assert max(speeds) <= expected + 1e-12
     assert speeds[-1] == pytest.approx(expected, rel=1e-3)
@@ -159,3 +159,27 @@ def test_tokens_after_a_step_equal_a_fresh_observation():
     env._frame = None
     fresh, _ = env.observe()
     assert torch.equal(r.obs, fresh)
+
+
+def test_object_is_solid_and_a_robot_touching_it_stops():
+    # box x in [0.4, 0.6]; robot 0 moves left into the right face while drifting up at 0.1 m/s
+    env = _env()
+    _place(env, [[0.65, 0.5], [0.2, 0.15], [0.8, 0.15]], [[-0.3, 0.1], [0.0, 0.0], [0.0, 0.0]])
+    for _ in range(10):
+        env.step(torch.tensor([[[-1.0, 0.0], [0.0, 0.0], [0.0, 0.0]]]))
+    assert env.pos[0, 0, 0].item() == pytest.approx(0.64)          # centre at r = 0.04 from the face
+    assert env.vel[0, 0].tolist() == [0.0, 0.0]                    # stopped, no sliding along it
+    assert env.counts[0].tolist() == [0, 1, 0] and env.collided[0]
+
+
+def test_object_pushes_back_along_the_corner_normal():
+    # a robot heading diagonally into the box corner (0.6, 0.65) ends on the circle of radius r around it
+    env = _env()
+    c = (0.6, 0.65)
+    start = (c[0] + 0.045 / math.sqrt(2), c[1] + 0.045 / math.sqrt(2))
+    _place(env, [start, [0.2, 0.15], [0.8, 0.15]], [[-0.2, -0.2], [0.0, 0.0], [0.0, 0.0]])
+    env.step(torch.zeros(1, 3, 2, dtype=torch.float64))
+    d = math.hypot(env.pos[0, 0, 0].item() - c[0], env.pos[0, 0, 1].item() - c[1])
+    assert d == pytest.approx(0.04)
+    assert env.vel[0, 0].abs().max().item() == pytest.approx(0.0, abs=1e-12)   # head-on: stopped
+    assert env.counts[0, 1].item() == 1

@@ -67,3 +67,59 @@ def test_onset_penalty_is_charged_once_per_new_contact():
     # the contact starts in step 1: robots 0 and 1 pay 3.0 once, robot 2 never
     assert (first - first_plain)[0].tolist() == pytest.approx([-3.0, -3.0, 0.0])
     assert (second - second_plain)[0].tolist() == pytest.approx([0.0, 0.0, 0.0])
+
+
+def _frame(pos):
+    from sim.geometry import Frame, Polygon
+
+    pos = torch.tensor([pos], dtype=torch.float64)
+    return Frame(pos, torch.zeros_like(pos), pos.clone(), Polygon(POLY.to(torch.float64)))
+
+
+def test_proximity_ramp_by_hand():
+    from sim.reward import proximity_ramp
+
+    # robots 0, 1: gap 0.09 - 0.08 = 0.01 -> ramp 1 - 0.01/0.02 = 0.5 each;
+    # robot 2: 0.01 from the box's right face (x = 0.6 + 0.04 + 0.01) -> 0.5; robot 0: 0.005 from
+    # the bottom wall (y = 0.045) -> 0.75; everything else farther than the 0.02 margin
+    near = proximity_ramp(_frame([[0.2, 0.045], [0.29, 0.045], [0.65, 0.5]]), 0.04, (1.0, 1.0), 0.02)
+    assert near[0].tolist() == pytest.approx([0.5 + 0.75, 0.5 + 0.75, 0.5])
+    with pytest.raises(ValueError, match="near_margin"):
+        proximity_ramp(_frame([[0.2, 0.2]]), 0.04, (1.0, 1.0), 0.0)
+
+
+def test_own_and_assigned_terms_by_hand():
+    from sim.reward import reward_from_distances
+
+    # straight distances, robot i -> target k: both robots nearest to target 0, so the nearest-
+    # target term charges 0.1 and 0.2, but the best one-to-one assignment is 0->1, 1->0
+    # (0.3 + 0.2 = 0.5 < 0.1 + 0.6), so the assignment term charges 0.3 and 0.2
+    d = torch.tensor([[[0.1, 0.3], [0.2, 0.6]]])
+    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    base = reward_from_distances(d, ev, 0.05, RewardWeights())
+    own = reward_from_distances(d, ev, 0.05, RewardWeights(w_own=2.0))
+    assigned = reward_from_distances(d, ev, 0.05, RewardWeights(w_assigned=1.0))
+    assert (base - own)[0].tolist() == pytest.approx([0.2, 0.4])
+    assert (base - assigned)[0].tolist() == pytest.approx([0.3, 0.2])
+
+
+def test_contact_margin_moves_the_penalty_not_the_statistics():
+    from sim.batched_env import BatchedFormationEnv
+
+    sc = make_scenario("paper-3")
+    # robot 0 rests 5 mm from the box's right face: no contact, but inside a 1 cm margin
+    pos = torch.tensor([[[0.645, 0.5], [0.2, 0.15], [0.8, 0.15]]], dtype=torch.float64)
+    rewards = {}
+    for margin in (0.0, 0.01):
+        env = BatchedFormationEnv(sc, 1, seed=0, dtype=torch.float64,
+                                  reward_weights=RewardWeights(contact_margin=margin, w_onset=3.0))
+        env.reset()
+        env.set_state(pos, torch.zeros_like(pos))
+        rewards[margin] = [env.step(torch.zeros(1, 3, 2, dtype=torch.float64)).reward for _ in range(2)]
+        assert env.counts[0].tolist() == [0, 0, 0] and not env.collided[0]
+    w = RewardWeights()
+    first = (rewards[0.0][0] - rewards[0.01][0])[0].tolist()
+    second = (rewards[0.0][1] - rewards[0.01][1])[0].tolist()
+    assert first == pytest.approx([w.w_object + 3.0, 0.0, 0.0])     # per-step penalty + one onset
+    assert second == pytest.approx([w.w_object, 0.0, 0.0])
