@@ -1,0 +1,223 @@
+"""The paper's Table 1 and Table 2, measured here: episodes to convergence over several seeds.
+
+Settings (each trained ``--seeds`` times with seeds 0..K-1, MAPPOConfig defaults otherwise):
+
+    sdpa-3 / sdpa-4 / sdpa-5   SDPA-MAPPO (typed actor) from scratch on paper-3 / -4 / -5
+    mlp-3                      MLP-MAPPO (the paper's flat vector, no attention) on paper-3
+    transfer-3to4 / -3to5      SDPA-MAPPO on paper-4 / -5 starting from the sdpa-3 run of the
+                               same seed (``--init-from`` its final checkpoint)
+
+plus the zero-shot success of every sdpa-3 policy on paper-4 and paper-5 (100 deterministic
+episodes each, no further training; the mean over seeds is reported).
+
+Convergence is the rule of :mod:`controllers.mappo.evaluate` (100 deterministic episodes at
+least every 50 training episodes; the first evaluation with success >= 0.9 whose next one is
+also >= 0.9). A seed that does not converge within its budget counts as the budget, and
+``converged_seeds`` says how many did. The paper's numbers are printed beside ours.
+
+Every run is a separate ``formation train`` process (one torch thread each, ``--jobs`` at a
+time) writing its usual folder under ``--out``; a finished run is reused when the table is
+produced again with the same settings, so an interrupted benchmark continues where it stopped.
+
+    python bench/paper_tables.py                       # 5 seeds, every setting
+    python bench/paper_tables.py --seeds 2 --settings sdpa-3,transfer-3to5 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import positive_int, print_json, print_table, progress  # noqa: E402
+
+PAPER_EPISODES = {"sdpa-3": 1200, "sdpa-4": 1500, "sdpa-5": 3200, "mlp-3": None,
+                  "transfer-3to4": 650, "transfer-3to5": 850}
+PAPER_BASELINES = {"GASIL-MADDPG (3)": 25_000, "Deep Dyna-Q (3)": 40_000}
+SETTINGS = tuple(PAPER_EPISODES)
+# Budget of each setting: twice the paper's episodes (the MLP baseline gets the SDPA budget).
+DEFAULT_BUDGET = {"sdpa-3": 2400, "sdpa-4": 3000, "sdpa-5": 6400, "mlp-3": 2400,
+                  "transfer-3to4": 1300, "transfer-3to5": 1700}
+
+
+@dataclass(frozen=True)
+class Setting:
+    name: str
+    scenario: str
+    variant: str
+    transfer_from: str | None = None   # the setting whose checkpoint seeds this run
+
+
+def setting(name: str) -> Setting:
+    if name.startswith("sdpa-"):
+        return Setting(name, f"paper-{name[5:]}", "typed")
+    if name == "mlp-3":
+        return Setting(name, "paper-3", "mlp")
+    if name.startswith("transfer-3to"):
+        return Setting(name, f"paper-{name[-1]}", "typed", transfer_from="sdpa-3")
+    raise ValueError(name)
+
+
+def settings_list(text: str) -> list[str]:
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    unknown = [s for s in names if s not in SETTINGS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown setting(s) {unknown}; choose from {', '.join(SETTINGS)}")
+    return names
+
+
+def run_dir(out: Path, name: str, seed: int) -> Path:
+    return out / name / f"seed-{seed}"
+
+
+def train_one(out: Path, name: str, seed: int, budget: int, config: dict) -> dict:
+    """Train one (setting, seed) in its own process unless a finished run is there; its summary."""
+    s = setting(name)
+    folder = run_dir(out, name, seed)
+    result_path = folder / "result.json"
+    fields = {**config, "progress": False, "torch_threads": 1}
+    cmd = [sys.executable, "-m", "stack.cli", "train", "--scenario", s.scenario, "--episodes", str(budget),
+           "--seed", str(seed), "--variant", s.variant, "--out", str(folder), "--config", json.dumps(fields)]
+    if s.transfer_from:
+        cmd += ["--init-from", str(run_dir(out, s.transfer_from, seed) / "checkpoint.pt")]
+    stamp = folder.parent / f"seed-{seed}.command.json"
+    if folder.exists() and (not stamp.exists() or json.loads(stamp.read_text()) != cmd[1:]):
+        shutil.rmtree(folder)     # made by another command (other settings): start afresh
+    if not _finished(folder, budget):
+        resume = (folder / "checkpoint.pt").exists()
+        if folder.exists() and not resume:
+            shutil.rmtree(folder)
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(json.dumps(cmd[1:]))
+        log = folder.parent / f"seed-{seed}.log"
+        with log.open("w") as f:
+            proc = subprocess.run(cmd + (["--resume"] if resume else []), stdout=f, stderr=subprocess.STDOUT,
+                                  cwd=Path(__file__).resolve().parents[1],
+                                  env={**os.environ, "OMP_NUM_THREADS": "1"})
+        if proc.returncode != 0 or not result_path.exists():
+            raise RuntimeError(f"{name} seed {seed} failed (exit {proc.returncode}); see {log}")
+    return summarize(folder, budget)
+
+
+def _finished(folder: Path, budget: int) -> bool:
+    path = folder / "result.json"
+    if not path.exists():
+        return False
+    r = json.loads(path.read_text())
+    return r["converged_episode"] is not None or r["episodes"] >= budget
+
+
+def summarize(folder: Path, budget: int) -> dict:
+    """Episodes, env steps and wall-clock at convergence (the budget's if it never converged)."""
+    r = json.loads((folder / "result.json").read_text())
+    conv = r["converged_episode"]
+    evals = [json.loads(line) for line in (folder / "eval.jsonl").read_text().splitlines() if line.strip()]
+    if conv is not None:
+        at = next(e for e in evals if e["episodes"] == conv)
+        return {"converged": True, "episodes": conv, "env_steps": at["env_steps"], "wall_s": at["wall_time_s"],
+                "final_success": evals[-1]["success_rate"]}
+    return {"converged": False, "episodes": budget, "env_steps": r["env_steps"], "wall_s": r["wall_time_s"],
+            "final_success": evals[-1]["success_rate"] if evals else 0.0}
+
+
+def zero_shot(out: Path, seed: int, robots: int, episodes: int = 100) -> float:
+    """Success rate of the sdpa-3 policy of ``seed`` on paper-``robots`` without training."""
+    import torch
+
+    from controllers.mappo.checkpoint import load_actor
+    from controllers.mappo.evaluate import evaluate
+    from sim.scenario import make_scenario
+
+    torch.set_num_threads(1)
+    actor = load_actor(run_dir(out, "sdpa-3", seed) / "checkpoint.pt", robots)
+    return evaluate(actor, make_scenario(f"paper-{robots}"), episodes=episodes, seed=10_000 + seed).success_rate
+
+
+def row(name: str, seeds: int, runs: list[dict]) -> dict:
+    def med(key: str) -> float:
+        return float(statistics.median(r[key] for r in runs))
+
+    eps = sorted(r["episodes"] for r in runs)
+    return {"setting": name, "seeds": seeds, "converged_seeds": sum(r["converged"] for r in runs),
+            "episodes_median": med("episodes"), "env_steps_median": med("env_steps"),
+            "wall_s_median": round(med("wall_s"), 1), "episodes_min": eps[0], "episodes_max": eps[-1],
+            "episodes": [r["episodes"] for r in runs], "paper_episodes": PAPER_EPISODES[name]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=positive_int, default=5, help="seeds per setting (0..K-1; default 5)")
+    p.add_argument("--settings", type=settings_list, default=list(SETTINGS),
+                   help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3)")
+    p.add_argument("--jobs", type=positive_int, default=2, help="training processes at a time (default 2)")
+    p.add_argument("--budget-scale", type=float, default=1.0,
+                   help="multiply every episode budget (default budgets: twice the paper's episodes)")
+    p.add_argument("--config", default="{}", help="extra MAPPOConfig fields as JSON for every run")
+    p.add_argument("--out", type=Path, default=Path("runs/paper-tables"), help="folder of the runs")
+    p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
+    args = p.parse_args(argv)
+    try:
+        config = json.loads(args.config)
+        if not isinstance(config, dict):
+            raise ValueError
+    except ValueError:
+        p.error(f"--config must be a JSON object, got {args.config!r}")
+    if args.budget_scale <= 0:
+        p.error("--budget-scale must be > 0")
+    names = list(args.settings)
+    if any(setting(n).transfer_from for n in names) and "sdpa-3" not in names:
+        names.insert(0, "sdpa-3")
+    budgets = {n: max(50, int(DEFAULT_BUDGET[n] * args.budget_scale)) for n in names}
+    seeds = range(args.seeds)
+    start = time.perf_counter()
+    results: dict[str, list[dict]] = {n: [] for n in names}
+
+    def job(name: str, seed: int) -> tuple[str, dict]:
+        r = train_one(args.out, name, seed, budgets[name], config)
+        progress(f"{name} seed {seed}: {'converged at' if r['converged'] else 'not converged within'} "
+                 f"{r['episodes']} episodes, {r['wall_s']:.0f} s")
+        return name, r
+
+    first = [n for n in names if not setting(n).transfer_from]
+    second = [n for n in names if setting(n).transfer_from]
+    with ThreadPoolExecutor(args.jobs) as pool:
+        # sdpa-3 first so the transfer runs of a seed can start as soon as its checkpoint exists
+        order = sorted(first, key=lambda n: n != "sdpa-3")
+        for name, r in pool.map(lambda a: job(*a), [(n, s) for n in order for s in seeds]):
+            results[name].append(r)
+        for name, r in pool.map(lambda a: job(*a), [(n, s) for n in second for s in seeds]):
+            results[name].append(r)
+        zero = {}
+        if "sdpa-3" in names:
+            for robots in (4, 5):
+                rates = list(pool.map(lambda s, k=robots: zero_shot(args.out, s, k), seeds))
+                zero[f"3to{robots}"] = round(statistics.fmean(rates), 3)
+    rows = [row(n, args.seeds, results[n]) for n in names]
+    doc = {"rows": rows, "zero_shot": zero, "paper_baselines": PAPER_BASELINES,
+           "budgets": budgets, "config": config, "wall_s_total": round(time.perf_counter() - start, 1)}
+    if args.json:
+        print_json(doc)
+        return 0
+    print_table(["setting", "converged", "episodes median", "min-max", "env steps median", "wall s median",
+                 "paper"],
+                [[r["setting"], f"{r['converged_seeds']}/{r['seeds']}", f"{r['episodes_median']:.0f}",
+                  f"{r['episodes_min']}-{r['episodes_max']}", f"{r['env_steps_median']:.0f}",
+                  f"{r['wall_s_median']:.0f}", r["paper_episodes"] or "-"] for r in rows])
+    for key, value in zero.items():
+        print(f"zero-shot success {key}: {value:.2f} (mean over {args.seeds} seeds, 100 episodes each)")
+    print("paper baselines (3 robots): " + ", ".join(f"{k} {v}" for k, v in PAPER_BASELINES.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

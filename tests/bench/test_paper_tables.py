@@ -1,0 +1,59 @@
+"""bench/paper_tables.py: the convergence summary by hand, and a tiny real run (shape, reuse)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from bench.paper_tables import row, summarize  # noqa: E402
+
+
+def _write_run(folder: Path, converged, evals):
+    folder.mkdir(parents=True)
+    (folder / "result.json").write_text(json.dumps({"converged_episode": converged, "env_steps": 99_999,
+                                                    "wall_time_s": 42.0, "episodes": evals[-1][0]}))
+    (folder / "eval.jsonl").write_text("".join(
+        json.dumps({"episodes": e, "env_steps": e * 128, "wall_time_s": e / 10, "success_rate": s}) + "\n"
+        for e, s in evals))
+
+
+def test_summary_takes_the_first_of_two_evaluations_and_counts_a_failure_as_the_budget(tmp_path):
+    _write_run(tmp_path / "a", 96, [(0, 0.0), (48, 0.5), (96, 0.95), (144, 0.92)])
+    _write_run(tmp_path / "b", None, [(0, 0.0), (48, 0.95), (96, 0.2)])
+    a, b = summarize(tmp_path / "a", 500), summarize(tmp_path / "b", 500)
+    assert a == {"converged": True, "episodes": 96, "env_steps": 96 * 128, "wall_s": 9.6, "final_success": 0.92}
+    assert b["converged"] is False and b["episodes"] == 500 and b["env_steps"] == 99_999
+    r = row("sdpa-3", 2, [a, b])
+    assert r["converged_seeds"] == 1 and r["episodes_median"] == pytest.approx((96 + 500) / 2)
+    assert r["paper_episodes"] == 1200
+
+
+@pytest.mark.slow
+def test_tiny_run_prints_the_documented_json_and_reuses_finished_runs(tmp_path):
+    cmd = [sys.executable, str(ROOT / "bench" / "paper_tables.py"), "--seeds", "1", "--settings",
+           "sdpa-3,transfer-3to4", "--budget-scale", "0.01", "--out", str(tmp_path), "--json",
+           "--config", json.dumps({"num_envs": 4, "eval_episodes": 4, "eval_interval": 8})]
+    first = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    doc = json.loads(first.stdout)
+    assert [r["setting"] for r in doc["rows"]] == ["sdpa-3", "transfer-3to4"]
+    for r in doc["rows"]:
+        assert {"setting", "seeds", "converged_seeds", "episodes_median", "env_steps_median",
+                "wall_s_median"} <= set(r)
+        assert r["seeds"] == 1 and 0 <= r["converged_seeds"] <= 1
+    assert set(doc["zero_shot"]) == {"3to4", "3to5"} and all(0 <= v <= 1 for v in doc["zero_shot"].values())
+    # the transfer run started from the 3-robot checkpoint of the same seed
+    result = json.loads((tmp_path / "transfer-3to4" / "seed-0" / "result.json").read_text())
+    assert result["transferred_from"] is not None
+    stamp = (tmp_path / "sdpa-3" / "seed-0" / "checkpoint.pt").stat().st_mtime_ns
+    again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout)["rows"] == doc["rows"]          # same runs, not retrained
+    assert (tmp_path / "sdpa-3" / "seed-0" / "checkpoint.pt").stat().st_mtime_ns == stamp
