@@ -14,7 +14,6 @@ from controllers.policy.config import (
     dataclass_from_dict,
 )
 
-
 TRAINING_REWARD = {"w_dist": 0.0, "w_assigned": 1.0, "w_arrive": 0.5, "w_onset": 2.0,
                    "detour_clearance": 0.03, "contact_margin": 0.01}
 
