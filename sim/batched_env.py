@@ -194,20 +194,15 @@ class BatchedFormationEnv:
         self.pos, self.vel = inside, vel
 
         frame = Frame(self.pos, self.vel, self.targets, self.polygon)
-        events = frame_collisions(frame, self.radius, self.arena)
-        events.wall = events.wall | hit_wall_axis.any(-1)
-        events.object = events.object | hit_object
-        contact = torch.stack((events.robot, events.object, events.wall), -1)   # (E,N,3)
+        touched = (hit_wall_axis.any(-1), hit_object)
+        events, contact = self._contacts(frame, self.radius, touched)
         new_contact = contact & ~self.prev_contact                               # (E,N,3)
         self.prev_contact = contact
         self.counts += new_contact.sum(1)
         self.collided |= contact.any(-1).any(-1)
         margin = self.reward_weights.contact_margin
         if margin > 0:   # the reward judges contact on discs grown by the margin (stats do not)
-            events = frame_collisions(frame, self.radius + margin, self.arena)
-            events.wall = events.wall | hit_wall_axis.any(-1)
-            events.object = events.object | hit_object
-            near_contact = torch.stack((events.robot, events.object, events.wall), -1)
+            events, near_contact = self._contacts(frame, self.radius + margin, touched)
             new_contact = near_contact & ~self.prev_near_contact
             self.prev_near_contact = near_contact
         reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
@@ -228,6 +223,15 @@ class BatchedFormationEnv:
         self._frame = frame if len(finished) == 0 else None
         obs, mask = self.observe()
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
+
+    def _contacts(self, frame: Frame, radius: float, touched: tuple[torch.Tensor, torch.Tensor]):
+        """Collision events of discs of ``radius`` plus the wall and object stops of this step
+        (``touched``: (E, N) wall, object); returns the events and their (E, N, 3) stack
+        (robot, object, wall)."""
+        events = frame_collisions(frame, radius, self.arena)
+        events.wall = events.wall | touched[0]
+        events.object = events.object | touched[1]
+        return events, torch.stack((events.robot, events.object, events.wall), -1)
 
     def _stop_at_object(self, pos: torch.Tensor, vel: torch.Tensor):
         """Stop at the object: centres closer than r to it go back to distance r along the
