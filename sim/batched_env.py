@@ -24,7 +24,7 @@ import torch
 
 from sim import observations
 from sim.geometry import DetourDistance, DetourField, Frame, Polygon
-from sim.metrics import episode_outcome, frame_collisions
+from sim.metrics import episode_outcome, frame_collisions, optimal_assignment
 from sim.reward import RewardWeights, proximity_ramp, reward_from_distances
 from sim.scenario import Scenario
 
@@ -41,6 +41,7 @@ class EpisodeStats:
     object_collisions: torch.Tensor
     wall_collisions: torch.Tensor
     length: torch.Tensor           # steps
+    arrived: torch.Tensor          # bool: every robot within tolerance at the end (collisions aside)
 
     def __len__(self) -> int:
         return int(self.env_ids.numel())
@@ -111,11 +112,13 @@ class BatchedFormationEnv:
         self.counts = torch.zeros(e, 3, dtype=torch.long, device=self.device)
         self.prev_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
         self.prev_near_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
+        self.assignment = torch.full((e, n), -1, dtype=torch.long, device=self.device)   # -1: not yet
         self._t_max = 0   # host-side upper bound of self.t, so most steps skip the done check
         self._not_done = torch.zeros(e, dtype=torch.bool, device=self.device)
         none = torch.zeros(0, dtype=torch.long, device=self.device)
         self._none_finished = EpisodeStats(none, none.bool(), none.to(dtype), none.to(dtype),
-                                           none, none, none, none)
+                                           none, none, none, none, none.bool())
+        self.penalty_scale = 1.0   # multiplies the reward's contact terms (a training curriculum sets it)
         self.generator = torch.Generator(device=self.device)
         self.seed(seed)
         self._lo = torch.tensor([self.radius, self.radius], **kw)
@@ -147,6 +150,7 @@ class BatchedFormationEnv:
         self.counts[ids] = 0
         self.prev_contact[ids] = False
         self.prev_near_contact[ids] = False
+        self.assignment[ids] = -1
         self._t_max = int(self.t.max())
 
     # ------------------------------------------------------------ observation
@@ -205,12 +209,15 @@ class BatchedFormationEnv:
             events, near_contact = self._contacts(frame, self.radius + margin, touched)
             new_contact = near_contact & ~self.prev_near_contact
             self.prev_near_contact = near_contact
-        reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance,
-                                       self.reward_weights, self.detour(self.pos),
+        w = self.reward_weights
+        d_detour = self.detour(self.pos)
+        reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance, w, d_detour,
                                        new_contact.any(-1),
-                                       proximity_ramp(frame, self.radius, self.arena,
-                                                      self.reward_weights.near_margin)
-                                       if self.reward_weights.w_near else None)
+                                       proximity_ramp(frame, self.radius, self.arena, w.near_margin)
+                                       if w.w_near else None,
+                                       self._sticky_assignment(d_detour)
+                                       if w.assignment_hysteresis and (w.w_assigned or w.w_own_arrive) else None,
+                                       self.penalty_scale)
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1
@@ -223,6 +230,16 @@ class BatchedFormationEnv:
         self._frame = frame if len(finished) == 0 else None
         obs, mask = self.observe()
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
+
+    def _sticky_assignment(self, cost: torch.Tensor) -> torch.Tensor:
+        """(E, N) assignment kept from the last step unless the optimal one of ``cost`` (E, N, N)
+        is shorter in total by more than ``assignment_hysteresis`` (see :mod:`sim.reward`)."""
+        best = optimal_assignment(cost)
+        current = self.assignment.clamp_min(0)
+        total = lambda sigma: torch.gather(cost, -1, sigma.unsqueeze(-1)).sum((-2, -1))  # noqa: E731
+        switch = (self.assignment[:, 0] < 0) | (total(best) < total(current) - self.reward_weights.assignment_hysteresis)
+        self.assignment = torch.where(switch.unsqueeze(-1), best, current)
+        return self.assignment
 
     def _contacts(self, frame: Frame, radius: float, touched: tuple[torch.Tensor, torch.Tensor]):
         """Collision events of discs of ``radius`` plus the wall and object stops of this step
@@ -262,7 +279,7 @@ class BatchedFormationEnv:
             env_ids=ids, success=out.success, final_distance=out.final_distance,
             episode_return=self.ret[ids].clone(), robot_collisions=self.counts[ids, 0].clone(),
             object_collisions=self.counts[ids, 1].clone(), wall_collisions=self.counts[ids, 2].clone(),
-            length=self.t[ids].clone())
+            length=self.t[ids].clone(), arrived=out.max_distance <= self.scenario.target_tolerance)
         self._reset_ids(ids)
         return stats
 

@@ -39,7 +39,8 @@ from sim.observations import LAYOUT_VERSION
 CHECKPOINT_FORMAT = "formation-stack/mappo"
 CHECKPOINT_VERSION = 1
 # The parts of BatchedFormationEnv that define where every episode stands.
-_ENV_TENSORS = ("pos", "vel", "t", "collided", "ret", "counts", "prev_contact", "prev_near_contact")
+_ENV_TENSORS = ("pos", "vel", "t", "collided", "ret", "counts", "prev_contact", "prev_near_contact",
+                "assignment")
 
 
 class CheckpointError(ValueError):
@@ -92,9 +93,15 @@ def load_actor(path: str | Path, num_robots: int | None = None, *, seed: int = 0
     ``seed``) for a different N; the MLP baseline only runs the N it was trained for.
     """
     data = load_checkpoint(path)
-    actor = actor_from_state(ActorConfig.from_dict(dict(data["config"]["actor"])), data["actor"],
+    actor = actor_from_state(ActorConfig.from_dict(dict(data["config"]["actor"])), policy_state(data),
                              int(data["num_robots"]), num_robots, accel_limit=data["accel_limit"], seed=seed)
     return actor.eval()
+
+
+def policy_state(data: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """The actor weights a checkpoint stands for: the averaged ``policy`` (see
+    ``MAPPOConfig.policy_ema``), or the last ``actor`` weights of checkpoints without one."""
+    return data.get("policy", data["actor"])
 
 
 def actor_from_state(config: ActorConfig, state: dict[str, torch.Tensor], trained_robots: int,
@@ -135,6 +142,9 @@ def load_env_state(env: BatchedFormationEnv, state: dict[str, torch.Tensor]) -> 
         current = getattr(env, name)
         if name not in state and name == "prev_near_contact":   # checkpoints from before the margin
             current.copy_(env.prev_contact)
+            continue
+        if name not in state and name == "assignment":          # ... and before sticky assignments
+            current.fill_(-1)
             continue
         saved = state[name]
         if saved.shape != current.shape:

@@ -62,6 +62,18 @@ class MAPPOConfig:
         norm_adv: normalise advantages per minibatch.
         value_norm: learn normalised values with running return statistics.
         target_kl: stop the epochs of an update early above this approximate KL (None: never).
+        policy_ema: decay of an exponential moving average of the actor's weights, updated
+            after every PPO update (``w_avg <- ema * w_avg + (1 - ema) * w``); the averaged actor
+            is the policy: it is evaluated, saved as ``policy`` in checkpoints and exported.
+            0 turns averaging off (the last weights are the policy). The deterministic policy of
+            this task sits close to the object; one update can move its path onto it, so the
+            last weights' success jumps between evaluations, and the average does not.
+        penalty_curriculum: k of the contact-penalty curriculum: the training world multiplies
+            its contact penalties by ``1 + k * a``, with ``a`` a running mean (weight 0.25 per
+            finished batch) of the fraction of training episodes that end with every robot on a
+            target. Early on robots must explore past each other and the object, and large
+            penalties teach them to stay put; once they arrive, a touch that costs little
+            return still fails the episode, so the penalty grows with competence. 0: off.
         seed: seeds the networks, the sampling noise and the start jitter.
         total_episodes: training budget in episodes.
         eval_interval: evaluate at least every this many training episodes.
@@ -99,6 +111,8 @@ class MAPPOConfig:
     norm_adv: bool = True
     value_norm: bool = True
     target_kl: float | None = None
+    policy_ema: float = 0.0
+    penalty_curriculum: float = 0.0
     seed: int = 0
     total_episodes: int = 2000
     eval_interval: int = 50
@@ -172,7 +186,7 @@ class MAPPOConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise TrainConfigError(f"{name} must be a positive number, got {value!r}")
-        for name in ("ent_coef", "vf_coef"):
+        for name in ("ent_coef", "vf_coef", "penalty_curriculum"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise TrainConfigError(f"{name} must be a number >= 0, got {value!r}")
@@ -180,6 +194,9 @@ class MAPPOConfig:
             value = getattr(self, name)
             if value is not None and not (isinstance(value, int | float) and value > 0):
                 raise TrainConfigError(f"{name} must be a positive number or null, got {value!r}")
+        if not (isinstance(self.policy_ema, int | float) and 0.0 <= self.policy_ema < 1.0):
+            raise TrainConfigError(f"policy_ema must be in [0, 1) (0 = no averaging; 0.9 averages "
+                                   f"~10 updates), got {self.policy_ema!r}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise TrainConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not isinstance(self.torch_threads, int) or self.torch_threads < 0:

@@ -17,6 +17,7 @@ Run directory: ``config.json``, ``train.jsonl/.csv`` (one row per iteration), ``
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -33,6 +34,7 @@ from controllers.mappo.checkpoint import (
     env_state_dict,
     load_checkpoint,
     load_env_state,
+    policy_state,
     save_checkpoint,
 )
 from controllers.mappo.config import RESUMABLE_CHANGES, MAPPOConfig, TrainConfigError
@@ -99,14 +101,19 @@ class MAPPOTrainer:
         self.transferred_from: str | None = None
         if cfg.init_from and not resume:
             self._transfer(cfg.init_from)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr, eps=1e-5)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr or cfg.lr, eps=1e-5)
+        self.policy = self._averaged_copy() if cfg.policy_ema else self.actor
+        # the fused kernel: one call per step instead of one per tensor (7x faster for these nets)
+        fused = self.device.type in ("cpu", "cuda")
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.lr, eps=1e-5, fused=fused)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr or cfg.lr, eps=1e-5,
+                                                 fused=fused)
         self.sampler = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
 
         self.reward_weights = cfg.build_reward_weights()
         self.env = BatchedFormationEnv(self.scenario, cfg.num_envs, seed=cfg.seed, device=self.device,
                                        obs=cfg.obs_kind, reward_weights=self.reward_weights)
         self.obs, self.mask = self.env.reset()
+        self.arrival_rate = 0.0     # running fraction of training episodes ending on target
         self.iteration = self.episodes = self.env_steps = self.eval_count = self.last_eval_episodes = 0
         self.wall_time_s = 0.0
         self.tracker = ConvergenceTracker(cfg.success_threshold)
@@ -196,10 +203,16 @@ class MAPPOTrainer:
         self.value_norm.update(returns)
         stats = self._update(obs_buf, mask_buf, actions, log_probs, advantages,
                              self.value_norm.normalize(returns), self.value_norm.normalize(values))
+        if self.policy is not self.actor:
+            self._average_policy()
 
         self.iteration += 1
         self.env_steps += s * e
         episodes_now = sum(len(f) for f in finished)
+        if episodes_now:
+            arrived = float(torch.cat([f.arrived for f in finished]).float().mean())
+            self.arrival_rate += 0.25 * (arrived - self.arrival_rate)
+            self.env.penalty_scale = 1.0 + cfg.penalty_curriculum * self.arrival_rate
         self.episodes += episodes_now
         self.wall_time_s += time.perf_counter() - start
         row = {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
@@ -207,7 +220,8 @@ class MAPPOTrainer:
                **_episode_summary(finished), "reward_mean": float(rewards.mean()),
                "explained_variance": explained_variance(values.reshape(-1), returns.reshape(-1)),
                "action_std": float(self.actor.log_std.detach().exp().mean()),
-               "lr": self.actor_optimizer.param_groups[0]["lr"], **stats}
+               "lr": self.actor_optimizer.param_groups[0]["lr"], "penalty_scale": self.env.penalty_scale,
+               **stats}
         self.train_log.append(row)
         return row
 
@@ -258,6 +272,21 @@ class MAPPOTrainer:
                 break
         return {k: v / steps for k, v in sums.items()}
 
+    def _averaged_copy(self) -> torch.nn.Module:
+        policy = copy.deepcopy(self.actor)
+        policy.requires_grad_(False)
+        return policy
+
+    @torch.no_grad()
+    def _average_policy(self) -> None:
+        """``policy <- ema * policy + (1 - ema) * actor``, parameters and buffers."""
+        weight = 1.0 - self.config.policy_ema
+        for avg, new in zip(self.policy.state_dict().values(), self.actor.state_dict().values(), strict=True):
+            if avg.is_floating_point():
+                avg.lerp_(new, weight)
+            else:
+                avg.copy_(new)
+
     # ------------------------------------------------------------ evaluation
     def eval_seed(self, index: int) -> int:
         """Seed of evaluation ``index``: fresh starts each time, reproducible per run."""
@@ -266,7 +295,7 @@ class MAPPOTrainer:
     def _evaluate(self) -> None:
         cfg = self.config
         start = time.perf_counter()
-        result = evaluate(self.actor, self.scenario, episodes=cfg.eval_episodes,
+        result = evaluate(self.policy, self.scenario, episodes=cfg.eval_episodes,
                           seed=self.eval_seed(self.eval_count), device=self.device,
                           reward_weights=self.reward_weights)
         converged = self.tracker.add(self.episodes, result.success_rate)
@@ -288,13 +317,13 @@ class MAPPOTrainer:
         save_checkpoint(path, {
             "num_robots": self.num_robots, "scenario": self.config.scenario_name, "accel_limit": self.accel_limit,
             "config": self.config.to_dict(),
-            "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "actor": self.actor.state_dict(), "policy": self.policy.state_dict(), "critic": self.critic.state_dict(),
             "value_norm": self.value_norm.state_dict(),
             "actor_optimizer": self.actor_optimizer.state_dict(),
             "critic_optimizer": self.critic_optimizer.state_dict(),
             "counters": {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
                          "eval_count": self.eval_count, "last_eval_episodes": self.last_eval_episodes,
-                         "wall_time_s": self.wall_time_s},
+                         "wall_time_s": self.wall_time_s, "arrival_rate": self.arrival_rate},
             "convergence": self.tracker.state_dict(), "last_eval": self.last_eval,
             "transferred_from": self.transferred_from,
             "rng": {"sampler": self.sampler.get_state()}, "env_state": env_state_dict(self.env),
@@ -312,6 +341,8 @@ class MAPPOTrainer:
                                        f"{theirs[key]!r} in the checkpoint; use the run's config.json "
                                        f"(only {sorted(ignored)} may change)")
         self.actor.load_state_dict(data["actor"])
+        if self.policy is not self.actor:
+            self.policy.load_state_dict(data.get("policy", data["actor"]))
         self.critic.load_state_dict(data["critic"])
         self.value_norm.load_state_dict(data["value_norm"])
         self.actor_optimizer.load_state_dict(data["actor_optimizer"])
@@ -320,6 +351,8 @@ class MAPPOTrainer:
         self.iteration, self.episodes, self.env_steps = c["iteration"], c["episodes"], c["env_steps"]
         self.eval_count, self.last_eval_episodes = c["eval_count"], c["last_eval_episodes"]
         self.wall_time_s = c["wall_time_s"]
+        self.arrival_rate = float(c.get("arrival_rate", 0.0))
+        self.env.penalty_scale = 1.0 + self.config.penalty_curriculum * self.arrival_rate
         self.tracker = ConvergenceTracker.from_state_dict(data["convergence"])
         self.last_eval = data["last_eval"]
         self.transferred_from = data["transferred_from"]
@@ -334,7 +367,7 @@ class MAPPOTrainer:
         data = load_checkpoint(path)
         source = checkpoint_config(data)
         mine, theirs = self.config.actor.to_dict(), source.actor.to_dict()
-        for key in ("variant", "embed_dim", "num_heads", "hidden_sizes", "input_scale"):
+        for key in ("variant", "embed_dim", "num_heads", "embed_hidden", "hidden_sizes", "input_scale"):
             if mine[key] != theirs[key]:
                 raise CheckpointError(f"init_from: actor.{key} is {theirs[key]!r} in {path!r} but {mine[key]!r} "
                                       "here; use the source run's actor settings")
@@ -342,7 +375,7 @@ class MAPPOTrainer:
             raise CheckpointError(f"init_from: the critic settings of {path!r} differ from this run's; "
                                   "use the source run's critic settings")
         m = int(data["num_robots"])
-        self.actor = actor_from_state(source.actor, data["actor"], m, self.num_robots,
+        self.actor = actor_from_state(source.actor, policy_state(data), m, self.num_robots,
                                       accel_limit=self.accel_limit, seed=self.config.seed).to(self.device)
         self.critic = critic_from_state(source.critic, data["critic"], m, self.num_robots).to(self.device)
         if source.value_norm == self.config.value_norm:

@@ -62,7 +62,7 @@ class TypedSDPAActor(nn.Module):
         self.action_dim = ACTION_DIM
         self.input_scale = float(config.input_scale)
         self.velocity_damping = float(config.velocity_damping)
-        self.embedding = TypedEmbedding(TOKEN_DIM, config.embed_dim)
+        self.embedding = TypedEmbedding(TOKEN_DIM, config.embed_dim, config.embed_hidden)
         self.head = AttentionHead(config.embed_dim, config.num_heads, config.hidden_sizes,
                                   ACTION_DIM, OUT_GAIN)
         self.log_std = nn.Parameter(torch.full((ACTION_DIM,), float(config.init_log_std)))

@@ -54,6 +54,8 @@ class ActorConfig:
             ``"mlp"``: the MLP-MAPPO baseline on the flat vector (fixed N).
         embed_dim: width D of the token embeddings (attention variants).
         num_heads: attention heads; must divide ``embed_dim``.
+        embed_hidden: width of a ReLU layer inside each token-type embedding of the typed
+            actor (0: the paper's linear embeddings).
         hidden_sizes: hidden ReLU layers of the head (the paper: one layer of 128).
         init_log_std: initial log standard deviation of the Gaussian action noise [log m/s^2].
         input_scale: observation features [m, m/s] are multiplied by this before embedding
@@ -67,6 +69,7 @@ class ActorConfig:
     variant: str = "typed"
     embed_dim: int = 64
     num_heads: int = 4
+    embed_hidden: int = 0
     hidden_sizes: tuple[int, ...] = (128,)
     init_log_std: float = -0.5
     input_scale: float = 10.0
@@ -84,6 +87,11 @@ class ActorConfig:
         if self.embed_dim % self.num_heads:
             raise PolicyConfigError(f"actor.num_heads ({self.num_heads}) must divide actor.embed_dim "
                                     f"({self.embed_dim}); e.g. embed_dim=64, num_heads=4")
+        if not isinstance(self.embed_hidden, int) or isinstance(self.embed_hidden, bool) or self.embed_hidden < 0:
+            raise PolicyConfigError(f"actor.embed_hidden must be an integer >= 0 (0: linear), got {self.embed_hidden!r}")
+        if self.embed_hidden and self.variant != "typed":
+            raise PolicyConfigError(f"actor.embed_hidden applies to the typed actor only; set it to 0 for "
+                                    f"variant {self.variant!r}")
         if not -5.0 <= float(self.init_log_std) <= 2.0:
             raise PolicyConfigError(f"actor.init_log_std must be in [-5, 2], got {self.init_log_std!r}")
         if not float(self.input_scale) > 0:
@@ -113,7 +121,7 @@ class CriticConfig:
     Attributes:
         variant: ``"attention"`` (entity tokens, any N) or ``"mlp"`` (flat vectors, fixed N;
             goes with the ``"mlp"`` actor).
-        embed_dim, num_heads, hidden_sizes: as in :class:`ActorConfig`.
+        embed_dim, num_heads, embed_hidden, hidden_sizes: as in :class:`ActorConfig`.
         value_mixing: epsilon of the paper's Equation (2),
             ``V_joint^i = eps * V^i + (1 - eps) * mean_j V^j``; 1.0 turns mixing off.
         input_scale: as in :class:`ActorConfig`.
@@ -122,6 +130,7 @@ class CriticConfig:
     variant: str = "attention"
     embed_dim: int = 64
     num_heads: int = 4
+    embed_hidden: int = 0
     hidden_sizes: tuple[int, ...] = (128,)
     value_mixing: float = 1.0
     input_scale: float = 4.0
@@ -138,6 +147,8 @@ class CriticConfig:
         if self.embed_dim % self.num_heads:
             raise PolicyConfigError(f"critic.num_heads ({self.num_heads}) must divide critic.embed_dim "
                                     f"({self.embed_dim})")
+        if not isinstance(self.embed_hidden, int) or isinstance(self.embed_hidden, bool) or self.embed_hidden < 0:
+            raise PolicyConfigError(f"critic.embed_hidden must be an integer >= 0 (0: linear), got {self.embed_hidden!r}")
         if not 0.0 <= float(self.value_mixing) <= 1.0:
             raise PolicyConfigError(f"critic.value_mixing must be in [0, 1] (1 = no mixing), "
                                     f"got {self.value_mixing!r}")

@@ -54,7 +54,7 @@ class AttentionCritic(nn.Module):
         self.input_scale = float(config.input_scale)
         self.value_mixing = float(config.value_mixing)
         self.token_dim = TOKEN_DIM
-        self.embedding = TypedEmbedding(TOKEN_DIM, d)
+        self.embedding = TypedEmbedding(TOKEN_DIM, d, config.embed_hidden)
         self.token_pool = AttentionHead(d, config.num_heads, (), d, 1.0)
         self.robot_attention = MultiHeadAttention(d, config.num_heads)
         self.value_head = mlp(2 * d, config.hidden_sizes, 1, 1.0)

@@ -57,20 +57,28 @@ class SlotLinear(nn.Module):
 
 
 class TypedEmbedding(nn.Module):
-    """One linear embedding per token type of the layout in :mod:`sim.observations`.
+    """One embedding per token type of the layout in :mod:`sim.observations`.
 
     ``(B, T = 2n+1, F) -> (B, T, D)``: token 0 (self) through ``embed_self``, tokens
     ``1..n`` (targets) through ``embed_target``, ``n+1..2n-1`` (other robots) through
-    ``embed_robot`` and token ``2n`` (object) through ``embed_object``. The weights do not
+    ``embed_robot`` and token ``2n`` (object) through ``embed_object``. Each is linear, or with
+    ``hidden`` > 0 a ReLU layer of that width and a linear one (a linear embedding cannot form
+    a distance such as the gap to the object out of the relative vector). The weights do not
     depend on n.
     """
 
-    def __init__(self, in_dim: int, dim: int):
+    def __init__(self, in_dim: int, dim: int, hidden: int = 0):
         super().__init__()
-        self.embed_self = nn.Linear(in_dim, dim)
-        self.embed_target = nn.Linear(in_dim, dim)
-        self.embed_robot = nn.Linear(in_dim, dim)
-        self.embed_object = nn.Linear(in_dim, dim)
+
+        def embed() -> nn.Module:
+            if hidden <= 0:
+                return nn.Linear(in_dim, dim)
+            return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, dim))
+
+        self.embed_self = embed()
+        self.embed_target = embed()
+        self.embed_robot = embed()
+        self.embed_object = embed()
 
     def forward(self, tokens: torch.Tensor, n: int) -> torch.Tensor:
         return torch.cat((self.embed_self(tokens[:, :1]),

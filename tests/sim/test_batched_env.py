@@ -183,3 +183,46 @@ def test_object_pushes_back_along_the_corner_normal():
     assert d == pytest.approx(0.04)
     assert env.vel[0, 0].abs().max().item() == pytest.approx(0.0, abs=1e-12)   # head-on: stopped
     assert env.counts[0, 1].item() == 1
+
+
+def test_sticky_assignment_switches_only_for_a_clear_gain():
+    from sim.reward import RewardWeights
+
+    env = BatchedFormationEnv(make_scenario("paper-3"), 1, seed=0,
+                              reward_weights=RewardWeights(w_assigned=1.0, assignment_hysteresis=0.05))
+    env.reset()
+    far = 9.0
+
+    def cost(a, b, c, d):   # robots 0, 1 choose between targets 0, 1; robot 2 keeps target 2
+        return torch.tensor([[[a, b, far], [c, d, far], [far, far, 0.0]]])
+
+    assert env._sticky_assignment(cost(0.1, 0.2, 0.2, 0.1))[0].tolist() == [0, 1, 2]   # fresh: optimal
+    # swapping saves 0.41 - 0.2 = 0.21 > 0.05: switch
+    assert env._sticky_assignment(cost(0.2, 0.1, 0.1, 0.21))[0].tolist() == [1, 0, 2]
+    # the optimum flips back, but saves only 0.24 - 0.21 = 0.03 < 0.05: keep
+    assert env._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [1, 0, 2]
+    env.reset()                                                                      # a new episode
+    assert env._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [0, 1, 2]
+
+
+def test_sticky_assignment_changes_the_reward_of_a_flipping_optimum():
+    from sim.reward import RewardWeights
+
+    sc = make_scenario("paper-3")
+    # step 1: robot 1 on the middle target (0.33, 0.5), robot 2 on the top one (0.33, 0.625);
+    # step 2: robot 1 at y = 0.57, robot 2 at y = 0.555, so swapping targets is 0.03 m shorter in
+    # total (0.055 + 0.055 against 0.07 + 0.07): the plain reward swaps, a 0.05 m hysteresis keeps
+    first = torch.tensor([[[0.33, 0.375], [0.33, 0.5], [0.33, 0.625]]], dtype=torch.float64)
+    second = torch.tensor([[[0.33, 0.375], [0.33, 0.57], [0.33, 0.555]]], dtype=torch.float64)
+    out = {}
+    for h in (0.0, 0.05):
+        env = BatchedFormationEnv(sc, 1, seed=0, dtype=torch.float64,
+                                  reward_weights=RewardWeights(w_dist=0.0, w_arrive=0.0, w_robot=0.0,
+                                                               w_assigned=1.0, assignment_hysteresis=h))
+        env.reset()
+        for pos in (first, second):
+            env.set_state(pos, torch.zeros_like(pos))
+            reward = env.step(torch.zeros(1, 3, 2, dtype=torch.float64)).reward[0]
+        out[h] = reward
+    assert out[0.0].tolist() == pytest.approx([0.0, -0.055, -0.055], abs=1e-6)
+    assert out[0.05].tolist() == pytest.approx([0.0, -0.07, -0.07], abs=1e-6)

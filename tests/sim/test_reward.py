@@ -104,6 +104,35 @@ def test_own_and_assigned_terms_by_hand():
     assert (base - assigned)[0].tolist() == pytest.approx([0.3, 0.2])
 
 
+def test_penalty_scale_multiplies_only_the_contact_terms():
+    from sim.reward import reward_from_distances
+
+    d = torch.tensor([[[0.1, 0.3], [0.2, 0.6]]])
+    pos = torch.tensor([[[0.2, 0.2], [0.23, 0.2]]])          # 3 cm apart: the robots overlap
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    onsets = torch.tensor([[True, False]])
+    w = RewardWeights(w_onset=2.0, w_assigned=1.0)
+    plain = reward_from_distances(d, ev, 0.05, w, onsets=onsets)
+    tripled = reward_from_distances(d, ev, 0.05, w, onsets=onsets, penalty_scale=3.0)
+    # robot 0 pays w_robot + w_onset = 2.5, robot 1 pays w_robot = 0.5; tripled: 2x more of each
+    assert (plain - tripled)[0].tolist() == pytest.approx([2 * 2.5, 2 * 0.5])
+
+
+def test_own_arrival_bonus_goes_to_the_robot_on_its_assigned_target():
+    from sim.reward import reward_from_distances
+
+    # the assignment is 0->1, 1->0 (0.04 + 0.3 < 0.02 + 0.5): robot 0 is within tolerance of its
+    # assigned target 1 (0.04 <= 0.05) and earns the bonus; robot 1 (0.3 from target 0) does not
+    d = torch.tensor([[[0.02, 0.04], [0.3, 0.5]]])
+    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    base = reward_from_distances(d, ev, 0.05, RewardWeights())
+    bonus = reward_from_distances(d, ev, 0.05, RewardWeights(w_own_arrive=0.7))
+    assert (bonus - base)[0].tolist() == pytest.approx([0.7, 0.0])
+    far = reward_from_distances(d + 0.05, ev, 0.05, RewardWeights(w_own_arrive=0.7))
+    assert (far - reward_from_distances(d + 0.05, ev, 0.05, RewardWeights()))[0].tolist() == [0.0, 0.0]
+
+
 def test_contact_margin_moves_the_penalty_not_the_statistics():
     from sim.batched_env import BatchedFormationEnv
 

@@ -61,25 +61,66 @@ def test_a_run_writes_config_logs_checkpoint_and_result(tmp_path):
         assert key in data
 
 
-def test_resume_continues_the_same_curve(tmp_path):
+@pytest.mark.parametrize("ema", [0.0, 0.5])
+def test_resume_continues_the_same_curve(tmp_path, ema):
     whole = tmp_path / "whole"
-    train(tiny(), whole)
+    train(tiny(policy_ema=ema), whole)
     parts = tmp_path / "parts"
-    first = train(tiny(total_episodes=4), parts)
+    first = train(tiny(total_episodes=4, policy_ema=ema), parts)
     assert first.iterations == 4
     # a crash after the checkpoint leaves rows the checkpoint does not cover: resume drops them
     with open(parts / "train.jsonl", "a") as f:
         f.write(json.dumps(rows(parts / "train.jsonl")[-1] | {"iteration": 5}) + "\n")
-    second = train(tiny(total_episodes=8), parts, resume=True)
+    second = train(tiny(total_episodes=8, policy_ema=ema), parts, resume=True)
     assert second.iterations == 8 and second.episodes == 8
     assert rows(parts / "train.jsonl") == rows(whole / "train.jsonl")
     assert rows(parts / "eval.jsonl") == rows(whole / "eval.jsonl")
     assert len((parts / "train.csv").read_text().splitlines()) == 9
     a = load_checkpoint(whole / "checkpoint.pt")
     b = load_checkpoint(parts / "checkpoint.pt")
-    for name in a["actor"]:
-        assert torch.equal(a["actor"][name], b["actor"][name]), name
+    for key in ("actor", "policy"):
+        for name in a[key]:
+            assert torch.equal(a[key][name], b[key][name]), (key, name)
     assert torch.equal(a["rng"]["sampler"], b["rng"]["sampler"])
+
+
+def test_policy_average_is_evaluated_saved_and_loaded(tmp_path):
+    trainer = MAPPOTrainer(tiny(policy_ema=0.75), tmp_path)
+    before = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
+    assert all(torch.equal(before[k], v) for k, v in trainer.actor.state_dict().items())
+    trainer._iteration()
+    after, actor = trainer.policy.state_dict(), trainer.actor.state_dict()
+    for name, old in before.items():      # w_avg <- 0.75 w_avg + 0.25 w
+        assert torch.allclose(after[name], 0.75 * old + 0.25 * actor[name]), name
+    changed = [k for k in actor if not torch.equal(actor[k], before[k])]
+    assert changed and all(not torch.equal(after[k], actor[k]) for k in changed)
+    trainer.save()
+    data = load_checkpoint(tmp_path / "checkpoint.pt")
+    loaded = load_actor(tmp_path / "checkpoint.pt").state_dict()
+    assert all(torch.equal(loaded[k], after[k]) for k in after)              # the policy is the average
+    assert all(torch.equal(data["actor"][k], actor[k]) for k in actor)       # training resumes from w
+    with pytest.raises(TrainConfigError, match="policy_ema"):
+        tiny(policy_ema=1.0)
+
+
+def test_penalty_curriculum_follows_the_arrival_rate(tmp_path):
+    trainer = MAPPOTrainer(tiny(penalty_curriculum=4.0), tmp_path)
+    assert trainer.env.penalty_scale == 1.0
+    arrived = []
+    for _ in range(8):                     # 32-step rollouts: 4 envs finish every 4th iteration
+        row = trainer._iteration()
+        if row["episodes_finished"]:
+            arrived.append(trainer.arrival_rate)
+    rate = 0.0
+    for _ in arrived:                      # the untrained robots never arrive: the rate stays 0
+        rate += 0.25 * (0.0 - rate)
+    assert len(arrived) == 2 and trainer.arrival_rate == rate == 0.0
+    trainer.arrival_rate = 0.5             # as if half the recent episodes had ended on target
+    trainer.env.penalty_scale = 1.0
+    trainer._iteration(), trainer._iteration(), trainer._iteration()
+    row = trainer._iteration()             # a batch finishes: 0.5 + 0.25 * (0 - 0.5) = 0.375
+    assert trainer.arrival_rate == pytest.approx(0.375)
+    assert row["penalty_scale"] == pytest.approx(1.0 + 4.0 * 0.375) == trainer.env.penalty_scale
 
 
 def test_resume_rejects_a_changed_config_and_a_fresh_run_refuses_a_used_directory(tmp_path):
