@@ -234,6 +234,8 @@ class BatchedFormationEnv:
     def _sticky_assignment(self, cost: torch.Tensor) -> torch.Tensor:
         """(E, N) assignment kept from the last step unless the optimal one of ``cost`` (E, N, N)
         is shorter in total by more than ``assignment_hysteresis`` (see :mod:`sim.reward`)."""
+        power = self.reward_weights.assignment_power
+        cost = cost if power == 1 else cost ** power
         best = optimal_assignment(cost)
         current = self.assignment.clamp_min(0)
         total = lambda sigma: torch.gather(cost, -1, sigma.unsqueeze(-1)).sum((-2, -1))  # noqa: E731

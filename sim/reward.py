@@ -25,6 +25,12 @@ not the collision statistics) are those of discs of radius r + m: a learner pena
 coming within m of anything keeps that margin, so a deterministic policy does not graze the
 object the way a policy trained on the exact contact does (it sits right at the edge).
 
+With ``assignment_power`` 2 sigma minimises the sum of *squared* detour distances (Turpin et al.'s
+CAPT assignment): where robots queue along one path to targets along it, the linear sums tie
+and the leader may be charged for the nearest target, which then blocks the follower's way to
+the far one; the squared sum sends the leader to the far target (a^2 + (b + s)^2 >
+(a + s)^2 + b^2 for a leader at a < b).
+
 With ``assignment_hysteresis`` h > 0 the batched world keeps each episode's assignment sigma
 from step to step and switches to the optimal one only when that is shorter in total by more
 than h metres: the optimum flips back and forth between near-equal assignments as robots move
@@ -75,7 +81,8 @@ class RewardWeights:
     near_margin: float = 0.03  # gap [m] at which the proximity cost starts
     detour_clearance: float = 0.01  # gap [m] the detour path keeps from the object
     contact_margin: float = 0.0     # the penalties count a gap below this [m] as contact
-    assignment_hysteresis: float = 0.0  # keep sigma until another is shorter by more than this [m]
+    assignment_hysteresis: float = 0.0  # keep sigma until another is cheaper by more than this [m^power]
+    assignment_power: float = 1.0   # sigma minimises sum_i d(p_i, g_sigma(i)) ** power
 
 
 def formation_reward(pos: torch.Tensor, targets: torch.Tensor, events: CollisionEvents,
@@ -114,7 +121,9 @@ def reward_from_distances(d: torch.Tensor, events: CollisionEvents, tolerance: f
     if weights.w_own:
         own = own + weights.w_own * to_robot
     if weights.w_assigned or weights.w_own_arrive:
-        sigma = (optimal_assignment(path) if sigma is None else sigma).unsqueeze(-1)   # (E, N, 1)
+        if sigma is None:
+            sigma = optimal_assignment(path if weights.assignment_power == 1 else path ** weights.assignment_power)
+        sigma = sigma.unsqueeze(-1)                                         # (E, N, 1)
         if weights.w_assigned:
             own = own + weights.w_assigned * torch.gather(path, -1, sigma).squeeze(-1)
         if weights.w_own_arrive:

@@ -83,7 +83,11 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def checkpoint_config(data: dict[str, Any]) -> MAPPOConfig:
-    return MAPPOConfig.from_dict(dict(data["config"]))
+    config = dict(data["config"])
+    for net in ("actor", "critic"):   # saved before token embeddings could have a hidden layer
+        if isinstance(config.get(net), dict) and "embed_hidden" not in config[net]:
+            config[net] = {**config[net], "embed_hidden": 0}
+    return MAPPOConfig.from_dict(config)
 
 
 def load_actor(path: str | Path, num_robots: int | None = None, *, seed: int = 0) -> nn.Module:
@@ -93,7 +97,7 @@ def load_actor(path: str | Path, num_robots: int | None = None, *, seed: int = 0
     ``seed``) for a different N; the MLP baseline only runs the N it was trained for.
     """
     data = load_checkpoint(path)
-    actor = actor_from_state(ActorConfig.from_dict(dict(data["config"]["actor"])), policy_state(data),
+    actor = actor_from_state(checkpoint_config(data).actor, policy_state(data),
                              int(data["num_robots"]), num_robots, accel_limit=data["accel_limit"], seed=seed)
     return actor.eval()
 

@@ -14,8 +14,8 @@ from controllers.policy.config import (
     dataclass_from_dict,
 )
 
-TRAINING_REWARD = {"w_dist": 0.0, "w_assigned": 1.0, "w_arrive": 0.5, "w_onset": 2.0,
-                   "detour_clearance": 0.03, "contact_margin": 0.01}
+TRAINING_REWARD = {"w_dist": 0.0, "w_assigned": 1.0, "assignment_power": 2.0, "w_arrive": 0.5,
+                   "w_own_arrive": 0.5, "w_onset": 2.0, "detour_clearance": 0.03, "contact_margin": 0.01}
 
 
 class TrainConfigError(PolicyConfigError):
@@ -37,7 +37,10 @@ class MAPPOConfig:
             ``{"w_object": 2.0}``) for training and evaluation; ``{}`` keeps the plain defaults.
             The default (:data:`TRAINING_REWARD`) is the shaping that learns paper-3: per-robot
             distance to the assigned target instead of the nearest-target cover (which has a
-            local optimum with two robots on one target), a larger arrival bonus, a one-off cost
+            local optimum with two robots on one target) with the assignment of least squared
+            distance (the linear one ties when robots queue, and the leader then blocks the
+            follower's target), a larger arrival bonus and one per robot
+            on its own target (the team bonus alone left robots stopping short), a one-off cost
             per new contact, a detour path 3 cm off the object and penalties that count a gap
             under 1 cm as contact (a policy trained on exact contact grazes the object).
         num_envs: parallel environments E of the training world.

@@ -55,7 +55,9 @@ class ActorConfig:
         embed_dim: width D of the token embeddings (attention variants).
         num_heads: attention heads; must divide ``embed_dim``.
         embed_hidden: width of a ReLU layer inside each token-type embedding of the typed
-            actor (0: the paper's linear embeddings).
+            actor (0: the paper's linear embeddings; None: 32 for ``typed``, 0 otherwise). A
+            linear embedding cannot form the gap to the object out of the relative vector, and
+            the typed actor learned paper-3 faster and held it longer with the layer.
         hidden_sizes: hidden ReLU layers of the head (the paper: one layer of 128).
         init_log_std: initial log standard deviation of the Gaussian action noise [log m/s^2].
         input_scale: observation features [m, m/s] are multiplied by this before embedding
@@ -69,7 +71,7 @@ class ActorConfig:
     variant: str = "typed"
     embed_dim: int = 64
     num_heads: int = 4
-    embed_hidden: int = 0
+    embed_hidden: int | None = None
     hidden_sizes: tuple[int, ...] = (128,)
     init_log_std: float = -0.5
     input_scale: float = 10.0
@@ -77,6 +79,8 @@ class ActorConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_sizes", _check_hidden("actor", self.hidden_sizes))
+        if self.embed_hidden is None:
+            object.__setattr__(self, "embed_hidden", 32 if self.variant == "typed" else 0)
         self.validate()
 
     def validate(self) -> None:

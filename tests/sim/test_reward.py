@@ -104,6 +104,21 @@ def test_own_and_assigned_terms_by_hand():
     assert (base - assigned)[0].tolist() == pytest.approx([0.3, 0.2])
 
 
+def test_squared_assignment_sends_the_leader_of_a_queue_to_the_far_target():
+    from sim.reward import reward_from_distances
+
+    # two robots queue along one path past the near target (0) to the far one (1), 0.125 m on:
+    # the leader is 0.1 m from target 0, the follower 0.3 m. Linear sums tie (0.1 + 0.425 =
+    # 0.225 + 0.3); squared sums pick leader -> far (0.0506 + 0.09 < 0.01 + 0.1806), and the
+    # charged distances stay linear: 0.225 for the leader, 0.3 for the follower
+    d = torch.tensor([[[0.1, 0.225], [0.3, 0.425]]])
+    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
+    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
+    base = reward_from_distances(d, ev, 0.05, RewardWeights())
+    squared = reward_from_distances(d, ev, 0.05, RewardWeights(w_assigned=1.0, assignment_power=2.0))
+    assert (base - squared)[0].tolist() == pytest.approx([0.225, 0.3])
+
+
 def test_penalty_scale_multiplies_only_the_contact_terms():
     from sim.reward import reward_from_distances
 
