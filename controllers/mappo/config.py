@@ -58,6 +58,11 @@ class MAPPOConfig:
         lr: Adam learning rate of the actor (1e-3 swings between grazing the object and not).
         critic_lr: Adam learning rate of the critic (None: ``lr``).
         anneal_lr: decay both rates linearly to 0 over ``total_episodes``.
+        lr_after_success: multiply both rates by this while the last evaluation's success rate
+            is >= ``success_threshold`` (1: off; default 0.2). The deterministic policy of this task is on a
+            knife edge (a path 1 cm off the object succeeds in every episode, one on it in none),
+            so full-size updates after a success often undo it: smaller steps keep a good
+            policy while the stochastic one goes on improving.
         update_epochs: passes over each rollout.
         num_minibatches: minibatches per pass (split over (step, env) pairs, all robots of a
             team stay together because the critic is centralised).
@@ -108,6 +113,7 @@ class MAPPOConfig:
     lr: float = 3e-4
     critic_lr: float | None = None
     anneal_lr: bool = False
+    lr_after_success: float = 0.2
     update_epochs: int = 10
     num_minibatches: int = 4
     max_grad_norm: float = 0.5
@@ -185,7 +191,7 @@ class MAPPOConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and lo <= value <= hi):
                 raise TrainConfigError(f"{name} must be in [{lo}, {hi}], got {value!r}")
-        for name in ("clip_coef", "lr", "max_grad_norm"):
+        for name in ("clip_coef", "lr", "max_grad_norm", "lr_after_success"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise TrainConfigError(f"{name} must be a positive number, got {value!r}")

@@ -167,10 +167,11 @@ class MAPPOTrainer:
         cfg = self.config
         start = time.perf_counter()
         s, e, n = cfg.rollout_steps, cfg.num_envs, self.num_robots
-        if cfg.anneal_lr:
-            frac = max(0.0, 1.0 - self.episodes / cfg.total_episodes)
-            for opt, lr in ((self.actor_optimizer, cfg.lr), (self.critic_optimizer, cfg.critic_lr or cfg.lr)):
-                opt.param_groups[0]["lr"] = frac * lr
+        scale = max(0.0, 1.0 - self.episodes / cfg.total_episodes) if cfg.anneal_lr else 1.0
+        if self.last_eval is not None and self.last_eval["success_rate"] >= cfg.success_threshold:
+            scale *= cfg.lr_after_success
+        for opt, lr in ((self.actor_optimizer, cfg.lr), (self.critic_optimizer, cfg.critic_lr or cfg.lr)):
+            opt.param_groups[0]["lr"] = scale * lr
 
         obs_buf = self.obs.new_empty((s, *self.obs.shape))
         mask_buf = None if self.mask is None else self.mask.new_empty((s, *self.mask.shape))

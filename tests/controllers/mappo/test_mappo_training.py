@@ -123,6 +123,17 @@ def test_penalty_curriculum_follows_the_arrival_rate(tmp_path):
     assert row["penalty_scale"] == pytest.approx(1.0 + 4.0 * 0.375) == trainer.env.penalty_scale
 
 
+def test_learning_rate_drops_while_the_last_evaluation_succeeds(tmp_path):
+    trainer = MAPPOTrainer(tiny(lr=1e-3, critic_lr=2e-3, lr_after_success=0.25), tmp_path)
+    trainer.last_eval = {"success_rate": 0.95}
+    assert trainer._iteration()["lr"] == pytest.approx(0.25e-3)
+    assert trainer.critic_optimizer.param_groups[0]["lr"] == pytest.approx(0.5e-3)
+    trainer.last_eval = {"success_rate": 0.85}          # below the 0.9 threshold: full rate again
+    assert trainer._iteration()["lr"] == pytest.approx(1e-3)
+    with pytest.raises(TrainConfigError, match="lr_after_success"):
+        tiny(lr_after_success=0.0)
+
+
 def test_resume_rejects_a_changed_config_and_a_fresh_run_refuses_a_used_directory(tmp_path):
     train(tiny(total_episodes=4), tmp_path)
     with pytest.raises(TrainConfigError, match="'lr'"):
