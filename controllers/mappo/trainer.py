@@ -10,6 +10,9 @@ One iteration::
               vf_coef * value loss on normalised returns (critic), gradient norm clipping
     evaluate  when due (at least every eval_interval episodes): eval_episodes deterministic
               episodes on fresh starts; the convergence rule of controllers.mappo.evaluate
+    schedule  both learning rates x lr_after_success while the last evaluation succeeded
+              (x (1 - episodes / total) too with anneal_lr); with policy_ema the averaged
+              actor is the one evaluated and saved as the policy
 
 Run directory: ``config.json``, ``train.jsonl/.csv`` (one row per iteration), ``eval.jsonl/.csv``
 (one row per evaluation), ``checkpoint.pt`` (latest), ``result.json`` (at the end).
