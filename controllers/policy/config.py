@@ -153,6 +153,9 @@ class CriticConfig:
                                     f"({self.embed_dim})")
         if not isinstance(self.embed_hidden, int) or isinstance(self.embed_hidden, bool) or self.embed_hidden < 0:
             raise PolicyConfigError(f"critic.embed_hidden must be an integer >= 0 (0: linear), got {self.embed_hidden!r}")
+        if self.embed_hidden and self.variant != "attention":
+            raise PolicyConfigError("critic.embed_hidden applies to the attention critic only; set it to 0 "
+                                    f"for variant {self.variant!r}")
         if not 0.0 <= float(self.value_mixing) <= 1.0:
             raise PolicyConfigError(f"critic.value_mixing must be in [0, 1] (1 = no mixing), "
                                     f"got {self.value_mixing!r}")

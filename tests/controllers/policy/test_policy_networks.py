@@ -11,6 +11,7 @@ from controllers.policy import (
     SlotSDPAActor,
     build_actor,
     build_critic,
+    count_parameters,
     gaussian_entropy,
     gaussian_log_prob,
     grow_slot_actor,
@@ -202,3 +203,18 @@ def test_config_errors_name_the_field():
     with pytest.raises(PolicyConfigError, match="unknown actor field"):
         ActorConfig.from_dict({"variant": "typed", "depth": 3})
     assert ActorConfig.from_dict(ActorConfig(hidden_sizes=[64, 64]).to_dict()) == ActorConfig(hidden_sizes=(64, 64))
+
+
+def test_embedding_hidden_layer_defaults_per_variant_and_is_checked():
+    assert ActorConfig().embed_hidden == 32 and ActorConfig(variant="slot").embed_hidden == 0
+    assert ActorConfig(variant="mlp").embed_hidden == 0 and ActorConfig(embed_hidden=0).embed_hidden == 0
+    with pytest.raises(PolicyConfigError, match="actor.embed_hidden"):
+        ActorConfig(variant="slot", embed_hidden=16)
+    with pytest.raises(PolicyConfigError, match="critic.embed_hidden"):
+        CriticConfig(variant="mlp", embed_hidden=16)
+    with pytest.raises(PolicyConfigError, match="actor.embed_hidden"):
+        ActorConfig(embed_hidden=-1)
+    obs = torch.randn(2, 4, 9, 4)
+    linear, hidden = build_actor(ActorConfig(embed_hidden=0), 4), build_actor(ActorConfig(embed_hidden=8), 4)
+    assert linear(obs).shape == hidden(obs).shape == (2, 4, 2)
+    assert count_parameters(hidden) != count_parameters(linear)
