@@ -25,7 +25,7 @@ import torch
 from sim import observations
 from sim.geometry import DetourDistance, DetourField, Frame, Polygon
 from sim.metrics import episode_outcome, frame_collisions, optimal_assignment
-from sim.reward import RewardWeights, proximity_ramp, reward_from_distances
+from sim.reward import RewardWeights, assignment_cost, proximity_ramp, reward_from_distances
 from sim.scenario import Scenario
 
 
@@ -231,15 +231,17 @@ class BatchedFormationEnv:
         obs, mask = self.observe()
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
 
-    def _sticky_assignment(self, cost: torch.Tensor) -> torch.Tensor:
-        """(E, N) assignment kept from the last step unless the optimal one of ``cost`` (E, N, N)
-        is shorter in total by more than ``assignment_hysteresis`` (see :mod:`sim.reward`)."""
-        power = self.reward_weights.assignment_power
-        cost = cost if power == 1 else cost ** power
+    def _sticky_assignment(self, path: torch.Tensor) -> torch.Tensor:
+        """(E, N) assignment kept from the last step unless the optimal one for the (E, N, N)
+        distances ``path`` is cheaper in total by more than ``assignment_hysteresis``
+        (see :mod:`sim.reward`)."""
+        cost = assignment_cost(path, self.reward_weights.assignment_power)
         best = optimal_assignment(cost)
         current = self.assignment.clamp_min(0)
-        total = lambda sigma: torch.gather(cost, -1, sigma.unsqueeze(-1)).sum((-2, -1))  # noqa: E731
-        switch = (self.assignment[:, 0] < 0) | (total(best) < total(current) - self.reward_weights.assignment_hysteresis)
+        sigmas = torch.stack((best, current)).unsqueeze(-1)                            # (2, E, N, 1)
+        totals = torch.gather(cost.expand(2, *cost.shape), -1, sigmas).sum((-2, -1))   # (2, E)
+        fresh = self.assignment[:, 0] < 0
+        switch = fresh | (totals[0] < totals[1] - self.reward_weights.assignment_hysteresis)
         self.assignment = torch.where(switch.unsqueeze(-1), best, current)
         return self.assignment
 

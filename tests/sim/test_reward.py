@@ -88,35 +88,37 @@ def test_proximity_ramp_by_hand():
         proximity_ramp(_frame([[0.2, 0.2]]), 0.04, (1.0, 1.0), 0.0)
 
 
-def test_own_and_assigned_terms_by_hand():
+# two robots far apart and from the object: no contact term, only the distance terms differ
+APART = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
+
+
+def _added(d: torch.Tensor, **weights) -> list[float]:
+    """Per-robot reward that ``weights`` add to the default reward at distances ``d`` (1, 2, 2)."""
     from sim.reward import reward_from_distances
 
+    ev = collision_events(APART, POLY, 0.04, (1.0, 1.0))
+    return (reward_from_distances(d, ev, 0.05, RewardWeights(**weights))
+            - reward_from_distances(d, ev, 0.05, RewardWeights()))[0].tolist()
+
+
+def test_own_and_assigned_terms_by_hand():
     # straight distances, robot i -> target k: both robots nearest to target 0, so the nearest-
     # target term charges 0.1 and 0.2, but the best one-to-one assignment is 0->1, 1->0
     # (0.3 + 0.2 = 0.5 < 0.1 + 0.6), so the assignment term charges 0.3 and 0.2
     d = torch.tensor([[[0.1, 0.3], [0.2, 0.6]]])
-    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
-    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
-    base = reward_from_distances(d, ev, 0.05, RewardWeights())
-    own = reward_from_distances(d, ev, 0.05, RewardWeights(w_own=2.0))
-    assigned = reward_from_distances(d, ev, 0.05, RewardWeights(w_assigned=1.0))
-    assert (base - own)[0].tolist() == pytest.approx([0.2, 0.4])
-    assert (base - assigned)[0].tolist() == pytest.approx([0.3, 0.2])
+    assert _added(d, w_own=2.0) == pytest.approx([-0.2, -0.4])
+    assert _added(d, w_assigned=1.0) == pytest.approx([-0.3, -0.2])
 
 
 def test_squared_assignment_sends_the_leader_of_a_queue_to_the_far_target():
-    from sim.reward import reward_from_distances
-
-    # two robots queue along one path past the near target (0) to the far one (1), 0.125 m on:
-    # the leader is 0.1 m from target 0, the follower 0.3 m. Linear sums tie (0.1 + 0.425 =
-    # 0.225 + 0.3); squared sums pick leader -> far (0.0506 + 0.09 < 0.01 + 0.1806), and the
-    # charged distances stay linear: 0.225 for the leader, 0.3 for the follower
-    d = torch.tensor([[[0.1, 0.225], [0.3, 0.425]]])
-    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
-    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
-    base = reward_from_distances(d, ev, 0.05, RewardWeights())
-    squared = reward_from_distances(d, ev, 0.05, RewardWeights(w_assigned=1.0, assignment_power=2.0))
-    assert (base - squared)[0].tolist() == pytest.approx([0.225, 0.3])
+    # two robots queue along one path past the near target (0) to the far one (1): the leader
+    # is 0.1 m from target 0 and 0.225 m from target 1, the follower 0.3 m and 0.42 m. Linear sums
+    # send the leader to the near target (0.1 + 0.42 = 0.52 < 0.225 + 0.3 = 0.525), where it
+    # blocks the follower; squared sums send it to the far one (0.0506 + 0.09 < 0.01 + 0.1764).
+    # The charged distances stay linear.
+    d = torch.tensor([[[0.1, 0.225], [0.3, 0.42]]])
+    assert _added(d, w_assigned=1.0) == pytest.approx([-0.1, -0.42])
+    assert _added(d, w_assigned=1.0, assignment_power=2.0) == pytest.approx([-0.225, -0.3])
 
 
 def test_penalty_scale_multiplies_only_the_contact_terms():
@@ -134,18 +136,11 @@ def test_penalty_scale_multiplies_only_the_contact_terms():
 
 
 def test_own_arrival_bonus_goes_to_the_robot_on_its_assigned_target():
-    from sim.reward import reward_from_distances
-
     # the assignment is 0->1, 1->0 (0.04 + 0.3 < 0.02 + 0.5): robot 0 is within tolerance of its
     # assigned target 1 (0.04 <= 0.05) and earns the bonus; robot 1 (0.3 from target 0) does not
     d = torch.tensor([[[0.02, 0.04], [0.3, 0.5]]])
-    pos = torch.tensor([[[0.2, 0.2], [0.8, 0.2]]])
-    ev = collision_events(pos, POLY, 0.04, (1.0, 1.0))
-    base = reward_from_distances(d, ev, 0.05, RewardWeights())
-    bonus = reward_from_distances(d, ev, 0.05, RewardWeights(w_own_arrive=0.7))
-    assert (bonus - base)[0].tolist() == pytest.approx([0.7, 0.0])
-    far = reward_from_distances(d + 0.05, ev, 0.05, RewardWeights(w_own_arrive=0.7))
-    assert (far - reward_from_distances(d + 0.05, ev, 0.05, RewardWeights()))[0].tolist() == [0.0, 0.0]
+    assert _added(d, w_own_arrive=0.7) == pytest.approx([0.7, 0.0])
+    assert _added(d + 0.05, w_own_arrive=0.7) == [0.0, 0.0]
 
 
 def test_contact_margin_moves_the_penalty_not_the_statistics():
