@@ -123,6 +123,25 @@ def actor_from_state(config: ActorConfig, state: dict[str, torch.Tensor], traine
                           "size is fixed by N; use actor.variant='typed' or 'slot' for transfer")
 
 
+def shrink_perturb(module: nn.Module, fresh: nn.Module, keep: float) -> nn.Module:
+    """``w <- keep * w + (1 - keep) * w_fresh`` for every floating-point tensor of ``module``.
+
+    ``fresh`` has the same architecture with a fresh initialisation; ``keep = 1`` leaves
+    ``module`` unchanged. Returns ``module`` (changed in place).
+    """
+    if not 0.0 < keep <= 1.0:
+        raise ValueError(f"keep must be in (0, 1], got {keep!r}")
+    mine, theirs = module.state_dict(), fresh.state_dict()
+    if mine.keys() != theirs.keys() or any(mine[k].shape != theirs[k].shape for k in mine):
+        raise ValueError("shrink_perturb needs two networks of the same architecture")
+    if keep < 1.0:
+        with torch.no_grad():
+            for name, value in mine.items():
+                if value.is_floating_point():
+                    value.mul_(keep).add_(theirs[name].to(value.device), alpha=1.0 - keep)
+    return module
+
+
 def critic_from_state(config: CriticConfig, state: dict[str, torch.Tensor], trained_robots: int,
                       num_robots: int) -> nn.Module:
     """Rebuild a critic and check it can serve ``num_robots`` (the attention critic runs any N)."""

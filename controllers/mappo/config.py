@@ -91,6 +91,12 @@ class MAPPOConfig:
         stop_at_convergence: end the run once the convergence rule is met.
         checkpoint_interval: save ``checkpoint.pt`` every this many iterations (and at the end).
         init_from: checkpoint of an M-robot run to start from (transfer learning), or None.
+        init_keep: how much of the ``init_from`` weights to keep ("shrink and perturb", Ash &
+            Adams 2020): every actor and critic parameter starts at
+            ``init_keep * w_transferred + (1 - init_keep) * w_fresh`` with ``w_fresh`` this
+            run's own seeded initialisation. 1 keeps the M-robot networks as they are; smaller
+            values keep their direction but restore some of the plasticity and exploration
+            (log-std) of a fresh network.
         device: torch device.
         torch_threads: ``torch.set_num_threads`` for the run (0 leaves it alone; 1 is fastest
             for these small networks and robust on a busy machine).
@@ -130,6 +136,7 @@ class MAPPOConfig:
     stop_at_convergence: bool = True
     checkpoint_interval: int = 20
     init_from: str | None = None
+    init_keep: float = 1.0
     device: str = "cpu"
     torch_threads: int = 1
     progress: bool = True
@@ -206,6 +213,9 @@ class MAPPOConfig:
         if not (isinstance(self.policy_ema, int | float) and 0.0 <= self.policy_ema < 1.0):
             raise TrainConfigError(f"policy_ema must be in [0, 1) (0 = no averaging; 0.9 averages "
                                    f"~10 updates), got {self.policy_ema!r}")
+        if not (isinstance(self.init_keep, int | float) and 0.0 < self.init_keep <= 1.0):
+            raise TrainConfigError(f"init_keep must be in (0, 1] (1 = keep the init_from weights as they "
+                                   f"are), got {self.init_keep!r}")
         if not isinstance(self.seed, int) or self.seed < 0:
             raise TrainConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not isinstance(self.torch_threads, int) or self.torch_threads < 0:

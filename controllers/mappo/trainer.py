@@ -39,6 +39,7 @@ from controllers.mappo.checkpoint import (
     load_env_state,
     policy_state,
     save_checkpoint,
+    shrink_perturb,
 )
 from controllers.mappo.config import RESUMABLE_CHANGES, MAPPOConfig, TrainConfigError
 from controllers.mappo.evaluate import (
@@ -377,9 +378,12 @@ class MAPPOTrainer:
             raise CheckpointError(f"init_from: the critic settings of {path!r} differ from this run's; "
                                   "use the source run's critic settings")
         m = int(data["num_robots"])
+        fresh_actor, fresh_critic = self.actor, self.critic
         self.actor = actor_from_state(source.actor, policy_state(data), m, self.num_robots,
                                       accel_limit=self.accel_limit, seed=self.config.seed).to(self.device)
         self.critic = critic_from_state(source.critic, data["critic"], m, self.num_robots).to(self.device)
+        shrink_perturb(self.actor, fresh_actor, self.config.init_keep)
+        shrink_perturb(self.critic, fresh_critic, self.config.init_keep)
         if source.value_norm == self.config.value_norm:
             self.value_norm.load_state_dict(data["value_norm"])
         self.transferred_from = str(path)

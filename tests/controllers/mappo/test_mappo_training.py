@@ -171,6 +171,28 @@ def test_three_robot_checkpoint_starts_four_and_five_robot_runs(tmp_path, varian
         assert result.num_robots == n and result.episodes == 4
 
 
+def test_init_keep_mixes_the_transferred_weights_with_the_runs_own_fresh_ones(tmp_path):
+    source = MAPPOTrainer(tiny(), tmp_path / "three")
+    with torch.no_grad():
+        for p in [*source.actor.parameters(), *source.critic.parameters()]:
+            p.add_(0.5)
+    ckpt = source.save()
+    fresh = MAPPOTrainer(tiny(scenario="paper-5", seed=7), tmp_path / "fresh")
+    mixed = MAPPOTrainer(tiny(scenario="paper-5", seed=7, init_from=str(ckpt), init_keep=0.25),
+                         tmp_path / "mixed")
+    for net in ("actor", "critic"):
+        want_old = getattr(source, net).state_dict()
+        want_new = getattr(fresh, net).state_dict()
+        for name, value in getattr(mixed, net).state_dict().items():
+            assert torch.allclose(value, 0.25 * want_old[name] + 0.75 * want_new[name], atol=1e-6), name
+    # log-std, too: 0.25 * (-0.5 + 0.5) + 0.75 * (-0.5)
+    assert torch.allclose(mixed.actor.log_std, torch.full((2,), -0.375))
+    with pytest.raises(TrainConfigError, match="init_keep"):
+        tiny(init_keep=0.0)
+    with pytest.raises(TrainConfigError, match="init_keep"):
+        tiny(init_keep=1.5)
+
+
 def test_typed_zero_shot_policy_is_the_trained_one(tmp_path):
     source = MAPPOTrainer(tiny(), tmp_path / "three")
     ckpt = source.save()
