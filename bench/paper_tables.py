@@ -188,14 +188,22 @@ def main(argv: list[str] | None = None) -> int:
                  f"{r['episodes']} episodes, {r['wall_s']:.0f} s")
         return name, r
 
-    first = [n for n in names if not setting(n).transfer_from]
-    second = [n for n in names if setting(n).transfer_from]
+    transfers = [n for n in names if setting(n).transfer_from]
+    others = [n for n in names if n != "sdpa-3" and not setting(n).transfer_from]
     with ThreadPoolExecutor(args.jobs) as pool:
-        # sdpa-3 first so the transfer runs of a seed can start as soon as its checkpoint exists
-        order = sorted(first, key=lambda n: n != "sdpa-3")
-        for name, r in pool.map(lambda a: job(*a), [(n, s) for n in order for s in seeds]):
-            results[name].append(r)
-        for name, r in pool.map(lambda a: job(*a), [(n, s) for n in second for s in seeds]):
+        # sdpa-3 first, then the transfer runs (each waits for its seed's sdpa-3 checkpoint,
+        # which is already running by then), then the other from-scratch settings
+        source = {s: pool.submit(job, "sdpa-3", s) for s in seeds} if "sdpa-3" in names else {}
+
+        def transfer_job(name: str, seed: int) -> tuple[str, dict]:
+            source[seed].result()
+            return job(name, seed)
+
+        futures = [source[s] for s in seeds] if source else []
+        futures += [pool.submit(transfer_job, n, s) for n in transfers for s in seeds]
+        futures += [pool.submit(job, n, s) for n in others for s in seeds]
+        for future in futures:
+            name, r = future.result()
             results[name].append(r)
         zero = {}
         if "sdpa-3" in names:

@@ -96,7 +96,10 @@ class MAPPOConfig:
             ``init_keep * w_transferred + (1 - init_keep) * w_fresh`` with ``w_fresh`` this
             run's own seeded initialisation. 1 keeps the M-robot networks as they are; smaller
             values keep their direction but restore some of the plasticity and exploration
-            (log-std) of a fresh network.
+            (log-std) of a fresh network. Default 0.5: paper-3 -> paper-5 with every weight
+            kept (1.0) converged in 1 of 5 seeds within 1700 episodes (the 3-robot policy sent
+            three robots onto the middle target and had stopped exploring); with 0.5 seeds 0
+            and 1 converged at 528 episodes (0.25: no convergence by 672 on seed 1).
         device: torch device.
         torch_threads: ``torch.set_num_threads`` for the run (0 leaves it alone; 1 is fastest
             for these small networks and robust on a busy machine).
@@ -136,7 +139,7 @@ class MAPPOConfig:
     stop_at_convergence: bool = True
     checkpoint_interval: int = 20
     init_from: str | None = None
-    init_keep: float = 1.0
+    init_keep: float = 0.5
     device: str = "cpu"
     torch_threads: int = 1
     progress: bool = True

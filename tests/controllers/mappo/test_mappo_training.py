@@ -151,7 +151,7 @@ def test_three_robot_checkpoint_starts_four_and_five_robot_runs(tmp_path, varian
     source.value_norm.update(torch.tensor([-3.0, -1.0]))
     ckpt = source.save()
     for n in (4, 5):
-        run = MAPPOTrainer(tiny(scenario=f"paper-{n}", init_from=str(ckpt),
+        run = MAPPOTrainer(tiny(scenario=f"paper-{n}", init_from=str(ckpt), init_keep=1.0,
                                 actor=SMALL_NET | {"variant": variant}), tmp_path / f"to{n}")
         grown, trained = run.actor.state_dict(), source.actor.state_dict()
         for name, value in trained.items():
