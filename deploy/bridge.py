@@ -49,13 +49,17 @@ ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because the states ar
 class BridgeConfig:
     """ttl_ms: command validity; stale_after_s / estop_after_s: state ages [s];
     gather_s: how long a tick waits for the rest of a burst of states [s];
-    episode_ticks: ticks per fleet episode (see the module docstring), or None."""
+    episode_ticks: ticks per fleet episode (see the module docstring), or None;
+    lossless: publish commands with congestion control BLOCK, for a lock-stepped fleet that
+    waits for every answer (``fleet-sim --lockstep``); the default DROP is for real time
+    (see :mod:`deploy.transport`, Delivery)."""
 
     ttl_ms: int = 150
     stale_after_s: float = 0.3
     estop_after_s: float = 1.0
     gather_s: float = 0.01
     episode_ticks: int | None = None
+    lossless: bool = False
 
     def __post_init__(self) -> None:
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
@@ -106,7 +110,7 @@ class Bridge:
         self.targets = {r: np.asarray(targets[r], dtype=np.float64) for r in registry.names}
         self.object_pose = np.asarray(object_pose, dtype=np.float64)
         self.config = config
-        self.link = FleetLink(fleet, registry, transport)
+        self.link = FleetLink(fleet, registry, transport, lossless=config.lossless)
         self.stats = BridgeStats()
         self._answered: dict[str, int] = {}  # robot -> state seq last answered
         self._stop = threading.Event()

@@ -9,7 +9,9 @@ Pacing:
     * real time: one tick every ``1 / rate_hz`` seconds of wall time;
     * lock-step (tests): after publishing the states of tick k, wait until every online robot
       holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
-      then advance. Deterministic when the controller is.
+      then advance. Deterministic when the controller is. States are published lossless
+      (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none;
+      run the controller lossless too (``bridge --lossless``).
 
 Episodes (``episodes=K``): the world is reset with seed ``seed + k`` at the start of episode
 k and runs the scenario's ``episode_steps`` ticks T; the run ends after K episodes. Global
@@ -168,7 +170,7 @@ class FleetSim:
     # ------------------------------------------------------------------ links
     def _open_link(self, robot: _Robot) -> None:
         robot.link = RobotLink(self.config.fleet, robot.name, self.registry, self.session,
-                               shared_clock=False)
+                               shared_clock=False, lossless=self.config.rate_hz is None)
         robot.seen = (0, 0)
 
     def _close_link(self, robot: _Robot) -> None:

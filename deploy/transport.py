@@ -25,6 +25,15 @@ Readiness: each link declares its subscriptions before its liveliness token, so 
 controller sees a robot's token (``alive_robots``) its commands reach that robot, and once a
 robot sees ``controller_alive`` its states reach the controller. Peers do not relay for each
 other: whoever must reach a robot directly connects to it.
+
+Delivery of states and commands: by default their publishers use congestion control DROP, as
+a real-time link should: when the transmit pipeline is stalled the message is lost, never
+queued behind older ones, and the next tick's message replaces it. A stalled pipeline needs no
+network: a starved CPU is enough (a 180-tick lock-step run with four busy loops on two cores
+lost an answer on 15-50 ticks). A lock-stepped simulation waits for every answer, so there a
+lost message stalls the tick until the lock-step timeout and the robot acts one tick late:
+links opened with ``lossless=True`` publish with BLOCK instead (the sender waits for room).
+The e-stop is always BLOCK.
 """
 
 from __future__ import annotations
@@ -182,7 +191,8 @@ class _Link:
     """Session ownership, driver threads, the shared lock and clean close."""
 
     def __init__(self, transport: TransportConfig | zenoh.Session,
-                 clock_ns: Callable[[], int]):
+                 clock_ns: Callable[[], int], lossless: bool = False):
+        self.lossless = bool(lossless)
         if isinstance(transport, TransportConfig):
             self.session = transport.open()
             self._owns_session = True
@@ -199,6 +209,11 @@ class _Link:
         self._closed = False
         self._entities: list = []  # undeclared in reverse order on close
         self._threads: list[threading.Thread] = []
+
+    @property
+    def data_congestion_control(self) -> zenoh.CongestionControl:
+        """Congestion control of the state and command publishers (see ``lossless``)."""
+        return zenoh.CongestionControl.BLOCK if self.lossless else zenoh.CongestionControl.DROP
 
     def _subscribe(self, declared, on_item: Callable, name: str) -> None:
         """Keep a declared subscriber/queryable and start its driver thread."""
@@ -281,15 +296,17 @@ class FleetLink(_Link):
         clock_ns: the controller's monotonic clock [ns].
         shared_clock: robots share ``clock_ns`` (same host): also reject FROM_FUTURE sends.
         queue_capacity: ring size of each inbound channel (oldest dropped when full).
+        lossless: publish commands with congestion control BLOCK instead of DROP (module
+            docstring, Delivery): for a lock-stepped fleet, where every command is awaited.
     """
 
     def __init__(self, fleet: str, registry: RobotRegistry,
                  transport: TransportConfig | zenoh.Session, *,
                  clock_ns: Callable[[], int] = time.monotonic_ns, shared_clock: bool = False,
-                 queue_capacity: int = 256):
+                 queue_capacity: int = 256, lossless: bool = False):
         self.keys = FleetKeys(fleet)
         self.registry = registry
-        super().__init__(transport, clock_ns)
+        super().__init__(transport, clock_ns, lossless)
         self.decoder = WireDecoder(registry, clock_ns if shared_clock else None,
                                    counter=self.rejects)
         self._states: dict[str, ReceivedState] = {}
@@ -318,7 +335,7 @@ class FleetLink(_Link):
                         self._on_estop_query, "estop-query")
         self._cmd_publishers = {
             robot: s.declare_publisher(self.keys.cmd(robot),
-                                       congestion_control=zenoh.CongestionControl.DROP,
+                                       congestion_control=self.data_congestion_control,
                                        priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
             for robot in self.registry.names}
         self._entities.extend(self._cmd_publishers.values())
@@ -464,12 +481,15 @@ class RobotLink(_Link):
         shared_clock: the controller shares ``clock_ns`` (same host): reject EXPIRED and
             FROM_FUTURE commands at receipt and count expiry from the send time too.
         estop_query_timeout_s: how long one query for the latched e-stop waits for replies.
+        lossless: publish states with congestion control BLOCK instead of DROP (module
+            docstring, Delivery): for a lock-stepped simulation, where every state is awaited.
     """
 
     def __init__(self, fleet: str, robot: str, registry: RobotRegistry,
                  transport: TransportConfig | zenoh.Session, *,
                  clock_ns: Callable[[], int] = time.monotonic_ns, shared_clock: bool = False,
-                 queue_capacity: int = 16, estop_query_timeout_s: float = 1.0):
+                 queue_capacity: int = 16, estop_query_timeout_s: float = 1.0,
+                 lossless: bool = False):
         self.keys = FleetKeys(fleet)
         self.robot = check_name(robot)
         robot_id = registry.id_of(robot)
@@ -477,7 +497,7 @@ class RobotLink(_Link):
             raise ValueError(f"robot {robot!r} is not in the registry {registry.names}")
         self.robot_id = robot_id
         self.registry = registry
-        super().__init__(transport, clock_ns)
+        super().__init__(transport, clock_ns, lossless)
         self.shared_clock = shared_clock
         self.decoder = WireDecoder(registry, clock_ns if shared_clock else None,
                                    counter=self.rejects)
@@ -508,7 +528,7 @@ class RobotLink(_Link):
             self.keys.ctrl_alive, zenoh.handlers.RingChannel(capacity), history=True),
             self._on_ctrl_liveliness, "ctrl-alive")
         self._state_publisher = s.declare_publisher(
-            self.keys.state(self.robot), congestion_control=zenoh.CongestionControl.DROP,
+            self.keys.state(self.robot), congestion_control=self.data_congestion_control,
             priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
         self._entities.append(self._state_publisher)
         self._entities.append(s.liveliness().declare_token(self.keys.robot_alive(self.robot)))

@@ -74,6 +74,11 @@ def register(sub) -> None:
                    help="the fleet resets every T ticks: reset the stack, report per episode")
     p.add_argument("--gather", type=float, default=0.01,
                    help="seconds a tick waits for the rest of a burst of states")
+    p.add_argument("--lossless", action="store_true",
+                   help="the fleet is lock-stepped (fleet-sim --lockstep) and waits for every "
+                        "command: send them with Zenoh congestion control BLOCK, never dropped "
+                        "(default DROP: right for real robots, where the next tick replaces a "
+                        "lost command)")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.add_argument("--trace", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...]}')
@@ -172,7 +177,7 @@ def run(args) -> int:
         transport = TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect))
         config = BridgeConfig(ttl_ms=args.ttl_ms, stale_after_s=args.stale_after,
                               estop_after_s=args.estop_after, gather_s=args.gather,
-                              episode_ticks=args.episode_ticks)
+                              episode_ticks=args.episode_ticks, lossless=args.lossless)
         c = scenario.object_center
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),

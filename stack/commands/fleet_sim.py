@@ -9,6 +9,10 @@ ends after K episodes; each finished episode prints one JSON line on stdout
 ({"episode": k, "success": ..., "final_distance": ..., "collisions": ...}) and the --report
 holds every episode's record (positions, contacts, round trips).
 
+With --lockstep the robots' states are sent lossless (Zenoh congestion control BLOCK) and the
+world waits for every answer: start the bridge with --lossless too, or a command lost on a busy
+machine stalls the tick for --lockstep-timeout.
+
 See deploy/fleet_sim.py for the watchdog (brake, latch, re-arm) and lock-step rules.
 """
 
@@ -43,7 +47,8 @@ def register(sub) -> None:
     pace = p.add_mutually_exclusive_group()
     pace.add_argument("--rate-hz", type=float, default=20.0, help="real-time tick rate")
     pace.add_argument("--lockstep", action="store_true",
-                      help="advance when every command for the current states arrived")
+                      help="advance when every command for the current states arrived "
+                           "(pair with bridge --lossless)")
     p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     p.add_argument("--model-error", default="{}",

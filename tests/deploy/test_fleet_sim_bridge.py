@@ -62,7 +62,7 @@ def run_pair(tmp_path: Path, sim_args: list[str], bridge_args: list[str],
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep",
                "--listen", endpoint, "--report", str(tmp_path / "sim.json"), *sim_args)
     bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--connect", endpoint,
-                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace",
+                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace", "--lossless",
                   "--report", str(tmp_path / "bridge.json"), *bridge_args)
     try:
         if during is not None:

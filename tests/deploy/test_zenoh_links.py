@@ -277,3 +277,23 @@ def test_links_can_share_one_session(controller, port):
         robots[1].close()
     finally:
         session.close()
+
+
+@pytest.mark.parametrize("lossless, expected", [(False, zenoh.CongestionControl.DROP),
+                                                (True, zenoh.CongestionControl.BLOCK)])
+def test_lossless_links_publish_states_and_commands_with_block(port, lossless, expected):
+    # A lock-stepped fleet awaits every message: with DROP a starved CPU lost answers (stalled
+    # ticks); real-time links keep DROP so a stalled pipeline never queues old commands.
+    config = TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    with FleetLink(FLEET, REGISTRY, config, lossless=lossless) as controller:
+        with robot_link(port, lossless=lossless) as robot:
+            assert controller.data_congestion_control == expected == robot.data_congestion_control
+            assert all(p.congestion_control == expected for p in controller._cmd_publishers.values())
+            assert robot._state_publisher.congestion_control == expected
+            assert controller._estop_publisher.congestion_control == zenoh.CongestionControl.BLOCK
+            connected(controller, robot)   # and the lossless pair still talks
+            robot.publish_state((0.1, 0.2), (0.0, 0.0))
+            assert controller.wait_for(lambda: "r0" in controller.latest_states(), WAIT_S)
+            controller.send_command("r0", (0.5, -0.5), 100)
+            assert robot.wait_for(lambda: robot.latest_command is not None, WAIT_S)
+            assert robot.latest_command.msg.acceleration == (0.5, -0.5)
