@@ -149,16 +149,17 @@ def _cmd_bytes(robot_id: int, seq: int, acc=(0.0, 0.0), ttl_ms: int = 100) -> by
 
 
 def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_path):
-    def inject(bridge: Proc, port: int, bridge_port: int) -> None:
-        bridge.wait_tick(10)
-        config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{bridge_port}"))
-        with zenoh.open(config.to_zenoh()) as session:
+    # The injector listens and both nodes connect to it as they start, so its links are up
+    # before the run: a session opened mid-run may link after a 150-tick lock-step run ended.
+    inject_endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with zenoh.open(TransportConfig(listen=(inject_endpoint,)).to_zenoh()) as session:
+        def inject(bridge: Proc, port: int, bridge_port: int) -> None:
             # messages put before the links to both nodes are up are dropped: wait for them
-            deadline = time.monotonic() + 20.0
+            deadline = time.monotonic() + WAIT_S
             while len(list(session.info.peers_zid())) < 2 and time.monotonic() < deadline:
                 time.sleep(0.05)
             assert len(list(session.info.peers_zid())) >= 2, "injector not linked to both nodes"
-            time.sleep(0.2)   # declarations travel right after the links come up
+            bridge.wait_tick(10)   # running: every declaration has travelled
             cmd_r1 = "formation/t/robot/r1/cmd"
             bad_cmds = [b"garbage", _cmd_bytes(1, 5, (math.nan, 0.0)),  # NON_FINITE
                         _cmd_bytes(3, 6),                             # ROBOT_MISMATCH
@@ -172,7 +173,9 @@ def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_
             session.put("formation/t/robot/r2/state", state[:40])  # truncated
             bridge.wait_tick(20)
 
-    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "150"], SCRIPTED, during=inject)
+        connect = ["--connect", inject_endpoint]
+        sim, bridge, _ = run_pair(tmp_path, ["--ticks", "150", *connect], SCRIPTED + connect,
+                                  during=inject)
     assert sim["rejects"] == {"BAD_SIZE": 1, "BAD_MAGIC": 1, "BAD_TTL": 1, "NON_FINITE": 1,
                               "ROBOT_MISMATCH": 1}
     assert_task_done(sim)
