@@ -211,7 +211,7 @@ class Bridge:
         return {"ticks": s.ticks, "stale_marks": s.stale_marks,
                 "controller_faults": s.controller_faults, "rearms": s.rearms, "estops": s.estops,
                 "robot_counts": s.robot_counts, "rejects": self.link.rejects.snapshot(),
-                "estop_engaged": self.link.estop_engaged}
+                "estop_engaged": self.link.estop_engaged, "lossless": self.link.lossless}
 
     def close(self) -> None:
         self.link.close()

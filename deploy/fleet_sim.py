@@ -167,10 +167,15 @@ class FleetSim:
     def stop(self) -> None:
         self._stop.set()
 
+    @property
+    def lossless(self) -> bool:
+        """Lock-step links publish states with BLOCK (see the module docstring, Pacing)."""
+        return self.config.rate_hz is None
+
     # ------------------------------------------------------------------ links
     def _open_link(self, robot: _Robot) -> None:
         robot.link = RobotLink(self.config.fleet, robot.name, self.registry, self.session,
-                               shared_clock=False, lossless=self.config.rate_hz is None)
+                               shared_clock=False, lossless=self.lossless)
         robot.seen = (0, 0)
 
     def _close_link(self, robot: _Robot) -> None:
@@ -384,7 +389,7 @@ class FleetSim:
                 "speeds": np.linalg.norm(true.velocities, axis=1).tolist(),
                 "dropped_commands": self.dropped, "ignored_while_latched": self.ignored_while_latched,
                 "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),
-                "episodes": self.episodes, "trace": self.trace}
+                "lossless": self.lossless, "episodes": self.episodes, "trace": self.trace}
 
 
 def write_json(path: str | Path, document: dict[str, Any]) -> None:

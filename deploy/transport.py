@@ -29,8 +29,8 @@ other: whoever must reach a robot directly connects to it.
 Delivery of states and commands: by default their publishers use congestion control DROP, as
 a real-time link should: when the transmit pipeline is stalled the message is lost, never
 queued behind older ones, and the next tick's message replaces it. A stalled pipeline needs no
-network: a starved CPU is enough (a 180-tick lock-step run with four busy loops on two cores
-lost an answer on 15-50 ticks). A lock-stepped simulation waits for every answer, so there a
+network: a starved CPU is enough (180-tick lock-step runs with four busy loops on two cores
+lost an answer on up to 54 ticks). A lock-stepped simulation waits for every answer, so there a
 lost message stalls the tick until the lock-step timeout and the robot acts one tick late:
 links opened with ``lossless=True`` publish with BLOCK instead (the sender waits for room).
 The e-stop is always BLOCK.

@@ -96,10 +96,11 @@ class MAPPOConfig:
             ``init_keep * w_transferred + (1 - init_keep) * w_fresh`` with ``w_fresh`` this
             run's own seeded initialisation. 1 keeps the M-robot networks as they are; smaller
             values keep their direction but restore some of the plasticity and exploration
-            (log-std) of a fresh network. Default 0.5: paper-3 -> paper-5 with every weight
-            kept (1.0) converged in 1 of 5 seeds within 1700 episodes (the 3-robot policy sent
-            three robots onto the middle target and had stopped exploring); with 0.5 seeds 0
-            and 1 converged at 528 episodes (0.25: no convergence by 672 on seed 1).
+            (log-std) of a fresh network. Default 0.5, over seeds 0-4 of ``bench/paper_tables.py``:
+            paper-3 -> paper-5 converged in 5 of 5 (median 528 episodes), 1 of 5 within 1700
+            with every weight kept (1.0; the 3-robot policy sent three robots onto the middle
+            target and had stopped exploring); paper-3 -> paper-4 5 of 5 (median 384), 3 of 5
+            with 1.0. 0.65 and 0.4 each lost a 3 -> 4 seed; 0.25 was slower on 3 -> 5 seed 1.
         device: torch device.
         torch_threads: ``torch.set_num_threads`` for the run (0 leaves it alone; 1 is fastest
             for these small networks and robust on a busy machine).

@@ -92,6 +92,7 @@ def test_scripted_controller_brings_five_robots_home_without_collision(tmp_path)
     assert sim["rejects"] == {} and bridge["rejects"] == {}
     assert bridge["robot_counts"] == [[0, 5]]
     assert bridge["estops"] == 0 and bridge["controller_faults"] == 0
+    assert sim["lossless"] and bridge["lossless"]   # lock-step: --lockstep and --lossless
     assert proc.proc.returncode == 0  # SIGTERM: loop stopped, session closed, report written
     running = [t for t in sim["trace"] if t["modes"] == ["run"] * 5]
     assert len(running) >= 100  # commands arrived in lock-step nearly every tick

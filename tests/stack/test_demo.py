@@ -118,6 +118,7 @@ def test_metrics_are_complete_and_consistent(quick_run):
     assert fl["tick_ms"]["p50"] <= fl["tick_ms"]["p99"]
     assert fl["round_trip_ms"]["p50"] <= fl["round_trip_ms"]["p99"]
     assert bridge["controller_faults"] == 0 and bridge["estops"] == 0
+    assert sim["lossless"] and bridge["lossless"]   # a lock-stepped fleet loses no message
 
 
 def test_resume_of_a_finished_run_skips_every_stage(quick_run, capsys):
