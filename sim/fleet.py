@@ -24,6 +24,44 @@ from sim.scenario import Scenario
 
 
 @dataclass
+class SilentRobots:
+    """Robots the controller no longer commands but that still stand somewhere: gone from the
+    link (left, crashed) or silent for too long. The safety filter keeps each one as an
+    obstacle, a disc grown by where it can have gone since its last state.
+
+    Attributes:
+        ids: M robot names.
+        positions: (M, 2) last known centres [m].
+        velocities: (M, 2) last known velocities [m/s].
+        age_s: (M,) seconds since each of those states was measured [s], >= 0.
+    """
+
+    ids: tuple[str, ...]
+    positions: np.ndarray
+    velocities: np.ndarray
+    age_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = len(self.ids)
+        for name in ("positions", "velocities"):
+            arr = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1, 2)
+            if arr.shape != (m, 2):
+                raise ValueError(f"SilentRobots.{name} must have shape ({m}, 2), got {arr.shape}")
+            setattr(self, name, arr)
+        age = np.asarray(self.age_s, dtype=np.float64).reshape(-1)
+        if age.shape != (m,) or not (age >= 0).all():
+            raise ValueError(f"SilentRobots.age_s must be {m} ages >= 0 seconds, got {self.age_s!r}")
+        self.age_s = age
+
+    @classmethod
+    def empty(cls) -> SilentRobots:
+        return cls((), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass
 class FleetState:
     """A snapshot of the fleet.
 
@@ -35,6 +73,13 @@ class FleetState:
         targets: (N, 2) target slots [m].
         object_pose: (3,) object centroid x, y [m] and heading [rad].
         robot_ids: N robot names, in row order.
+        state_age_s: (N,) seconds since each row was measured, when the controller reads it
+            (a link's transport time, a dropped update, a silent robot); None: all fresh (0).
+        silent: robots not commanded any more that stay obstacles (see :class:`SilentRobots`);
+            None: none.
+        command_delay_s: measured bound on the time from now until a command sent now acts
+            (transport + actuation) [s], e.g. from a link's round trips; None: not measured.
+            The safety filter covers the larger of this and its configured bound.
     """
 
     time: float
@@ -44,6 +89,9 @@ class FleetState:
     targets: np.ndarray
     object_pose: np.ndarray
     robot_ids: tuple[str, ...] = field(default_factory=tuple)
+    state_age_s: np.ndarray | None = None
+    silent: SilentRobots | None = None
+    command_delay_s: float | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)
@@ -56,6 +104,20 @@ class FleetState:
             setattr(self, name, arr)
         if len(self.robot_ids) != n:
             raise ValueError(f"FleetState.robot_ids has {len(self.robot_ids)} names for {n} robots")
+        if self.state_age_s is not None:
+            age = np.asarray(self.state_age_s, dtype=np.float64).reshape(-1)
+            if age.shape != (n,) or not (age >= 0).all():
+                raise ValueError(f"FleetState.state_age_s must be {n} ages >= 0 seconds (or None), "
+                                 f"got {self.state_age_s!r}")
+            self.state_age_s = age
+        if self.command_delay_s is not None and not (np.isfinite(self.command_delay_s)
+                                                     and self.command_delay_s >= 0):
+            raise ValueError(f"FleetState.command_delay_s must be >= 0 seconds or None, "
+                             f"got {self.command_delay_s!r}")
+
+    def ages(self) -> np.ndarray:
+        """(N,) state ages [s] (zeros when ``state_age_s`` is None)."""
+        return np.zeros(self.num_robots) if self.state_age_s is None else self.state_age_s
 
     @property
     def num_robots(self) -> int:

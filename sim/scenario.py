@@ -60,6 +60,19 @@ class Dynamics:
         v = clip_norm(vel + self.dt * (a - self.damping * vel), self.speed_limit)
         return pos + self.dt * v, v
 
+    def brake(self, vel: np.ndarray) -> np.ndarray:
+        """The one braking law of every robot, simulated or real, and of the safety filter.
+
+        ``a = clip_norm(c v - v / dt, accel_limit)`` for (N, 2) velocities [m/s] -> (N, 2)
+        [m/s^2]: the command under which the nominal model stops in one tick
+        (``v' = v + dt (a - c v) = 0``), clipped along ``-v`` when that needs more than the
+        actuator gives. It never reverses a robot (``-v / dt`` alone would overshoot to
+        ``-c dt v``). Non-finite velocities give 0. From the speed limit 0.4 m/s at
+        ``accel_limit`` 1 and ``c`` 0.5 a robot is at rest after 8 ticks (0.4 s).
+        """
+        v = np.where(np.isfinite(vel), vel, 0.0)
+        return clip_norm(self.damping * v - v / self.dt, self.accel_limit)
+
     def validate(self) -> None:
         for name in ("dt", "accel_limit", "speed_limit"):
             value = getattr(self, name)

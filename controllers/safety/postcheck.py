@@ -39,9 +39,9 @@ from sim.scenario import Dynamics, clip_norm
 
 
 def braking_acceleration(vel: np.ndarray, dynamics: Dynamics) -> np.ndarray:
-    """(N, 2) maximum-braking command for (N, 2) velocities [m/s]; non-finite velocities give 0."""
-    v = np.where(np.isfinite(vel), vel, 0.0)
-    return clip_norm(dynamics.damping * v - v / dynamics.dt, dynamics.accel_limit)
+    """(N, 2) maximum-braking command for (N, 2) velocities [m/s]: :meth:`Dynamics.brake`, the
+    one braking law of the robots and the filter; non-finite velocities give 0."""
+    return dynamics.brake(vel)
 
 
 def predict_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
