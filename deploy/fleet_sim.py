@@ -23,21 +23,36 @@ and keeps its true positions (T+1, N, 2) [m], contacts (T, N, 3) (robot, object,
 in lock-step, the round trip of each tick [ms]: first state published -> every command in.
 
 Watchdog (per robot; ages in ticks of this process, converted with the tick period:
-``1 / rate_hz`` in real time, ``dt`` = sim time in lock-step)::
+``1 / rate_hz`` in real time, ``dt`` = sim time in lock-step). A command is *fresh* for tick k
+when it arrived during tick k (after the state of tick k was published); decided per tick, in
+priority order::
 
     e-stop latched (ESTOP)                      -> brake               status ESTOPPED
     watchdog latch set                          -> brake, hold at rest status WATCHDOG_BRAKING|FAULT
     no command accepted yet                     -> brake (not armed)   status WATCHDOG_BRAKING
     last command older than stop_after_s        -> set the latch       (armed robots only)
-    last command older than brake_after_ticks,
-      or past its ttl (real time only)          -> brake               status WATCHDOG_BRAKING
+    brake_after_ticks ticks in a row without a
+      fresh command, or the command past its
+      ttl (real time only)                      -> brake               status WATCHDOG_BRAKING
     command flag BRAKE, or STOP held            -> brake
     otherwise                                   -> the commanded acceleration
 
-``brake`` is ``a = -v / dt`` clipped to ``accel_limit`` (stop within the tick if possible).
+``brake`` is :meth:`sim.scenario.Dynamics.brake`, the one braking law of the project
+(``clip_norm(c v - v / dt, accel_limit)``: at rest after one tick in the nominal model when the
+actuator allows, never reversing). With ``brake_after_ticks = 1`` (the default) a robot brakes on
+the first tick whose state goes unanswered, so a controller killed or frozen while the fleet
+runs at the 0.4 m/s speed limit leaves it at rest 8 braking ticks later: every published speed
+is 0 within 9 ticks (0.45 s) of the last command, measured 0.445 s from outside
+(``tests/deploy/test_watchdog_stop_time.py``; 0.55 s with the former 2 ticks of grace).
+The status published with a state says what the robot does if that state goes unanswered.
 Re-arming the latch: the controller sees FAULT in the robot's state and sends a command with
 the STOP flag; the robot leaves the latch into STOP (held at rest) and moves again on the
 next command without STOP. While latched, other commands are ignored and counted.
+
+Trace (``summary()["trace"]``, one entry per tick k, the true state at tick k): ``modes`` (each
+robot's watchdog branch when it published its state), ``applied`` (the branch whose acceleration
+it applied), ``speeds`` [m/s], ``positions`` (N, 2) [m] and ``contacts`` (N, 3) (robot, object,
+wall; from the previous tick's motion).
 
 Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
 lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
@@ -72,14 +87,16 @@ def robot_names(n: int) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class WatchdogConfig:
-    """brake_after_ticks: ticks without a fresh command before braking; stop_after_s [s]:
-    silence before the latch (brake to rest, wait for a re-arm)."""
+    """brake_after_ticks: brake on this many ticks in a row without a fresh command (1: on the
+    first unanswered tick; see the module docstring); stop_after_s [s]: silence before the
+    latch (brake to rest, wait for a re-arm)."""
 
-    brake_after_ticks: int = 2
+    brake_after_ticks: int = 1
     stop_after_s: float = 0.5
 
     def __post_init__(self) -> None:
-        if not isinstance(self.brake_after_ticks, int) or self.brake_after_ticks < 1:
+        if isinstance(self.brake_after_ticks, bool) or not isinstance(self.brake_after_ticks, int) \
+                or self.brake_after_ticks < 1:
             raise ValueError(f"brake_after_ticks must be an integer >= 1, got {self.brake_after_ticks!r}")
         if not self.stop_after_s > 0:
             raise ValueError(f"stop_after_s must be > 0 seconds, got {self.stop_after_s!r}")
@@ -219,13 +236,14 @@ class FleetSim:
         robot.cmd_tick = self.tick
         robot.expires_ns = received.expires_at_ns
 
-    def _choose(self, robot: _Robot, velocity: np.ndarray, now_ns: int) -> tuple[np.ndarray, StateStatus]:
-        """The acceleration this robot applies this tick and its status bits."""
-        limit = self.config.scenario.dynamics.accel_limit
-        brake = -velocity / self.config.scenario.dynamics.dt
-        norm = float(np.linalg.norm(brake))
-        if norm > limit:
-            brake *= limit / norm
+    def _choose(self, robot: _Robot, velocity: np.ndarray, now_ns: int,
+                deciding: bool = True) -> tuple[np.ndarray, StateStatus]:
+        """The acceleration this robot applies this tick and its status bits.
+
+        ``deciding``: the commands of this tick are in (the acceleration is applied); False
+        when publishing the state, before its answer can have arrived (the status then says
+        what the robot does if this state goes unanswered)."""
+        brake = self.config.scenario.dynamics.brake(velocity[None])[0]
         wd = self.config.watchdog
         if robot.estopped:
             robot.mode = "estop"
@@ -239,8 +257,9 @@ class FleetSim:
         if robot.latched:
             robot.mode = "latched"
             return brake, StateStatus.WATCHDOG_BRAKING | StateStatus.FAULT
+        unanswered = self.tick - robot.cmd_tick - (0 if deciding else 1)
         expired = self.config.rate_hz is not None and now_ns >= robot.expires_ns
-        if self.tick - robot.cmd_tick > wd.brake_after_ticks or expired:
+        if unanswered >= wd.brake_after_ticks or expired:
             robot.mode = "watchdog"
             return brake, StateStatus.WATCHDOG_BRAKING
         if robot.stop_held or robot.flags & CmdFlags.BRAKE:
@@ -343,15 +362,20 @@ class FleetSim:
                 modes = []
                 for i, robot in enumerate(self.robots):
                     self._take_command(robot)
-                    accels[i], status = self._choose(robot, state.velocities[i], now_ns)
+                    accels[i], status = self._choose(robot, state.velocities[i], now_ns,
+                                                     deciding=False)
                     modes.append(robot.mode if robot.link is not None else "offline")
                     if robot.link is not None:
                         published_ns = published_ns or time.perf_counter_ns()
                         msg = robot.link.publish_state(state.positions[i], state.velocities[i], status)
                         answered[robot.name] = msg.seq
                 true = self.world.true_state()
-                self.trace.append({"tick": self.tick, "t": round(true.time, 6), "modes": modes,
-                                   "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist()})
+                c = self.world.contacts
+                entry = {"tick": self.tick, "t": round(true.time, 6), "modes": modes,
+                         "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist(),
+                         "positions": true.positions.round(6).tolist(),
+                         "contacts": np.stack((c.robot, c.object, c.wall), -1).astype(int).tolist()}
+                self.trace.append(entry)
                 round_trip_ms = None
                 if cfg.rate_hz is None:
                     if self._wait_lockstep(answered) and published_ns is not None:
@@ -365,6 +389,7 @@ class FleetSim:
                     for i, robot in enumerate(self.robots):
                         self._take_command(robot)
                         accels[i], _ = self._choose(robot, state.velocities[i], time.monotonic_ns())
+                entry["applied"] = [r.mode if r.link is not None else "offline" for r in self.robots]
                 self.world.send_accelerations(accels)
                 state = self.world.step()
                 self.tick += 1

@@ -60,8 +60,12 @@ def register(sub) -> None:
     p.add_argument("--lockstep-timeout", type=float, default=0.25, help="seconds per tick")
     p.add_argument("--start-timeout", type=float, default=30.0,
                    help="seconds to wait for the controller before the first tick")
-    p.add_argument("--brake-after-ticks", type=int, default=2)
-    p.add_argument("--stop-after", type=float, default=0.5, help="watchdog latch [s]")
+    p.add_argument("--brake-after-ticks", type=int, default=1, metavar="K",
+                   help="watchdog: brake on the K-th tick in a row whose state went unanswered "
+                        "(default 1: on the first)")
+    p.add_argument("--stop-after", type=float, default=0.5, metavar="S",
+                   help="watchdog latch: seconds without a command before the robot holds at "
+                        "rest until re-armed (default 0.5)")
     p.add_argument("--drop-commands", type=float, default=0.0,
                    help="probability of discarding an arriving command (tests)")
     p.add_argument("--leave", type=_event("leave"), action="append", default=[],
