@@ -23,8 +23,16 @@
 of :mod:`controllers.safety.fused`) or the reference ``fcl`` / ``analytic`` path, which gives the
 same answers; run both to compare their latency.
 
+(d) conditions: the imperfections of a real link, one by one (delay 1-3 ticks, jittering delay,
+    noise, dropped states, a frozen robot, gain 0.7 with delay, the model error of (a)), each
+    with ``--condition-episodes`` adversarial episodes, default stack against bare, plus the
+    scripted controller (and ``--policy``) and the MEC's tracking error; see
+    :mod:`_safety_conditions`.
+
 Output: a table, or with ``--json`` one document
-``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...}}``.
+``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
+"conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
+"success_scripted", "tracking_error_mm": {"mec", "no_mec"}, ...}, ...}}``.
 """
 
 from __future__ import annotations
@@ -44,6 +52,7 @@ for _path in (_BENCH_DIR, _BENCH_DIR.parent):
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start  # noqa: E402
 from _common import (  # noqa: E402
     add_output_args,
     positive_int,
@@ -53,72 +62,21 @@ from _common import (  # noqa: E402
     progress,
     set_threads,
 )
+from _safety_conditions import CONDITIONS, run_conditions  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from controllers.safety import SafetyConfig, SafetyFilter, analytic_distances  # noqa: E402
+from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
 from sim.pymunk_world import ModelError, PymunkWorld  # noqa: E402
 from sim.scenario import make_scenario, transport_scenario  # noqa: E402
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode  # noqa: E402
 
-WALL_DIRS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
-MIN_ROBOTS, MAX_ROBOTS = 3, 16
 MEC_ERROR = ModelError(gain=0.7, lag_tau=0.05, floor_friction=0.1)
 MEC_COMMAND_LIMIT = 0.6   # [m/s^2] below gain 0.7 x accel_limit 1.0: within the actuator's reach
 
 
 # ------------------------------------------------------------------ (a) invariance
-class AdversarialPolicy:
-    """FleetState -> (N, 2): each robot follows its own adversarial mode (module docstring)."""
-
-    def __init__(self, scenario, rng: np.random.Generator, network=None):
-        n = scenario.num_robots
-        self.scenario, self.rng = scenario, rng
-        self.modes = rng.integers(0, 7 if network is not None else 6, n)
-        self.fixed = rng.normal(size=(n, 2))
-        self.scripted = ScriptedController(scenario)
-        self.network = ControlStack(scenario, network, StackConfig(safety=False, mec=False)) \
-            if network is not None else None
-
-    def reset(self) -> None:
-        self.scripted.reset()
-
-    def __call__(self, state: FleetState) -> np.ndarray:
-        pos, n = state.positions, state.num_robots
-        limit = self.scenario.dynamics.accel_limit
-        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1) + np.eye(n) * 1e9
-        walls = np.stack([pos[:, 0], self.scenario.arena[0] - pos[:, 0], pos[:, 1],
-                          self.scenario.arena[1] - pos[:, 1]], 1)
-        thrust = np.stack([pos[np.argmin(d, axis=1)] - pos, self.scenario.object_center - pos,
-                           WALL_DIRS[np.argmin(walls, axis=1)], self.fixed,
-                           self.rng.normal(size=(n, 2))])
-        thrust = thrust / np.maximum(np.linalg.norm(thrust, axis=-1, keepdims=True), 1e-12) * limit
-        out = thrust[np.minimum(self.modes, 4), np.arange(n)]
-        scripted = self.modes == 5
-        if scripted.any():
-            out[scripted] = self.scripted(state)[scripted]
-        if self.network is not None and (self.modes == 6).any():
-            out[self.modes == 6] = self.network.tick(state).a_nom[self.modes == 6]
-        return out
-
-
-def random_start(world: PymunkWorld, barrier: SafetyFilter, rng: np.random.Generator) -> FleetState:
-    """Random positions with >= 0.03 m clearance, random velocities scaled into h >= 0."""
-    sc = world.scenario
-    n, r = sc.num_robots, sc.robot_radius
-    pos = np.zeros((0, 2))
-    while len(pos) < n:
-        cand = np.vstack([pos, rng.uniform(r, 1 - r, (1, 2))])
-        if analytic_distances(cand, r, sc.arena, sc.polygon).min_clearance() >= 0.03:
-            pos = cand
-    vel = rng.normal(0.0, 0.15, (n, 2))
-    while barrier.barrier(pos, vel).h.min() < 0:
-        vel *= 0.8
-    world.set_state(pos, vel)
-    return world.read_state()
-
-
 _NETWORK_CACHE: dict = {}
 
 
@@ -287,6 +245,16 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
     return out
 
 
+def condition_list(text: str) -> list[str]:
+    """argparse type: comma-separated names of :data:`_safety_conditions.CONDITIONS`."""
+    names = [part.strip() for part in text.split(",") if part.strip()]
+    unknown = [nm for nm in names if nm not in CONDITIONS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown condition(s) {unknown or text!r}; "
+                                         f"choose from {','.join(CONDITIONS)}")
+    return names
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=positive_int, default=1000, help="invariance episodes (1000)")
@@ -303,7 +271,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--geometry", choices=["fused", "fcl", "analytic"], default="fused",
                         help="safety filter path for (a) and (c): the fused fast path (default) or the "
                              "reference path on FCL or closed-form distances (same answers, slower)")
-    parser.add_argument("--only", choices=["invariance", "mec", "latency"], default=None,
+    parser.add_argument("--conditions", type=condition_list, default=list(CONDITIONS),
+                        help=f"conditions for (d), comma-separated (default: all of {','.join(CONDITIONS)})")
+    parser.add_argument("--condition-episodes", type=positive_int, default=300,
+                        help="adversarial episodes per condition for (d) (300)")
+    parser.add_argument("--task-episodes", type=positive_int, default=30,
+                        help="scripted (and --policy) paper-3/4/5 episodes per condition for (d) (30)")
+    parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions"], default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
     args = parser.parse_args(argv)
@@ -325,6 +299,11 @@ def main(argv: list[str] | None = None) -> int:
         progress(f"(a) invariance, {args.episodes} episodes x {args.steps} ticks, {args.workers} workers")
         doc["invariance"] = run_invariance(args.episodes, args.steps, args.workers, args.seed, args.policy,
                                            args.geometry)
+    if args.only in (None, "conditions"):
+        progress(f"(d) conditions {args.conditions}, {args.condition_episodes} adversarial episodes each")
+        doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.steps,
+                                           args.task_episodes, args.mec_episodes, args.workers,
+                                           args.seed, args.policy)
     doc.update(threads=threads, wall_s=time.perf_counter() - start)
     if args.json:
         print_json(doc)
@@ -340,6 +319,15 @@ def main(argv: list[str] | None = None) -> int:
                     [[f"commands <= {m['command_limit']} m/s^2", f"{m['tracking_error_without']:.4f}",
                       f"{m['tracking_error_with']:.4f}", f"{m['reduction']:.0%}"]
                      for m in (doc["mec"], doc["mec"]["saturated"])])
+        print()
+    if "conditions" in doc:
+        print_table(["condition", "episodes", "contact, filter+MEC", "bare", "scripted success", "bare",
+                     "scripted contact", "bare", "tracking MEC [mm]", "no MEC"],
+                    [[name, c["episodes"], c["collisions_filter_on"], c["collisions_filter_off"],
+                      f"{c['success_scripted']:.2f}", f"{c['success_scripted_bare']:.2f}",
+                      c["collisions_scripted"], c["collisions_scripted_bare"],
+                      f"{c['tracking_error_mm']['mec']:.2f}", f"{c['tracking_error_mm']['no_mec']:.2f}"]
+                     for name, c in doc["conditions"].items()])
         print()
     if "latency_ms" in doc:
         print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",

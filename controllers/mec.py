@@ -20,7 +20,7 @@ Riccati equation ``P = F P F^T - F P H^T (H P H^T + R)^{-1} H P F^T + Q``; the t
 against a filterpy ``KalmanFilter`` run to convergence. One tick, for all N robots and both axes
 at once (arrays (N, 2))::
 
-    predict:    v^- = (1 - c dt) v_hat + dt (u_prev + d_hat),      d^- = d_hat
+    predict:    v^- = clip_norm((1 - c dt) v_hat + dt (u_prev + d_hat), speed_limit),   d^- = d_hat
     update:     e = y - v^-,   v_hat = v^- + K_v e,   d_hat = clip_norm(d^- + K_d e, max_disturbance)
     compensate: u = clip_norm(a_safe - d_hat, accel_limit)
 
@@ -30,6 +30,35 @@ settles at ``u = a_safe / g`` unless that exceeds the actuator limit (status ``C
 With the default noise levels the closed-loop estimator poles are at |0.34| and ``d_hat``
 follows a step to within 5 % from the second tick after it (see the tests for the hand-check).
 
+**Delay.** A command sent at tick k may act only at tick k + delta (transport, actuation). An
+observer that feeds ``u_{k-1}`` into the prediction of a robot that ran ``u_{k-1-delta}`` reads
+the difference of the two commands as a disturbance and feeds it back: at one tick of delay the
+loop oscillated and tracked 10x worse than no compensation. So the compensator runs a bank of
+observers side by side, one per delay hypothesis ``delta = 0 .. max_delay_ticks``, each with the
+prediction ``v^- = (1 - c dt) v_hat + dt (u_{k-1-delta} + d_hat)`` on the commands it sent, and
+scores each by its exponentially forgotten squared innovation
+``J_delta <- lambda J_delta + |e_delta|^2``. Per robot, one hypothesis is in charge (first
+``delta = 0``): it supplies ``d_hat`` and is the measured delay (:attr:`MecResult.delay_ticks`).
+Another takes over when its score is below ``switch_ratio`` times the one in charge: in the first
+ticks after a disturbance step a delayed command and the step look alike, and the hysteresis
+keeps the bank from chasing that; while commands are steady all hypotheses agree, and once
+they change the right one separates within a few ticks.
+
+**Gate.** When even the best hypothesis explains the velocity badly (its mean squared
+innovation per axis above ``gate_ratio`` times the innovation variance the Kalman model expects,
+``H P H^T + R``: contacts, a delay beyond the bank, a bad model), that robot's compensation is
+switched off (``d_hat`` is not applied, status ``GATED``) until the score falls back below it.
+
+**Noise.** A gain designed for ``sigma_y`` = 5 mm/s turns 2 cm/s of velocity noise into
+``d_hat`` noise of several tenths of m/s^2, which the compensation then injects (tracking became
+worse than without it). So each robot's observer picks its noise level from its own innovations:
+the slowly averaged innovation variance per axis (forgetting ``NOISE_FORGET``) selects the
+largest of the levels ``sigma_y 2^l`` whose steady-state innovation variance ``H P H^T + R`` it
+exceeds, and with it that level's steady-state gain (noisier measurements, a smaller gain).
+
+Estimates are keyed by robot id (``ids`` of :meth:`ModelErrorCompensator.step`): a robot that
+leaves takes its estimate with it, a robot that joins starts afresh, and rows may reorder.
+
 A robot whose velocity is not finite keeps its prediction (no update) and the tick reports
 ``INVALID_MEASUREMENT``; a non-finite ``a_safe`` row gives a zero command for that robot and
 ``INVALID_COMMAND``. The output is never NaN.
@@ -37,6 +66,7 @@ A robot whose velocity is not finite keeps its prediction (no update) and the ti
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -47,6 +77,9 @@ import scipy.linalg
 
 from sim.scenario import Dynamics
 
+NOISE_LEVELS = 6        # velocity noise levels sigma_y * 2^l, l = 0..5 (up to 32 sigma_y)
+NOISE_FORGET = 0.95     # forgetting factor of the innovation variance that picks the level
+
 
 class MecStatus(StrEnum):
     """What the compensator did this tick (the worst case over robots)."""
@@ -56,6 +89,7 @@ class MecStatus(StrEnum):
     CLIPPED = "clipped"                         # a compensated command hit the actuator limit
     INVALID_MEASUREMENT = "invalid_measurement"  # some velocity was not finite: estimate held
     INVALID_COMMAND = "invalid_command"          # some a_safe was not finite: zero command sent
+    GATED = "gated"                              # some robot's model is off: not compensated
 
 
 @dataclass(frozen=True)
@@ -68,12 +102,23 @@ class MecConfig:
         disturbance_rate: sigma_d, change of the disturbance per tick [m/s^2].
         max_disturbance: bound on |d_hat| [m/s^2] (None: the actuator limit), against wind-up
             while a robot rides its speed limit.
+        max_delay_ticks: the largest command delay in the bank of observers [ticks] (3: 150 ms
+            at 20 Hz).
+        forget: ``lambda``, forgetting factor of the innovation scores, in (0, 1).
+        gate_ratio: compensation is off while the best score exceeds this many times the
+            expected innovation variance (module docstring, Gate).
+        switch_ratio: another hypothesis takes charge when its score is below this fraction of
+            the score of the one in charge, in (0, 1].
     """
 
     velocity_noise: float = 0.005
     velocity_process_noise: float = 0.002
     disturbance_rate: float = 0.2
     max_disturbance: float | None = None
+    max_delay_ticks: int = 3
+    forget: float = 0.7
+    gate_ratio: float = 50.0
+    switch_ratio: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("velocity_noise", "velocity_process_noise", "disturbance_rate"):
@@ -83,6 +128,15 @@ class MecConfig:
         if self.max_disturbance is not None and not (
                 math.isfinite(self.max_disturbance) and self.max_disturbance > 0):
             raise ValueError(f"mec.max_disturbance must be positive or None, got {self.max_disturbance!r}")
+        if isinstance(self.max_delay_ticks, bool) or not isinstance(self.max_delay_ticks, int) \
+                or not 0 <= self.max_delay_ticks <= 20:
+            raise ValueError(f"mec.max_delay_ticks must be an integer in 0..20, got {self.max_delay_ticks!r}")
+        if not 0 < self.forget < 1:
+            raise ValueError(f"mec.forget must be in (0, 1), got {self.forget!r}")
+        if not self.gate_ratio > 0:
+            raise ValueError(f"mec.gate_ratio must be > 0, got {self.gate_ratio!r}")
+        if not 0 < self.switch_ratio <= 1:
+            raise ValueError(f"mec.switch_ratio must be in (0, 1], got {self.switch_ratio!r}")
 
 
 def observer_model(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, ...]:
@@ -98,9 +152,15 @@ def observer_model(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, .
 
 def steady_state_gain(dynamics: Dynamics, config: MecConfig) -> np.ndarray:
     """The steady-state Kalman gain ``(K_v, K_d)`` (2,) of the per-axis observer."""
+    return _riccati(dynamics, config)[0]
+
+
+def _riccati(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, float]:
+    """Steady-state gain (2,) and innovation variance ``H P H^T + R`` [(m/s)^2] per axis."""
     f, _, h, q, r = observer_model(dynamics, config)
     p = scipy.linalg.solve_discrete_are(f.T, h.T, q, r)
-    return (p @ h.T / (h @ p @ h.T + r)).ravel()
+    s = float((h @ p @ h.T + r)[0, 0])
+    return (p @ h.T / s).ravel(), s
 
 
 def _clip_norm(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -118,73 +178,168 @@ class MecResult:
 
     Attributes:
         a_cmd: (N, 2) compensated command to send [m/s^2], finite, within the actuator limit.
-        d_hat: (N, 2) estimated acceleration disturbance [m/s^2].
+        d_hat: (N, 2) estimated acceleration disturbance [m/s^2] (of the best hypothesis).
         status: see :class:`MecStatus`.
         time_s: time of the call [s].
+        delay_ticks: (N,) the delay hypothesis that explains each robot best [ticks].
+        gated: (N,) bool, robots whose compensation is off this tick (module docstring, Gate).
     """
 
     a_cmd: np.ndarray
     d_hat: np.ndarray
     status: MecStatus
     time_s: float
+    delay_ticks: np.ndarray = None      # type: ignore[assignment]
+    gated: np.ndarray = None            # type: ignore[assignment]
+
+    @property
+    def applied(self) -> np.ndarray:
+        """(N, 2) the compensation in ``a_cmd``: ``d_hat``, or 0 where gated [m/s^2]."""
+        return np.where(self.gated[:, None], 0.0, self.d_hat)
 
 
 class ModelErrorCompensator:
-    """Stacked steady-state Kalman disturbance observer for N robots (see the module docstring).
+    """Bank of stacked steady-state Kalman disturbance observers (see the module docstring).
 
-    Call :meth:`step` once per control tick with the velocities measured at the start of the tick
-    and the safe acceleration to realise; send the returned ``a_cmd``.
+    Call :meth:`step` once per control tick with the velocities measured at the start of the tick,
+    the safe acceleration to realise and the robots' ids; send the returned ``a_cmd``. A command
+    changed after the step (e.g. by a re-check) is told with :meth:`replace_last_command`.
     """
 
     def __init__(self, dynamics: Dynamics, config: MecConfig | None = None):
         self.dynamics = dynamics
         self.config = config or MecConfig()
-        self.gain = steady_state_gain(dynamics, self.config)
+        self.gain, self.innovation_var = _riccati(dynamics, self.config)
+        # noise levels the observer adapts to, sigma_y * 2^l (module docstring, Noise)
+        levels = [_riccati(dynamics, dataclasses.replace(self.config, velocity_noise=self.config.velocity_noise * 2**k))
+                  for k in range(NOISE_LEVELS)]
+        self.level_gain = np.array([g for g, _ in levels])                   # (L, 2)
+        self.level_var = np.array([v for _, v in levels])                    # (L,)
         self.max_disturbance = (self.config.max_disturbance if self.config.max_disturbance is not None
                                 else dynamics.accel_limit)
-        self.v_hat: np.ndarray | None = None
-        self.d_hat: np.ndarray | None = None
-        self.u_prev: np.ndarray | None = None
+        self.hypotheses = self.config.max_delay_ticks + 1
+        self.gate_level = self.config.gate_ratio * 2.0 * self.level_var / (1.0 - self.config.forget)
+        self.reset()
 
     def reset(self) -> None:
-        """Forget the estimate (the next :meth:`step` starts afresh)."""
-        self.v_hat = self.d_hat = self.u_prev = None
+        """Forget every estimate (the next :meth:`step` starts afresh)."""
+        self.ids: tuple[str, ...] | None = None
+        self.v_hat = self.d_hat = self.score = self.sent = self.charge = self.level = None
+        self.noise_var = None
 
-    def step(self, velocity: np.ndarray, a_safe: np.ndarray) -> MecResult:
-        """Update the estimate with measured (N, 2) velocities [m/s] and compensate (N, 2) ``a_safe``."""
-        start = time.perf_counter()
+    @property
+    def u_prev(self) -> np.ndarray | None:
+        """(N, 2) the last command sent (None before the first step)."""
+        return None if self.sent is None else self.sent[-1]
+
+    def _align(self, ids: tuple[str, ...], vel: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Re-key the estimates to ``ids``; (N,) bool of robots that start afresh this tick."""
+        n, b = len(ids), self.hypotheses
+        fresh = np.ones(n, dtype=bool)
+        v0 = np.where(valid[:, None], vel, 0.0)
+        v_hat, d_hat = np.repeat(v0[None], b, axis=0), np.zeros((b, n, 2))
+        score, sent = np.zeros((b, n)), np.zeros((b, n, 2))
+        charge = np.zeros(n, dtype=np.int64)
+        level, noise_var = np.zeros(n, dtype=np.int64), np.full(n, self.level_var[0])
+        if self.ids is not None:
+            old = {rid: k for k, rid in enumerate(self.ids)}
+            rows = [(k, old[rid]) for k, rid in enumerate(ids) if rid in old]
+            if rows:
+                new, prev = (np.array(x) for x in zip(*rows, strict=True))
+                v_hat[:, new], d_hat[:, new] = self.v_hat[:, prev], self.d_hat[:, prev]
+                score[:, new], sent[:, new] = self.score[:, prev], self.sent[:, prev]
+                charge[new], level[new], noise_var[new] = self.charge[prev], self.level[prev], self.noise_var[prev]
+                fresh[new] = False
+        self.ids, self.v_hat, self.d_hat, self.score, self.sent = ids, v_hat, d_hat, score, sent
+        self.charge, self.level, self.noise_var = charge, level, noise_var
+        return fresh
+
+    def step(self, velocity: np.ndarray, a_safe: np.ndarray,
+             ids: tuple[str, ...] | None = None) -> MecResult:
+        """:meth:`update` with measured (N, 2) velocities [m/s], then :meth:`compensate` (N, 2)
+        ``a_safe``; ``ids`` names the robot of each row (default ``r0 .. r{N-1}``)."""
+        self.update(velocity, ids)
+        return self.compensate(a_safe)
+
+    def update(self, velocity: np.ndarray, ids: tuple[str, ...] | None = None) -> np.ndarray:
+        """Take this tick's measured (N, 2) velocities (NaN rows: no new measurement, predict
+        only); returns the (N, 2) velocity estimate of the hypothesis in charge [m/s]."""
+        self._start = time.perf_counter()
         vel = np.asarray(velocity, dtype=np.float64)
-        target = np.asarray(a_safe, dtype=np.float64)
-        if vel.ndim != 2 or vel.shape[1] != 2 or target.shape != vel.shape:
-            raise ValueError(f"ModelErrorCompensator.step: velocity and a_safe must both have shape "
-                             f"(num_robots, 2), got {vel.shape} and {target.shape}")
+        if vel.ndim != 2 or vel.shape[1] != 2:
+            raise ValueError(f"ModelErrorCompensator.update: velocity must have shape (num_robots, 2), "
+                             f"got {vel.shape}")
         n = len(vel)
-        all_valid = bool(np.isfinite(vel).all())          # the common case: no per-row masking
-        valid = all_valid or np.isfinite(vel).all(axis=1)
-        status = MecStatus.OK
-        if self.d_hat is None or len(self.d_hat) != n:
-            self.v_hat = vel.copy() if all_valid else np.where(valid[:, None], vel, 0.0)
-            self.d_hat = np.zeros((n, 2))
-            status = MecStatus.RESET
-        else:
-            dt, c = self.dynamics.dt, self.dynamics.damping
-            v_pred = (1.0 - c * dt) * self.v_hat + dt * (self.u_prev + self.d_hat)
-            innovation = vel - v_pred
-            if not all_valid:
-                innovation = np.where(valid[:, None], innovation, 0.0)
-            self.v_hat = v_pred + self.gain[0] * innovation
-            self.d_hat, _ = _clip_norm(self.d_hat + self.gain[1] * innovation, self.max_disturbance)
+        ids = tuple(ids) if ids is not None else tuple(f"r{i}" for i in range(n))
+        if len(ids) != n:
+            raise ValueError(f"ModelErrorCompensator.update: {len(ids)} ids for {n} robots")
+        self._all_valid = bool(np.isfinite(vel).all())
+        valid = np.ones(n, dtype=bool) if self._all_valid else np.isfinite(vel).all(axis=1)
+        fresh = self._align(ids, vel, valid) if ids != self.ids else np.zeros(n, dtype=bool)
+        self._reset_tick = bool(fresh.all())
+        if not self._reset_tick:
+            self._update(np.where(valid[:, None], vel, 0.0), valid & ~fresh)
+        rows = np.arange(n)
+        best = np.argmin(self.score, axis=0)                            # (N,)
+        take = self.score[best, rows] < self.config.switch_ratio * self.score[self.charge, rows]
+        self.charge = np.where(take, best, self.charge)
+        return self.v_hat[self.charge, rows]
+
+    def compensate(self, a_safe: np.ndarray) -> MecResult:
+        """``a_cmd = clip_norm(a_safe - d_hat, accel_limit)`` for (N, 2) ``a_safe`` (after :meth:`update`)."""
+        target = np.asarray(a_safe, dtype=np.float64)
+        if self.ids is None or target.shape != (len(self.ids), 2):
+            raise ValueError(f"ModelErrorCompensator.compensate: velocity and a_safe must both have "
+                             f"shape (num_robots, 2) = ({0 if self.ids is None else len(self.ids)}, 2), "
+                             f"got {target.shape}; call update first")
+        rows = np.arange(len(target))
+        best = self.charge
+        d_hat = self.d_hat[best, rows]
+        gated = self.score[best, rows] > self.gate_level[self.level]
         good_all = bool(np.isfinite(target).all())
-        desired = target - self.d_hat
+        desired = target - np.where(gated[:, None], 0.0, d_hat)
         if not good_all:
             desired = np.where(np.isfinite(target).all(axis=1)[:, None], desired, 0.0)
         a_cmd, clipped = _clip_norm(desired, self.dynamics.accel_limit)
-        self.u_prev = a_cmd
+        self.replace_last_command(a_cmd, shift=True)
+        status = MecStatus.RESET if self._reset_tick else MecStatus.OK
         if not good_all:
             status = MecStatus.INVALID_COMMAND
-        elif not all_valid:
+        elif not self._all_valid:
             status = MecStatus.INVALID_MEASUREMENT
+        elif status is MecStatus.OK and gated.any():
+            status = MecStatus.GATED
         elif status is MecStatus.OK and clipped.any():
             status = MecStatus.CLIPPED
-        return MecResult(a_cmd=a_cmd, d_hat=self.d_hat.copy(), status=status,
-                         time_s=time.perf_counter() - start)
+        return MecResult(a_cmd=a_cmd, d_hat=d_hat.copy(), status=status,
+                         time_s=time.perf_counter() - self._start, delay_ticks=best.copy(), gated=gated)
+
+    def _update(self, vel: np.ndarray, update: np.ndarray) -> None:
+        """One predict/update of every hypothesis for the (N,) robots in ``update``."""
+        dt, c = self.dynamics.dt, self.dynamics.damping
+        b = self.hypotheses
+        # hypothesis delta ran the command sent delta + 1 ticks ago: sent[-1 - delta]
+        u = self.sent[::-1][:b]                                         # (B, N, 2)
+        v_pred = (1.0 - c * dt) * self.v_hat + dt * (u + self.d_hat)
+        speed = np.hypot(v_pred[..., 0], v_pred[..., 1])[..., None]     # the plant's speed limit
+        v_pred = v_pred * np.minimum(1.0, self.dynamics.speed_limit / np.maximum(speed, 1e-300))
+        innovation = np.where(update[None, :, None], vel[None] - v_pred, 0.0)
+        gain = self.level_gain[self.level]                                  # (N, 2)
+        self.v_hat = v_pred + gain[None, :, :1] * innovation
+        d = self.d_hat + gain[None, :, 1:] * innovation
+        norm = np.hypot(d[..., 0], d[..., 1])[..., None]
+        self.d_hat = d * np.minimum(1.0, self.max_disturbance / np.maximum(norm, 1e-300))
+        sq = (innovation * innovation).sum(axis=2)
+        self.score = np.where(update[None], self.config.forget * self.score + sq, self.score)
+        # noise: the slowly averaged innovation variance per axis of the hypothesis in charge
+        own = 0.5 * sq[self.charge, np.arange(sq.shape[1])]
+        self.noise_var = np.where(update, NOISE_FORGET * self.noise_var + (1 - NOISE_FORGET) * own,
+                                  self.noise_var)
+        self.level = np.clip(np.searchsorted(self.level_var, self.noise_var, side="right") - 1,
+                             0, NOISE_LEVELS - 1)
+
+    def replace_last_command(self, a_cmd: np.ndarray, shift: bool = False) -> None:
+        """Tell the observers the (N, 2) command actually sent this tick (``shift``: a new tick)."""
+        if shift:
+            self.sent = np.roll(self.sent, -1, axis=0)
+        self.sent[-1] = a_cmd

@@ -26,7 +26,8 @@ Bodies
 
 Dynamics per control tick (``dt`` = ``scenario.dynamics.dt``), per robot, with :class:`ModelError`::
 
-    u_k     = a_cmd[k - delay_ticks]                          (0 before the first command) [m/s^2]
+    u_k     = the newest command that has arrived by tick k: command j arrives at tick
+              j + delay_ticks + J_j, J_j ~ U{0..delay_jitter_ticks}  (0 before the first) [m/s^2]
     u_k     = clip_norm(u_k, accel_limit)
     a_act  += alpha * (gain_i * u_k - a_act),  alpha = 1 - exp(-dt / lag_tau)   (alpha = 1 if tau = 0)
     a       = a_act + disturbance + w_k,       w_k ~ N(0, disturbance_std^2) per axis
@@ -41,6 +42,12 @@ no contact the motion equals :class:`sim.batched_env.BatchedFormationEnv` to rou
 
 Measurements (``read_state`` / ``step``) add N(0, position_noise_std^2) and
 N(0, velocity_noise_std^2) per axis, drawn once per tick; ``true_state`` is noise free.
+The link can lose them: with ``state_drop`` p each robot's new measurement is lost with
+probability p per tick, and the controller reads that robot's last delivered one; a robot frozen
+by ``freeze = (robot, tick)`` delivers no state from that tick on, ignores every later command,
+holds the last command it had for ``FROZEN_HOLD_TICKS`` more ticks and then brakes to rest with
+:meth:`sim.scenario.Dynamics.brake` (its own watchdog) and stays there. Whenever a drop or a
+freeze is configured, the state carries ``state_age_s``: the age of each delivered measurement.
 Collision events come from :func:`sim.metrics.collision_events` on the true positions after each
 tick, counted as onsets (robot, step) per kind like the batched world.
 
@@ -66,6 +73,7 @@ from sim.metrics import EpisodeOutcome, collision_events, episode_outcome
 from sim.scenario import Scenario, clip_norm
 
 WALL_THICKNESS = 0.05      # [m] half-thickness of the wall segments, all outside the arena
+FROZEN_HOLD_TICKS = 2      # ticks a frozen robot keeps its last command before its watchdog brakes
 COLLISION_SLOP = 1e-4      # [m] overlap pymunk leaves in resting contact
 
 
@@ -83,6 +91,11 @@ class ModelError:
         floor_friction: Coulomb-like deceleration opposing motion [m/s^2].
         position_noise_std: measurement noise std per axis on positions [m].
         velocity_noise_std: measurement noise std per axis on velocities [m/s].
+        delay_jitter_ticks: extra delay of each command, uniform in 0..this many ticks; the
+            robot applies the newest command that has arrived (0 = none).
+        state_drop: probability that a robot's measurement of a tick is lost on the way [0, 1).
+        freeze: ``(robot row, tick)``: that robot goes silent and deaf from that tick on (see the
+            module docstring), or None.
     """
 
     gain: float = 1.0
@@ -94,6 +107,9 @@ class ModelError:
     floor_friction: float = 0.0
     position_noise_std: float = 0.0
     velocity_noise_std: float = 0.0
+    delay_jitter_ticks: int = 0
+    state_drop: float = 0.0
+    freeze: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         def number(name: str, value) -> float:
@@ -113,9 +129,22 @@ class ModelError:
         if self.gain - self.gain_spread <= 0:
             raise ValueError(f"ModelError.gain_spread = {self.gain_spread!r} must be below gain = "
                              f"{self.gain!r} so that every robot's gain stays positive")
-        if isinstance(self.delay_ticks, bool) or not isinstance(self.delay_ticks, int | np.integer) \
-                or self.delay_ticks < 0:
-            raise ValueError(f"ModelError.delay_ticks must be an integer >= 0, got {self.delay_ticks!r}")
+        for name in ("delay_ticks", "delay_jitter_ticks"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+                raise ValueError(f"ModelError.{name} must be an integer >= 0, got {value!r}")
+        if not 0 <= number("state_drop", self.state_drop) < 1:
+            raise ValueError(f"ModelError.state_drop must be a probability in [0, 1), "
+                             f"got {self.state_drop!r}")
+        if self.freeze is not None:
+            try:
+                robot, tick = (int(x) for x in self.freeze)
+            except (TypeError, ValueError):
+                robot = tick = -1
+            if robot < 0 or tick < 0:
+                raise ValueError(f"ModelError.freeze must be (robot row >= 0, tick >= 0) or None, "
+                                 f"got {self.freeze!r}")
+            object.__setattr__(self, "freeze", (robot, tick))
         try:
             dist = tuple(self.disturbance)
         except TypeError:
@@ -233,7 +262,9 @@ class PymunkWorld:
         return walls + [pymunk.Poly(body, piece) for piece in pieces]
 
     def _seed_streams(self, seed: int | None) -> None:
-        jitter, gain, disturbance, noise = np.random.SeedSequence(seed).spawn(4)
+        # the first four children are those of spawn(4): adding the link stream changed no draw
+        jitter, gain, disturbance, noise, link = np.random.SeedSequence(seed).spawn(5)
+        self._rng_link = np.random.default_rng(link)
         self._rng_jitter = np.random.default_rng(jitter)
         self._rng_gain = np.random.default_rng(gain)
         self._rng_disturbance = np.random.default_rng(disturbance)
@@ -254,7 +285,12 @@ class PymunkWorld:
         starts = s.starts + self._rng_jitter.uniform(-j, j, size=(n, 2))
         self.gains = me.gain + self._rng_gain.uniform(-me.gain_spread, me.gain_spread, size=n)
         self._command = np.zeros((n, 2))
-        self._delay_line = deque(np.zeros((n, 2)) for _ in range(me.delay_ticks))
+        self._pending: deque[tuple[np.ndarray, int, np.ndarray]] = deque()  # (arrival (N,), seq, cmd)
+        self._sent = 0
+        self._held = np.zeros((n, 2))            # the newest command each robot has received
+        self._held_seq = np.zeros(n, dtype=np.int64)
+        self._delivered: tuple[np.ndarray, np.ndarray] | None = None
+        self._age_ticks = np.zeros(n, dtype=np.int64)
         self._actuator = np.zeros((n, 2))
         self.applied_accelerations = np.zeros((n, 2))
         self._step = 0
@@ -278,6 +314,7 @@ class PymunkWorld:
             body.position = (float(p[0]), float(p[1]))
             body.velocity = (float(v[0]), float(v[1]))
             self.space.reindex_shapes_for_body(body)
+        self._delivered = None                   # placed robots: every measurement is delivered
         self._after_motion()
 
     # ------------------------------------------------------------- fleet API
@@ -288,8 +325,7 @@ class PymunkWorld:
     def step(self) -> FleetState:
         """Advance one control tick (see the module docstring) and return the measured state."""
         dyn, me = self.scenario.dynamics, self.model_error
-        self._delay_line.append(self._command)
-        u = clip_norm(self._delay_line.popleft(), dyn.accel_limit)
+        u = clip_norm(self._receive_commands(), dyn.accel_limit)
         target = self.gains[:, None] * u
         if self._lag_alpha == 1.0:
             self._actuator = target
@@ -321,8 +357,22 @@ class PymunkWorld:
         return self.read_state()
 
     def read_state(self) -> FleetState:
-        """The state as measured at this tick (with measurement noise, if configured)."""
-        return self._state(self._meas_pos, self._meas_vel)
+        """The state as measured at this tick (noise) and delivered (drops, freeze), if configured."""
+        me = self.model_error
+        if me.state_drop == 0 and me.freeze is None:
+            return self._state(self._meas_pos, self._meas_vel)
+        pos, vel = self._delivered
+        state = self._state(pos, vel)
+        state.state_age_s = self._age_ticks * self.dt
+        return state
+
+    @property
+    def frozen(self) -> np.ndarray:
+        """(N,) bool: robots frozen by ``ModelError.freeze`` at this tick."""
+        out = np.zeros(self.scenario.num_robots, dtype=bool)
+        if self.model_error.freeze is not None and self._step >= self.model_error.freeze[1]:
+            out[self.model_error.freeze[0]] = True
+        return out
 
     def true_state(self) -> FleetState:
         """The noise-free state at this tick."""
@@ -348,6 +398,43 @@ class PymunkWorld:
                                self.scenario.target_tolerance)
 
     # ------------------------------------------------------------- internals
+    def _receive_commands(self) -> np.ndarray:
+        """(N, 2) command each robot acts on this tick (module docstring: delay, jitter, freeze)."""
+        me, n, k = self.model_error, self.scenario.num_robots, self._step
+        frozen = self.frozen
+        self._sent += 1           # the held command goes out again every tick (zero-order hold)
+        jitter = self._rng_link.integers(0, me.delay_jitter_ticks + 1, n) if me.delay_jitter_ticks else 0
+        self._pending.append((k + me.delay_ticks + jitter + np.zeros(n, dtype=np.int64),
+                              self._sent, self._command))
+        for arrival, seq, cmd in self._pending:
+            take = (arrival <= k) & (seq > self._held_seq) & ~frozen
+            self._held[take] = cmd[take]
+            self._held_seq[take] = seq
+        while self._pending and (self._pending[0][0] <= k).all():
+            self._pending.popleft()
+        if frozen.any():
+            since = k - me.freeze[1]
+            if since >= FROZEN_HOLD_TICKS:
+                self._held[frozen] = self.scenario.dynamics.brake(self._true_vel[frozen])
+        return self._held
+
+    def _deliver(self) -> None:
+        """The measurement the controller gets: last delivered one for dropped or frozen robots."""
+        me = self.model_error
+        if me.state_drop == 0 and me.freeze is None:
+            return
+        n = self.scenario.num_robots
+        if self._delivered is None:
+            self._delivered = (self._meas_pos.copy(), self._meas_vel.copy())
+            self._age_ticks = np.zeros(n, dtype=np.int64)
+            return
+        lost = self.frozen.copy()
+        if me.state_drop > 0:
+            lost |= self._rng_link.random(n) < me.state_drop
+        pos, vel = self._delivered
+        pos[~lost], vel[~lost] = self._meas_pos[~lost], self._meas_vel[~lost]
+        self._age_ticks = np.where(lost, self._age_ticks + 1, 0)
+
     def _after_motion(self) -> None:
         """Read the bodies, judge contacts, take this tick's measurement."""
         self._true_pos = np.array([tuple(b.position) for b in self._robots], dtype=np.float64)
@@ -362,6 +449,7 @@ class PymunkWorld:
             self._meas_pos = self._true_pos + self._rng_noise.normal(0, me.position_noise_std, (len(self._robots), 2))
         if me.velocity_noise_std > 0:
             self._meas_vel = self._true_vel + self._rng_noise.normal(0, me.velocity_noise_std, (len(self._robots), 2))
+        self._deliver()
 
     def _state(self, pos: np.ndarray, vel: np.ndarray) -> FleetState:
         return FleetState(time=self._step * self.dt, step=self._step, positions=pos.copy(),

@@ -37,9 +37,9 @@ synchronisation cost for tensors this small.
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
-import math
 import time
 import warnings
 import zipfile
@@ -47,18 +47,25 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
-from controllers.safety import SafetyConfig, SafetyFilter, SafetyStatus, braking_acceleration
-from sim.fleet import Fleet, FleetState
-from sim.metrics import collision_events, episode_outcome
+from controllers.safety import (
+    SafetyConfig,
+    SafetyFilter,
+    SafetyResult,
+    SafetyStatus,
+    braking_acceleration,
+)
+from controllers.safety.latency import LatencyConfig, LatencyPredictor, Prediction
+from controllers.safety.recheck import recheck
+from sim.fleet import FleetState
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM, flat, fleet_tokens_np
 from sim.scenario import Dynamics, Scenario, clip_norm
+from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 
 PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
 
@@ -89,6 +96,9 @@ class TickResult:
         mec_status: the compensator's :class:`MecStatus` (None: MEC off).
         safety_reason: the filter's reason text ("" when unchanged or intervened).
         brake_reason: why a stage output was replaced by braking ("" when none was).
+        stale: (N,) bool, robots treated as obstacles this tick (state older than the latency
+            config's ``stale_after_s``, or not finite): they were sent the braking law.
+        horizon_ticks: the longest latency prediction of the filter this tick [ticks].
         timings_ns: nanoseconds per stage: observe, policy, safety, mec, total.
     """
 
@@ -100,6 +110,8 @@ class TickResult:
     mec_status: MecStatus | None
     safety_reason: str = ""
     brake_reason: str = ""
+    stale: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    horizon_ticks: int = 0
     timings_ns: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -137,12 +149,20 @@ class StackConfig:
         safety_config: settings of the filter (default: the fused fast path, see
             :mod:`controllers.safety.fused`; ``geometry="fcl"`` gives the same answers slower).
         mec_config: settings of the compensator.
+        latency: what the filter assumes of the link (:mod:`controllers.safety.latency`; the
+            default covers 150 ms of command delay; ``LatencyConfig(enabled=False)`` judges the
+            measured state as it is).
+        estimated_velocity: policy and filter read the compensator's velocity estimate (its
+            Kalman observer, noise-adaptive, :mod:`controllers.mec`) instead of the measured
+            velocity (only with ``mec``; stale rows keep their measurement).
     """
 
     safety: bool = True
     mec: bool = True
     safety_config: SafetyConfig = field(default_factory=SafetyConfig)
     mec_config: MecConfig = field(default_factory=MecConfig)
+    latency: LatencyConfig = field(default_factory=LatencyConfig)
+    estimated_velocity: bool = True
 
 
 def is_torchscript_file(path: str | Path) -> bool:
@@ -219,6 +239,61 @@ def _mask_is_optional(network: nn.Module) -> bool:
     return len(params) < 2 or params[1].default is None
 
 
+class LastKnown:
+    """The last finite state of each robot id, to stand in for a row that arrives non-finite."""
+
+    def __init__(self):
+        self._rows: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+
+    def store(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+              now: float) -> None:
+        for k, rid in enumerate(ids):
+            self._rows[rid] = (pos[k], vel[k], now - ages[k])
+
+    def new_measurement(self, ids: tuple[str, ...], ages: np.ndarray, now: float) -> np.ndarray:
+        """(N,) bool: rows measured after the state last stored for their id (a dropped
+        update repeats the old one: it must not count twice as news)."""
+        out = np.ones(len(ids), dtype=bool)
+        for k, rid in enumerate(ids):
+            known = self._rows.get(rid)
+            if known is not None and now - ages[k] <= known[2] + 1e-9:
+                out[k] = False
+        return out
+
+    def fill(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+             now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rows with a non-finite position or velocity replaced by their last finite state (its
+        age counted from when it was measured); (N,) bool of rows with none to stand in."""
+        pos, vel, ages = pos.copy(), vel.copy(), ages.copy()
+        bad = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
+        unplaced = np.zeros(len(ids), dtype=bool)
+        for k, rid in enumerate(ids):
+            if not bad[k]:
+                self._rows[rid] = (pos[k], vel[k], now - ages[k])
+            elif rid in self._rows:
+                pos[k], vel[k], measured = self._rows[rid]
+                ages[k] = max(now - measured, 0.0)
+            else:
+                unplaced[k] = True
+                vel[k] = np.where(np.isfinite(vel[k]), vel[k], 0.0)
+        return pos, vel, ages, unplaced
+
+
+@dataclass
+class SafeStage:
+    """The safety stage of one tick: the filter's result over M >= N robots (silent ones last)."""
+
+    result: SafetyResult
+    prediction: Prediction | None
+    size: int
+
+    def full(self, rows: np.ndarray) -> np.ndarray:
+        """(M, 2): the N commanded rows, then the silent robots' (the filter's answer, 0)."""
+        if len(rows) == self.size:
+            return rows
+        return np.vstack([rows, self.result.a_safe[len(rows):]])
+
+
 class ControlStack:
     """observe -> policy -> safety -> MEC for one fleet (see the module docstring).
 
@@ -260,12 +335,18 @@ class ControlStack:
             self._mask_optional = _mask_is_optional(self.network)
         self.safety = SafetyFilter(scenario, self.config.safety_config) if self.config.safety else None
         self.mec = ModelErrorCompensator(self.dynamics, self.config.mec_config) if self.config.mec else None
+        self.predictor = (LatencyPredictor(self.dynamics, self.config.latency)
+                          if self.config.safety and self.config.latency.enabled else None)
+        self._last_known = LastKnown()
         self.num_robots: int | None = None
 
     def reset(self) -> None:
         """Start a new episode: forget the compensator's estimate and any callable's plan."""
         if self.mec is not None:
             self.mec.reset()
+        if self.predictor is not None:
+            self.predictor.reset()
+        self._last_known = LastKnown()
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
             reset()
@@ -319,174 +400,114 @@ class ControlStack:
         n = state.num_robots
         if n != self.num_robots:
             self._resize(n)
-        pos, vel = state.positions, state.velocities
-        policy_status = PolicyStatus.OK
-        brake_reason = ""
-        t_obs = t_pol = t0
-        if not (np.isfinite(pos).all() and np.isfinite(vel).all()):
+        pos, vel, ages = state.positions, state.velocities, state.ages()
+        ids = state.robot_ids
+        unknown = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
+        news = self._last_known.new_measurement(ids, ages, state.time) & ~unknown
+        if unknown.any():
+            pos, vel, ages, unplaced = self._last_known.fill(ids, pos, vel, ages, state.time)
+        else:
+            self._last_known.store(ids, pos, vel, ages, state.time)
+            unplaced = unknown
+        stale = unknown | (ages > self.config.latency.stale_after_s)
+        if self.mec is not None:            # the observer's velocity: less noisy, same delay
+            v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
+            if self.config.estimated_velocity:
+                vel = np.where(stale[:, None], vel, v_est)
+        policy_status, brake_reason = PolicyStatus.OK, ""
+        if unplaced.any():                      # nowhere to put a robot: nobody may move
             a_nom = self.brake(vel)
             policy_status = PolicyStatus.INVALID_STATE
             brake_reason = "non-finite fleet state: policy skipped, braking"
             t_obs = t_pol = time.perf_counter_ns()
         else:
-            if self.callable is not None:
-                t_obs = t0
-                raw = np.asarray(self.callable(state), dtype=np.float64)
-            else:
-                obs, mask = self._network_input(state)
-                t_obs = time.perf_counter_ns()
-                with torch.inference_mode():
-                    out = self._forward(obs, mask) if mask is not None else self._forward(obs)
-                raw = out.numpy()[0].astype(np.float64)
-            t_pol = time.perf_counter_ns()
-            if raw.shape != (n, 2):
-                raise StackError(f"the policy returned shape {raw.shape} for {n} robots; it must "
-                                 f"return ({n}, 2) accelerations (or (1, {n}, 2) for a network)")
-            if np.isfinite(raw).all():
-                a_nom = raw
-            else:
+            if unknown.any() or vel is not state.velocities:
+                state = dataclasses.replace(state, positions=pos, velocities=vel, state_age_s=ages)
+            a_nom, t_obs, t_pol = self._policy(state, t0)
+            if not np.isfinite(a_nom).all():
                 a_nom = self.brake(vel)
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
-        safety_status, safety_reason = None, ""
+        safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
-            pose = state.object_pose
-            if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
-                pose = None
-            result = self.safety.filter(pos, vel, a_nom, pose)
-            a_safe, safety_status, safety_reason = result.a_safe, result.status, result.reason
+            safe = self._safety(state, pos, vel, ages, unknown, a_nom)
+            a_safe, safety_status, safety_reason = safe.result.a_safe[:n], safe.result.status, safe.result.reason
         else:
             a_safe = clip_norm(a_nom, self.dynamics.accel_limit)
         t_safe = time.perf_counter_ns()
-        mec_status = None
+        mec_status, a_cmd, achieved = None, a_safe, a_safe
         if self.mec is not None:
-            mec_result = self.mec.step(vel, a_safe)
-            a_cmd, mec_status = mec_result.a_cmd, mec_result.status
-        else:
-            a_cmd = a_safe
+            mec = self.mec.compensate(a_safe)
+            a_cmd, mec_status = mec.a_cmd, mec.status
+            if safe is not None:
+                a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(a_cmd), n)
+            self.mec.replace_last_command(a_cmd)
+            achieved = a_cmd + np.where((mec.gated | stale)[:, None], 0.0, mec.d_hat)
+        if stale.any():                         # not listening or not seen: brake, as the robot would
+            a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
+            achieved = np.where(stale[:, None], a_cmd, achieved)
         t_mec = time.perf_counter_ns()
         if not np.isfinite(a_cmd).all():   # no stage should get here; the last line of defence
             a_cmd = self.brake(vel)
             brake_reason = (brake_reason + "; " if brake_reason else "") + "final command not finite: braking"
+        if self.predictor is not None:
+            self.predictor.record(ids, clip_norm(achieved, self.dynamics.accel_limit))
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
-            brake_reason=brake_reason,
+            brake_reason=brake_reason, stale=stale,
+            horizon_ticks=int(safe.prediction.horizon.max(initial=0)) if safe and safe.prediction else 0,
             timings_ns={"observe": t_obs - t0, "policy": t_pol - t_obs, "safety": t_safe - t_pol,
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 
     __call__ = tick
 
+    def _policy(self, state: FleetState, t0: int) -> tuple[np.ndarray, int, int]:
+        """``a_nom`` (N, 2) of the policy and the times after observing and after the policy."""
+        n = state.num_robots
+        if self.callable is not None:
+            t_obs = t0
+            raw = np.asarray(self.callable(state), dtype=np.float64)
+        else:
+            obs, mask = self._network_input(state)
+            t_obs = time.perf_counter_ns()
+            with torch.inference_mode():
+                out = self._forward(obs, mask) if mask is not None else self._forward(obs)
+            raw = out.numpy()[0].astype(np.float64)
+        t_pol = time.perf_counter_ns()
+        if raw.shape != (n, 2):
+            raise StackError(f"the policy returned shape {raw.shape} for {n} robots; it must "
+                             f"return ({n}, 2) accelerations (or (1, {n}, 2) for a network)")
+        return raw, t_obs, t_pol
+
+    def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+                unknown: np.ndarray, a_nom: np.ndarray) -> SafeStage:
+        """Filter the N commanded robots together with the silent ones (obstacles), over the latency."""
+        silent = state.silent if state.silent is not None and len(state.silent) else None
+        ids = state.robot_ids
+        if silent is not None:
+            ids = ids + tuple(silent.ids)
+            pos, vel = np.vstack([pos, silent.positions]), np.vstack([vel, silent.velocities])
+            ages = np.concatenate([ages, silent.age_s])
+            unknown = np.concatenate([unknown, np.ones(len(silent), dtype=bool)])
+            a_nom = np.vstack([a_nom, np.zeros((len(silent), 2))])
+        prediction = None
+        if self.predictor is not None:
+            prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
+                                                state.command_delay_s, fixed=unknown)
+        pose = state.object_pose
+        if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
+            pose = None
+        result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
+        return SafeStage(result, prediction, len(pos))
+
     def _resize(self, n: int) -> None:
-        """A new robot count: the compensator restarts (its estimate is per robot row); the
-        filter builds (once) and caches its QP for N; the policy runs any N it supports."""
+        """A new robot count: the filter builds (once) and caches its QP for N; the compensator
+        and the latency history keep their estimates per robot id; the policy runs any N."""
         if n < 1:
             raise StackError(f"the fleet state has {n} robots; a tick needs at least one")
-        if self.mec is not None:
-            self.mec.reset()
         self.num_robots = n
 
 
-# ------------------------------------------------------------------- episodes
-def nominal_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                 dynamics: Dynamics) -> tuple[np.ndarray, np.ndarray]:
-    """One tick of the nominal model (:class:`sim.scenario.Dynamics`, no error, no contact).
-
-    ``a = clip_norm(acc, accel_limit)``, ``v' = clip_norm(v + dt (a - c v), speed_limit)``,
-    ``p' = p + dt v'``; (N, 2) arrays in m, m/s, m/s^2 -> (p', v').
-    """
-    return dynamics.step_np(pos, vel, acc)
-
-
-@dataclass
-class EpisodeMetrics:
-    """One episode of a stack on a fleet.
-
-    Attributes:
-        success: every robot within tolerance of its assigned target at the end, no collision.
-        final_distance: mean assigned robot-target distance at the end [m].
-        collided: any collision onset during the episode.
-        robot_collisions, object_collisions, wall_collisions: collision onsets per kind.
-        steps: ticks run.
-        interventions, infeasible, fallbacks, braking: ticks with that event (see TickResult).
-        tracking_error: mean one-tick position error [m] of the fleet against the nominal model
-            driven by ``a_safe`` from the measured state (:func:`nominal_step`); what the MEC
-            drives towards 0.
-        p50_tick_ms, p99_tick_ms: tick latency percentiles [ms].
-    """
-
-    success: bool
-    final_distance: float
-    collided: bool
-    robot_collisions: int
-    object_collisions: int
-    wall_collisions: int
-    steps: int
-    interventions: int
-    infeasible: int
-    fallbacks: int
-    braking: int
-    tracking_error: float
-    p50_tick_ms: float
-    p99_tick_ms: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
-
-
-def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int | None = None,
-                *, start: Callable[[Fleet], FleetState] | None = None) -> EpisodeMetrics:
-    """Reset ``fleet`` with ``seed`` and run ``steps`` ticks (default: the scenario's episode).
-
-    Collisions: a fleet with ``collision_counts`` and ``outcome()`` (the pymunk world) judges
-    itself on its true state; any other fleet is judged here with :mod:`sim.metrics` on the
-    state it reports. ``start(fleet)``, if given, runs after the reset (e.g. to place robots)
-    and returns the first state.
-    """
-    scenario = fleet.scenario
-    steps = scenario.dynamics.episode_steps if steps is None else steps
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be a positive integer, got {steps!r}")
-    state = fleet.reset(seed=seed)
-    if start is not None:
-        state = start(fleet)
-    stack.reset()
-    self_judging = hasattr(fleet, "collision_counts") and hasattr(fleet, "outcome")
-    polygon = torch.as_tensor(scenario.polygon, dtype=torch.float64)
-    prev_contact = np.zeros((state.num_robots, 3), dtype=bool)
-    counts = np.zeros(3, dtype=np.int64)
-    counters = dict.fromkeys(("interventions", "infeasible", "fallbacks", "braking"), 0)
-    tracking, latency = [], []
-    for _ in range(steps):
-        tick = stack.tick(state)
-        latency.append(tick.timings_ns["total"])
-        counters["interventions"] += tick.intervened
-        counters["infeasible"] += tick.infeasible
-        counters["fallbacks"] += tick.fallback
-        counters["braking"] += tick.braking
-        predicted, _ = nominal_step(state.positions, state.velocities, tick.a_safe, scenario.dynamics)
-        fleet.send_accelerations(tick.a_cmd)
-        state = fleet.step()
-        tracking.append(float(np.linalg.norm(state.positions - predicted, axis=1).mean()))
-        if not self_judging:
-            ev = collision_events(torch.from_numpy(state.positions)[None], polygon,
-                                  scenario.robot_radius, scenario.arena)
-            contact = torch.stack((ev.robot[0], ev.object[0], ev.wall[0]), -1).numpy()
-            counts += (contact & ~prev_contact).sum(0)
-            prev_contact = contact
-    if self_judging:
-        c = fleet.collision_counts
-        counts = np.array([c.robot, c.object, c.wall])
-        outcome = fleet.outcome()
-    else:
-        outcome = episode_outcome(torch.from_numpy(state.positions)[None],
-                                  torch.from_numpy(state.targets)[None],
-                                  torch.tensor([bool(counts.sum() > 0)]), scenario.target_tolerance)
-    lat = np.asarray(latency) / 1e6
-    return EpisodeMetrics(
-        success=bool(outcome.success[0]), final_distance=float(outcome.final_distance[0]),
-        collided=bool(counts.sum() > 0), robot_collisions=int(counts[0]),
-        object_collisions=int(counts[1]), wall_collisions=int(counts[2]), steps=steps,
-        tracking_error=float(np.mean(tracking)) if tracking else math.nan,
-        p50_tick_ms=float(np.percentile(lat, 50)), p99_tick_ms=float(np.percentile(lat, 99)),
-        **counters)
+__all__ = ["ControlStack", "EpisodeMetrics", "PolicyStatus", "StackConfig", "StackError", "TickResult",
+           "load_policy", "nominal_step", "run_episode"]

@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.safety.geometry import SceneDistances
+from controllers.safety.latency import Prediction, row_sums
 from sim.scenario import Dynamics
 
 
@@ -202,8 +203,11 @@ def _phi(z: np.ndarray, alpha: float | np.ndarray, floor: float) -> tuple[np.nda
 
 
 def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
-                  config: SafetyConfig) -> BarrierTerms:
-    """Barrier values and rows for (N, 2) velocities [m/s] and the distances of the same instant."""
+                  config: SafetyConfig, prediction: Prediction | None = None) -> BarrierTerms:
+    """Barrier values and rows for (N, 2) velocities [m/s] and the distances of the same instant.
+
+    A ``prediction`` tightens the rows as in :meth:`controllers.safety.fused.FusedScene.terms`
+    (grown discs, approach-speed allowance, fixed robots)."""
     a_box = octagon_accel(dynamics, config)
     alpha_static = config.braking_share * a_box
     alpha_pair = 2.0 * config.braking_share * a_box
@@ -223,11 +227,22 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
     alpha = np.empty(len(s))
     alpha[:len(sdot_pair)] = alpha_pair
     alpha[len(sdot_pair):] = alpha_static
+    dropped, sdot_drift = None, sdot
+    if prediction is not None:
+        s = s - row_sums(prediction.grow, dist.pair_i, dist.pair_j)
+        sdot = sdot - row_sums(prediction.closing, dist.pair_i, dist.pair_j)
+        if prediction.fixed.any():
+            free = row_sums((~prediction.fixed).astype(np.float64), dist.pair_i, dist.pair_j)
+            dropped = free == 0
+            alpha = alpha_static * np.maximum(free, 1.0)
 
     phi, dphi = _phi(s - config.margin, alpha, config.sqrt_floor)
     h = phi + sdot
-    drift = (dphi - c) * sdot + curv_term
+    drift = (dphi - c) * sdot_drift + curv_term
     k_of_h = config.gamma * (h if config.class_k == "linear" else h**3)
+    bound = -k_of_h - drift
+    if dropped is not None and dropped.any():
+        bound[dropped], h = -np.inf, np.where(dropped, np.inf, h)
     return BarrierTerms(pair_i=dist.pair_i, pair_j=dist.pair_j, pair_normal=dist.pair_normal,
                         object_normal=dist.object_normal, wall_normal=dist.wall_normal,
-                        h=h, drift=drift, bound=-k_of_h - drift)
+                        h=h, drift=drift, bound=bound)

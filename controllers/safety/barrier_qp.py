@@ -26,7 +26,10 @@ Solve path, every outcome an explicit :class:`SafetyStatus`:
    every row within 1e-6.
 3. ``SLACK``: OSQP failed or was infeasible: the QP with one slack ``sigma_k >= 0`` per barrier row
    (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ slack_weight * |sigma|^2``, the
-   actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers.
+   actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers; rows with a
+   fixed robot of a latency prediction (not listening: a grown disc, not a wall) weigh
+   ``FIXED_SLACK_DISCOUNT`` times less, so a robot caught inside such a disc gets out of it
+   without giving way on walls, the object or listening robots.
 4. ``FALLBACK_BRAKE``: that failed too, or the input was not finite, or the post-check
    (:mod:`controllers.safety.postcheck`) replaced some robot's command by maximum braking.
 
@@ -49,10 +52,13 @@ import scipy.sparse as sp
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, barrier_terms, octagon_accel
 from controllers.safety.fused import FusedScene, FusedTerms
 from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
+from controllers.safety.latency import Prediction, row_sums
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
 from sim.scenario import Scenario
 
 _ROW_CHECK_TOL = 1e-6
+FIXED_SLACK_DISCOUNT = 1e-4
+"""Slack weight of rows with a fixed (not listening) robot, relative to ``slack_weight``."""
 
 
 class SafetyStatus(StrEnum):
@@ -79,6 +85,7 @@ class SafetyResult:
         max_slack: largest slack of the slack QP [m/s^2] (0 otherwise).
         solve_time_s: time in the QP solvers [s].
         total_time_s: time of the whole call [s].
+        terms: the barrier rows judged (None when the filter braked before building them).
     """
 
     a_safe: np.ndarray
@@ -91,6 +98,7 @@ class SafetyResult:
     max_slack: float = 0.0
     solve_time_s: float = 0.0
     total_time_s: float = 0.0
+    terms: BarrierTerms | None = None
 
     @property
     def modified(self) -> bool:
@@ -152,15 +160,24 @@ class _Problem:
             self.scene.set_object_pose(object_pose)
         return self.scene.polygon
 
-    def solve(self, terms: BarrierTerms, a_nom: np.ndarray,
-              tighten: float) -> tuple[np.ndarray | None, str]:
+    def solve(self, terms: BarrierTerms, a_nom: np.ndarray, tighten: float,
+              fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
         """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row.
 
-        Only the vectors and matrix values change between ticks (the upper bounds never do):
-        ``update(q, l, Ax)`` on the problem set up once; OSQP warm-starts from the last answer.
+        Only the vectors and matrix values change between ticks: ``update(q, l, u, Ax)`` on the
+        problem set up once; OSQP warm-starts from the last answer. ``fixed`` (N,) robots are
+        held at ``u = 0`` (their box and octagon rows closed to [0, 0]).
         """
-        self.lower[:self.num_barrier] = terms.bound + tighten
-        self.solver.update(q=-2.0 * a_nom.ravel(), l=self.lower,
+        self.lower[:self.num_barrier] = np.maximum(terms.bound + tighten, -1e20)  # dropped rows
+        upper = self.upper
+        lower = self.lower
+        if fixed is not None and fixed.any():
+            upper, lower = self.upper.copy(), self.lower.copy()
+            idx = np.flatnonzero(fixed)
+            for base in (self.num_barrier, self.num_barrier + 2 * self.n):
+                for axis in (0, 1):
+                    upper[base + 2 * idx + axis] = lower[base + 2 * idx + axis] = 0.0
+        self.solver.update(q=-2.0 * a_nom.ravel(), l=lower, u=upper,
                            Ax=self._ax(terms.pair_normal, terms.object_normal))
         res = self.solver.solve(raise_error=False)
         if res.info.status != "solved":
@@ -215,13 +232,18 @@ class SafetyFilter:
         return barrier_terms(self.distances(pos, object_pose), vel, self.dynamics, self.config)
 
     def filter(self, pos: np.ndarray, vel: np.ndarray, a_nom: np.ndarray,
-               object_pose: np.ndarray | None = None) -> SafetyResult:
+               object_pose: np.ndarray | None = None, *,
+               prediction: Prediction | None = None) -> SafetyResult:
         """Safe accelerations for positions [m], velocities [m/s] and nominal accelerations [m/s^2].
 
         Args:
             pos, vel, a_nom: (N, 2) arrays.
             object_pose: optional (3,) object centroid x, y [m] and heading [rad]; the object is
                 treated as static within the tick.
+            prediction: the robots where the command will act (:mod:`controllers.safety.latency`):
+                the barrier, the QP and the post-check then judge its ``pos``/``vel`` (instead
+                of ``pos``/``vel``) with its grown discs; its fixed robots get ``a_safe = 0``
+                (the caller brakes them) and are obstacles only.
         """
         start = time.perf_counter()
         pos, vel, a_nom = (np.asarray(x, dtype=np.float64) for x in (pos, vel, a_nom))
@@ -242,16 +264,21 @@ class SafetyFilter:
 
         prob = self.problem(n)
         fused = self.config.geometry == "fused"
+        fixed = None
+        if prediction is not None:
+            pos, vel, fixed = prediction.pos, prediction.vel, prediction.fixed
+            if fixed.any():
+                a_nom = np.where(fixed[:, None], 0.0, a_nom)
         dist: SceneDistances | None = None
         with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
             if fused:
-                terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose))
+                terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose), prediction)
             else:
                 dist = self.distances(pos, object_pose)
-                terms = barrier_terms(dist, vel, self.dynamics, self.config)
+                terms = barrier_terms(dist, vel, self.dynamics, self.config, prediction)
         clearance = float(terms.distance.min()) if fused else dist.min_clearance()
-        # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too
-        if not np.isfinite(terms.bound).all():
+        # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too (dropped rows: -inf)
+        if np.isnan(terms.bound).any() or (terms.bound == np.inf).any():
             return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
                                    clearance)
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
@@ -260,10 +287,10 @@ class SafetyFilter:
             a = nominal
         else:
             t_solve = time.perf_counter()
-            a, osqp_status = prob.solve(terms, nominal, self.config.tighten)
+            a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
             status = SafetyStatus.INTERVENED
             if a is None:
-                a, slack, reason = self._slack_qp(terms, nominal, prob)
+                a, slack, reason = self._slack_qp(terms, nominal, prob, fixed)
                 reason = f"OSQP: {osqp_status}; {reason}"
                 status = SafetyStatus.SLACK
             solve_time = time.perf_counter() - t_solve
@@ -273,9 +300,9 @@ class SafetyFilter:
         braked, contact = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if self.config.postcheck:
             if isinstance(terms, FusedTerms):
-                check = prob.fused.check(prob.checker, pos, vel, a, terms)
+                check = prob.fused.check(prob.checker, pos, vel, a, terms, prediction)
             else:
-                check = prob.checker.check(pos, vel, a, dist.object_distance)
+                check = prob.checker.check(pos, vel, a, dist.object_distance, prediction)
             a, braked, contact = check.acc, check.braked, check.contact
             if braked.any():
                 status = SafetyStatus.FALLBACK_BRAKE
@@ -284,16 +311,21 @@ class SafetyFilter:
         return SafetyResult(a_safe=a, status=status, reason=reason, braked=braked, contact=contact,
                             min_barrier=float(terms.h.min()), min_clearance=clearance,
                             max_slack=slack, solve_time_s=solve_time,
-                            total_time_s=time.perf_counter() - start)
+                            total_time_s=time.perf_counter() - start, terms=terms)
 
     # ------------------------------------------------------------------ fallbacks
-    def _slack_qp(self, terms: BarrierTerms, nominal: np.ndarray,
-                  prob: _Problem) -> tuple[np.ndarray | None, float, str]:
+    def _slack_qp(self, terms: BarrierTerms, nominal: np.ndarray, prob: _Problem,
+                  fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, float, str]:
         """Barrier rows softened by slack variables, solved exactly by DAQP (see module docstring)."""
         n, k = prob.n, prob.num_barrier
         a_rows = terms.dense(n)
-        weight = self.config.slack_weight
-        p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), np.full(k, weight)]))
+        weight = np.full(k, self.config.slack_weight)
+        if fixed is not None and fixed.any():
+            # a robot inside a silent robot's grown disc gets out of it as fast as the other rows
+            # allow: those rows give way first (the disc is a bound, the wall is a wall)
+            with_fixed = row_sums(fixed.astype(np.float64), terms.pair_i, terms.pair_j) > 0
+            weight[with_fixed] *= FIXED_SLACK_DISCOUNT
+        p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), weight]))
         q_vec = np.concatenate([-2.0 * nominal.ravel(), np.zeros(k)])
         diag = np.zeros((2 * n, 2 * n))
         robots = np.arange(n)
@@ -307,6 +339,11 @@ class SafetyFilter:
         h_vec = np.concatenate([-(terms.bound + self.config.tighten), np.full(4 * n, limit)])
         lb = np.concatenate([np.full(2 * n, -prob.a_box), np.zeros(k)])
         ub = np.concatenate([np.full(2 * n, prob.a_box), np.full(k, np.inf)])
+        if fixed is not None and fixed.any():
+            held = np.repeat(fixed, 2)
+            lb[:2 * n][held] = ub[:2 * n][held] = 0.0
+        keep = np.isfinite(h_vec)                               # dropped rows (-inf bounds) go
+        g_mat, h_vec = g_mat[keep], h_vec[keep]
         try:
             x = qpsolvers.solve_qp(p_mat, q_vec, g_mat, h_vec, lb=lb, ub=ub, solver="daqp")
         except Exception as exc:  # any solver failure means: brake, and the reason says why

@@ -98,13 +98,18 @@ class SweepChecker:
         self._pairs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def failing(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                object_clearance: np.ndarray) -> np.ndarray:
+                object_clearance: np.ndarray, grow: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: robots whose one-tick sweep touches something.
 
-        ``object_clearance`` (N,) is each disc's signed distance to the object at ``pos`` [m].
+        ``object_clearance`` (N,) is each disc's signed distance to the object at ``pos`` [m];
+        ``grow`` (N,) [m] widens each disc (a latency prediction's, see
+        :mod:`controllers.safety.latency`).
         """
         n, r, m = len(pos), self.radius, self.margin
         end, bulge = predict_step(pos, vel, acc, self.dynamics)
+        if grow is not None:
+            bulge = bulge + grow
+            object_clearance = object_clearance - grow
         bad = np.zeros(n, dtype=bool)
         if n > 1:
             if n not in self._pairs:
@@ -141,17 +146,20 @@ class SweepChecker:
                    for part in self.object_parts)
 
     def check(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-              object_clearance: np.ndarray) -> PostcheckResult:
-        """Brake every robot that fails (repeating until stable); see the module docstring."""
+              object_clearance: np.ndarray, prediction=None) -> PostcheckResult:
+        """Brake every robot that fails (repeating until stable); see the module docstring.
+        Fixed robots of a latency ``prediction`` are never braked here (not listening)."""
         acc = acc.copy()
         braked = np.zeros(len(pos), dtype=bool)
+        grow = None if prediction is None else prediction.grow
+        mine = np.ones(len(pos), dtype=bool) if prediction is None else ~prediction.fixed
         brake = braking_acceleration(vel, self.dynamics)
-        bad = self.failing(pos, vel, acc, object_clearance)
+        bad = self.failing(pos, vel, acc, object_clearance, grow)
         for _ in range(len(pos)):
-            new = bad & ~braked
+            new = bad & ~braked & mine
             if not new.any():
                 break
             braked |= new
             acc[new] = brake[new]
-            bad = self.failing(pos, vel, acc, object_clearance)
+            bad = self.failing(pos, vel, acc, object_clearance, grow)
         return PostcheckResult(acc=acc, braked=braked, contact=bad)

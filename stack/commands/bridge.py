@@ -1,7 +1,7 @@
 """`formation bridge`: the controller process of a fleet over Zenoh.
 
     formation bridge --fleet lab --scenario paper-5 --policy policy.pt --connect tcp/127.0.0.1:7447
-    formation bridge --fleet lab --policy scripted --no-safety --no-mec --listen tcp/127.0.0.1:7447
+    formation bridge --fleet lab --policy scripted --listen tcp/127.0.0.1:7447
 
 The controller is a ControlStack (policy -> safety filter -> MEC); ``--policy scripted`` uses
 the scripted reference controller as the policy. Robots are ``r0..r{N-1}`` of the scenario;
@@ -10,6 +10,13 @@ any subset may be present, and the count changes as robots join or leave.
 With --episode-ticks T (a fleet that resets every T ticks, e.g. `fleet-sim --episodes`), the
 stack is reset at each fleet episode and the --report gains "episodes": per episode the ticks
 answered, safety events, the MEC tracking error and the stack's tick time (EpisodeRecorder).
+A robot whose state is older than --stale-after stays in the controller's picture (with its
+age) and is sent BRAKE; a robot that left the link stays in it as a silent obstacle; any one
+live robot silent for --estop-after raises the fleet e-stop; after a stall of the bridge itself
+(frozen, starved) the old states are discarded, the stack's estimators reset and latched robots
+re-armed as their fresh states come in (deploy/bridge.py has the rules). The --report adds the
+measured command round trips ("round_trip_ms") and the delay bound given to the stack
+("command_delay_s").
 SIGINT/SIGTERM stop the loop and close the Zenoh session.
 """
 
@@ -47,6 +54,8 @@ class ScriptedFleetController:
 
     def __call__(self, state: FleetState) -> np.ndarray:
         rows = [self.names.index(r) for r in state.robot_ids]
+        if state.silent is not None:   # robots off the link: where they were last seen
+            self.positions[[self.names.index(r) for r in state.silent.ids]] = state.silent.positions
         self.positions[rows] = state.positions
         self.velocities[rows] = state.velocities
         self.velocities[[i for i in range(len(self.names)) if i not in rows]] = 0.0
@@ -58,22 +67,36 @@ class ScriptedFleetController:
 def register(sub) -> None:
     p = sub.add_parser("bridge", help="run the controller of a fleet over Zenoh",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--fleet", required=True)
-    p.add_argument("--scenario", default="paper-5")
+    d = BridgeConfig()
+    p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
+    p.add_argument("--scenario", default="paper-5", help="scenario preset (default paper-5)")
     p.add_argument("--policy", required=True,
                    help="TorchScript file, training checkpoint, or 'scripted'")
-    p.add_argument("--listen", action="append", default=[])
-    p.add_argument("--connect", action="append", default=[])
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--no-safety", action="store_true", help="skip the safety filter")
     p.add_argument("--no-mec", action="store_true", help="skip the model error compensator")
-    p.add_argument("--ttl-ms", type=int, default=150)
-    p.add_argument("--stale-after", type=float, default=0.3, help="state age to leave a robot out [s]")
-    p.add_argument("--estop-after", type=float, default=1.0, help="state age to e-stop the fleet [s]")
+    p.add_argument("--ttl-ms", type=int, default=d.ttl_ms, metavar="MS",
+                   help="command validity [ms] (default %(default)s)")
+    p.add_argument("--stale-after", type=float, default=d.stale_after_s, metavar="S",
+                   help="state age [s] past which a robot is sent BRAKE whatever the controller "
+                        "says (it stays in the controller's picture with its age) (default %(default)s)")
+    p.add_argument("--estop-after", type=float, default=d.estop_after_s, metavar="S",
+                   help="silence [s] of any one live robot that raises the fleet e-stop; also "
+                        "the gap that counts as a stall of the bridge itself (after a stall the "
+                        "old states are discarded and latched robots re-armed) (default %(default)s)")
+    p.add_argument("--gather", type=float, default=d.gather_s, metavar="S",
+                   help="seconds a tick waits for the rest of a burst of states (default %(default)s)")
+    p.add_argument("--delay-percentile", type=float, default=d.delay_percentile, metavar="P",
+                   help="the command delay passed to the controller is this percentile of the "
+                        "recent command round trips (default %(default)s)")
+    p.add_argument("--delay-window", type=int, default=d.delay_window, metavar="K",
+                   help="how many recent command round trips the percentile is taken over (default %(default)s)")
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
     p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
                    help="the fleet resets every T ticks: reset the stack, report per episode")
-    p.add_argument("--gather", type=float, default=0.01,
-                   help="seconds a tick waits for the rest of a burst of states")
     p.add_argument("--lossless", action="store_true",
                    help="the fleet is lock-stepped (fleet-sim --lockstep) and waits for every "
                         "command: send them with Zenoh congestion control BLOCK, never dropped "
@@ -81,7 +104,8 @@ def register(sub) -> None:
                         "lost command)")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.add_argument("--trace", action="store_true",
-                   help='print one JSON line per tick on stdout: {"tick": k, "robots": [...]}')
+                   help='print one JSON line per tick on stdout: {"tick": k, "robots": [...], '
+                        '"stale": [...], "silent": [...]}')
     p.set_defaults(func=run)
 
 
@@ -125,6 +149,12 @@ class EpisodeRecorder:
         self._current = {"episode": int(k), "ticks": 0, **dict.fromkeys(self.COUNTERS, 0),
                          "tracking": [], "tick_ns": []}
 
+    def on_stall(self) -> None:
+        """The bridge stalled (:mod:`deploy.bridge`): the stack's estimates and the one-tick
+        prediction saw none of what happened meanwhile."""
+        self.stack.reset()
+        self._predicted = None
+
     def __call__(self, state: FleetState) -> np.ndarray:
         from stack.pipeline import nominal_step
 
@@ -163,7 +193,8 @@ class EpisodeRecorder:
 
 
 def _print_tick(record) -> None:
-    print(json.dumps({"tick": record.tick, "robots": list(record.robots)}), flush=True)
+    print(json.dumps({"tick": record.tick, "robots": list(record.robots),
+                      "stale": list(record.stale), "silent": list(record.silent)}), flush=True)
 
 
 def run(args) -> int:
@@ -177,12 +208,15 @@ def run(args) -> int:
         transport = TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect))
         config = BridgeConfig(ttl_ms=args.ttl_ms, stale_after_s=args.stale_after,
                               estop_after_s=args.estop_after, gather_s=args.gather,
-                              episode_ticks=args.episode_ticks, lossless=args.lossless)
+                              episode_ticks=args.episode_ticks, lossless=args.lossless,
+                              delay_percentile=args.delay_percentile,
+                              delay_window=args.delay_window)
         c = scenario.object_center
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),
                         object_pose=np.array([c[0], c[1], 0.0]), config=config,
-                        on_episode=recorder.start_episode if recorder else None)
+                        on_episode=recorder.start_episode if recorder else None,
+                        on_stall=recorder.on_stall if recorder else stack.reset)
     except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

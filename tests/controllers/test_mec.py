@@ -111,7 +111,8 @@ def test_limits_and_bad_input():
     out = mec.step(vel, target)
     assert out.status is MecStatus.INVALID_COMMAND
     np.testing.assert_allclose(out.a_cmd[2], 0.0)
-    assert mec.step(np.zeros((4, 2)), np.zeros((4, 2))).status is MecStatus.RESET   # N changed
+    assert mec.step(np.zeros((4, 2)), np.zeros((4, 2)), ids=("a", "b", "c", "d")).status \
+        is MecStatus.RESET                                              # nobody known: afresh
     with pytest.raises(ValueError, match="velocity and a_safe must both have shape"):
         mec.step(np.zeros((4, 2)), np.zeros((3, 2)))
     with pytest.raises(ValueError, match="mec.disturbance_rate"):

@@ -122,16 +122,30 @@ def test_nan_network_output_and_nan_state_brake():
     bad = FleetState(time=0.0, step=0, positions=state.positions,
                      velocities=np.array([[np.nan, 0.0], [0.0, 0.0], [0.0, 0.0]]), targets=state.targets,
                      object_pose=state.object_pose)
-    tick = ControlStack(sc, actor()).tick(bad)
+    stack = ControlStack(sc, actor())
+    tick = stack.tick(bad)                  # robot 0 never seen: nowhere to put it, nobody moves
     assert tick.policy_status is PolicyStatus.INVALID_STATE
-    assert tick.safety_status is SafetyStatus.FALLBACK_BRAKE
+    assert tick.stale.tolist() == [True, False, False]
+    np.testing.assert_allclose(tick.a_nom, 0.0)          # braking from rest
+    np.testing.assert_allclose(tick.a_cmd[0], 0.0)       # BRAKE, not 0 - d_hat
     assert np.isfinite(tick.a_cmd).all()
+    # once seen, a robot whose state turns non-finite stands in at its last state, an obstacle
+    stack.reset()
+    moving = FleetState(time=0.0, step=0, positions=state.positions,
+                        velocities=np.array([[0.2, 0.0], [0.0, 0.1], [0.0, 0.0]]), targets=state.targets,
+                        object_pose=state.object_pose)
+    stack.tick(moving)
+    bad.time = 0.05
+    tick = stack.tick(bad)
+    assert tick.policy_status is PolicyStatus.OK and tick.stale.tolist() == [True, False, False]
+    np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(moving.velocities, sc.dynamics)[0])
 
 
 def test_robot_count_can_change_between_ticks():
     sc = make_scenario("paper-3")
     stack = ControlStack(sc, actor())
-    for n, expect_reset in ((3, True), (3, False), (5, True), (8, True), (3, True)):
+    # estimates are keyed by robot id: only a team of robots never seen starts afresh
+    for n, expect_reset in ((3, True), (3, False), (5, False), (8, False), (3, False)):
         state = PymunkWorld(transport_scenario(n)).reset(seed=n)
         tick = stack.tick(state)
         assert tick.a_cmd.shape == (n, 2) and np.isfinite(tick.a_cmd).all()
@@ -236,7 +250,8 @@ def test_tick_without_mask_equals_the_network_on_fresh_tokens_and_full_mask(scri
 
     net = actor(2)
     module = torch.jit.script(net) if scripted else net
-    stack = ControlStack(make_scenario("paper-3"), module)
+    # the measured state goes to the policy as is (by default it reads the MEC's velocity estimate)
+    stack = ControlStack(make_scenario("paper-3"), module, StackConfig(estimated_velocity=False))
     for n in (3, 5, 3):
         sc = transport_scenario(n)
         for state in _states(sc, 4, seed=n):

@@ -1,0 +1,187 @@
+"""Part (d) of bench/safety.py: the safety layer under the imperfections of a real link.
+
+Each condition is a pymunk :class:`~sim.pymunk_world.ModelError` (see :data:`CONDITIONS`):
+command delay of 1, 2, 3 ticks (50-150 ms), a delay that jitters 1-3 ticks from command to
+command, measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
+the way, a robot that freezes mid-episode (silent and deaf, its own watchdog brakes it after
+two ticks), gain 0.7 with two ticks of delay, and the randomised gain/lag/friction/disturbance
+model error of part (a). Per condition, on the same seeds:
+
+* ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
+  starts inside ``h >= 0``), once with the default stack (filter + MEC, ``StackConfig()``) and
+  once bare (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
+  ``collisions_filter_off``;
+* ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
+  given): success and contact episodes with the default stack and bare;
+* the MEC's tracking error [mm]: the scripted commands recorded on the nominal model, replayed
+  open loop through the condition's world with the MEC on and off (filter off), against the
+  nominal trajectory under the same delay (the MEC compensates model error, not latency; a
+  frozen robot is left out).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import multiprocessing
+import sys
+
+import numpy as np
+import torch
+from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start
+from tqdm import tqdm
+
+from controllers.safety import SafetyFilter
+from controllers.scripted import ScriptedController
+from sim.fleet import FleetState
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import make_scenario, transport_scenario
+from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
+
+CONDITIONS: dict[str, dict] = {
+    "delay1": {"delay_ticks": 1},
+    "delay2": {"delay_ticks": 2},
+    "delay3": {"delay_ticks": 3},
+    "delay_jitter": {"delay_ticks": 1, "delay_jitter_ticks": 2},
+    "noise": {"position_noise_std": 0.01, "velocity_noise_std": 0.02},
+    "drops": {"state_drop": 0.2},
+    "frozen_robot": {"freeze": "random"},
+    "gain0.7_delay2": {"gain": 0.7, "delay_ticks": 2},
+    "model": {"model": "random"},
+}
+"""Condition name -> ModelError fields ("random": drawn per episode, see :func:`model_error`)."""
+
+BARE = StackConfig(safety=False, mec=False)
+_NETWORKS: dict = {}
+
+
+def model_error(name: str, rng: np.random.Generator, num_robots: int, steps: int) -> ModelError:
+    """The condition's ModelError for one episode (freeze: a random robot at a random tick)."""
+    fields = dict(CONDITIONS[name])
+    if fields.get("freeze") == "random":
+        fields["freeze"] = (int(rng.integers(num_robots)), int(rng.integers(5, max(6, steps // 2))))
+    if fields.pop("model", None) == "random":
+        angle = rng.uniform(0, 2 * np.pi)
+        fields = {"gain": 0.85, "gain_spread": 0.15, "lag_tau": float(rng.uniform(0, 0.05)),
+                  "floor_friction": float(rng.uniform(0, 0.1)), "disturbance_std": 0.02,
+                  "disturbance": tuple(float(rng.uniform(0, 0.05)) * np.array([np.cos(angle), np.sin(angle)]))}
+    return ModelError(**fields)
+
+
+def _network(path: str | None):
+    if path is None:
+        return None
+    if path not in _NETWORKS:
+        _NETWORKS[path] = load_policy(path)
+    return _NETWORKS[path]
+
+
+def adversarial_episode(task: tuple[str, int, int]) -> dict:
+    """One adversarial seed of a condition, default stack and bare: did each collide?"""
+    name, seed, steps = task
+    torch.set_num_threads(1)
+    out = {"condition": name, "seed": seed}
+    for key, config in (("on", StackConfig()), ("off", BARE)):
+        rng = np.random.default_rng(seed)
+        n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
+        sc = transport_scenario(n)
+        world = PymunkWorld(sc, model_error(name, rng, n, steps))
+        stack = ControlStack(sc, AdversarialPolicy(sc, rng), config)
+        barrier = SafetyFilter(sc)
+        m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
+        out[f"collided_{key}"] = m.collided
+        out["robots"] = n
+    return out
+
+
+def task_episode(task: tuple[str, int, str | None]) -> dict:
+    """One paper-3/4/5 episode of the scripted controller (or a policy), default stack and bare."""
+    name, seed, policy = task
+    torch.set_num_threads(1)
+    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
+    out = {"condition": name, "seed": seed, "policy": policy or "scripted"}
+    for key, config in (("on", StackConfig()), ("off", BARE)):
+        rng = np.random.default_rng(seed)
+        world = PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps))
+        source = _network(policy) if policy is not None else ScriptedController(sc)
+        m = run_episode(world, ControlStack(sc, source, config), seed)
+        out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
+    return out
+
+
+def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
+    """The MEC's open-loop tracking error under the condition (module docstring) [mm]."""
+    errors: dict[str, list[float]] = {"mec": [], "no_mec": []}
+    for k in range(episodes):
+        sc = make_scenario(("paper-3", "paper-4", "paper-5")[k % 3])
+        rng = np.random.default_rng(seed + k)
+        me = model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps)
+        start = PymunkWorld(sc).reset(seed=seed + k)
+        ctl = ScriptedController(dataclasses.replace(
+            sc, dynamics=dataclasses.replace(sc.dynamics, accel_limit=0.6)))
+        pos, vel, commands, nominal = start.positions, start.velocities, [], []
+        delayed = [np.zeros_like(pos)] * me.delay_ticks
+        for step in range(sc.dynamics.episode_steps):
+            state = FleetState(time=step * sc.dynamics.dt, step=step, positions=pos, velocities=vel,
+                               targets=start.targets, object_pose=start.object_pose)
+            commands.append(ctl(state))
+            delayed.append(commands[-1])
+            pos, vel = nominal_step(pos, vel, delayed.pop(0), sc.dynamics)
+            nominal.append(pos)
+        keep = np.ones(sc.num_robots, dtype=bool)
+        if me.freeze is not None:
+            keep[me.freeze[0]] = False
+        for key, mec in (("mec", True), ("no_mec", False)):
+            world = PymunkWorld(sc, me)
+            state = world.reset(seed=seed + k)
+            stack = ControlStack(sc, lambda s, c=commands: c[min(s.step, len(c) - 1)],
+                                 StackConfig(safety=False, mec=mec))
+            dev = []
+            for t in range(len(commands)):
+                world.send_accelerations(stack.tick(state).a_cmd)
+                state = world.step()
+                dev.append(np.linalg.norm(world.true_state().positions - nominal[t], axis=1)[keep].mean())
+            errors[key].append(float(np.mean(dev)))
+    return {key: 1000.0 * float(np.mean(v)) for key, v in errors.items()}
+
+
+def _map(fn, tasks: list, workers: int, desc: str) -> list[dict]:
+    rows = []
+    with tqdm(total=len(tasks), desc=desc, unit="ep", file=sys.stderr) as bar:
+        if workers > 1:
+            with multiprocessing.get_context("fork").Pool(workers) as pool:
+                for row in pool.imap_unordered(fn, tasks, chunksize=2):
+                    rows.append(row)
+                    bar.update()
+        else:
+            for task in tasks:
+                rows.append(fn(task))
+                bar.update()
+    return rows
+
+
+def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: int,
+                   mec_episodes: int, workers: int, seed: int, policy: str | None) -> dict:
+    """The ``conditions`` document: one entry per condition (module docstring)."""
+    adversarial = _map(adversarial_episode, [(nm, seed + k, steps) for nm in names for k in range(episodes)],
+                       workers, "conditions: adversarial")
+    sources = [None] + ([policy] if policy is not None else [])
+    tasks = _map(task_episode, [(nm, seed + k, src) for nm in names for k in range(task_episodes)
+                                for src in sources], workers, "conditions: scripted/policy")
+    doc = {}
+    for nm in names:
+        adv = [r for r in adversarial if r["condition"] == nm]
+        entry = {"episodes": len(adv), "steps": steps, "model_error": CONDITIONS[nm],
+                 "collisions_filter_on": sum(r["collided_on"] for r in adv),
+                 "collisions_filter_off": sum(r["collided_off"] for r in adv),
+                 "collided_seeds_filter_on": sorted(r["seed"] for r in adv if r["collided_on"])[:20]}
+        for src in sources:
+            rows = [r for r in tasks if r["condition"] == nm and r["policy"] == (src or "scripted")]
+            tag = "scripted" if src is None else "policy"
+            entry[f"{tag}_episodes"] = len(rows)
+            entry[f"success_{tag}"] = float(np.mean([r["success_on"] for r in rows])) if rows else None
+            entry[f"success_{tag}_bare"] = float(np.mean([r["success_off"] for r in rows])) if rows else None
+            entry[f"collisions_{tag}"] = sum(r["collided_on"] for r in rows)
+            entry[f"collisions_{tag}_bare"] = sum(r["collided_off"] for r in rows)
+        entry["tracking_error_mm"] = tracking_error_mm(nm, mec_episodes, seed)
+        doc[nm] = entry
+    return doc

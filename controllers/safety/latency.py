@@ -1,0 +1,268 @@
+r"""Latency in the safety filter: predict every robot over the delay, tighten by what is unknown.
+
+A command computed now acts on the robot only after a latency: the age ``tau_i`` of the state
+it was computed from (transport of the STATE, a lost update) plus the command's own delay ``L``
+(transport of the CMD, the robot's actuation), which may jitter tick to tick. Meanwhile the
+robot goes on executing commands that are already in flight. A barrier evaluated at the
+measured state therefore judges a state the robot has left; with a delay of two ticks that made
+the filter collide in every adversarial episode.
+
+**Prediction.** The filter is evaluated at the state where the new command takes effect at the
+latest, ``h_i = ceil((tau_i + L) / dt)`` ticks after the measurement: the nominal model
+(:meth:`sim.scenario.Dynamics.step_np`) run from the measured ``(p_i, v_i)`` through the last
+``h_i`` accelerations this controller asked of robot ``i`` (oldest first; zeros before the first
+one: a robot at rest holds no command)::
+
+    (p^_i, v^_i) = step^{h_i}(p_i, v_i; u_{k-h_i}, ..., u_{k-1})
+
+**Tightening.** What the prediction cannot know, per robot:
+
+* which of the recent commands acted at each of the ``h_i`` ticks (the delay is only bounded:
+  with a shorter or jittering delay the robot ran newer commands earlier, the new one
+  included), so each tick's acceleration may differ from the predicted one by up to the
+  spread ``D_i`` of the window: the diagonal of the box around ``u_{k-h_i} .. u_{k-1}`` and the
+  new nominal command;
+* the model error left after the compensator, ``|a_achieved - a_asked| <= delta_a``
+  (``accel_uncertainty``);
+* measurement noise bounded by ``sigma_p``, ``sigma_v`` (``position_noise``, ``velocity_noise``).
+
+With ``A_i = D_i + delta_a`` the semi-implicit Euler steps give the bounds after ``h`` ticks::
+
+    e_v,i = A_i dt h + sigma_v                                       [m/s]
+    e_p,i = A_i dt^2 h (h + 1) / 2 + sigma_v dt h + sigma_p          [m]
+
+The filter then grows robot ``i``'s disc by ``e_p,i`` (every signed distance of a row drops by
+the sum over its robots) and counts ``e_v,i`` as approach speed (``s_dot`` drops by the sum),
+see :meth:`controllers.safety.fused.FusedScene.terms`. The barrier and the QP are otherwise
+those of :mod:`controllers.safety.barrier`.
+
+**Robots that are not listening.** A robot whose state is older than ``stale_after_s``, or that
+has left the link (``FleetState.silent``), cannot be relied on to obey: it is kept as a fixed
+obstacle (its acceleration is not a decision variable; rows between two fixed robots are
+dropped; a row with one fixed robot counts on the other robot's braking alone) at its
+estimate, with its disc grown by its reachable set since that state. A robot executes
+only commands it was sent and brakes on its own when they stop (its watchdog: the contract of
+the wire format), so until braking must have begun it accelerates by at most ``a``, the largest
+command of its last fresh ticks plus ``delta_a`` (``accel_limit`` for a robot never seen fresh),
+before braking must have begun, ``T_b = max(stale_after_s, watchdog_s) + L`` after its last
+state (a robot that still hears the controller is sent BRAKE once it is stale, which acts
+within ``L``; one that hears nothing brakes on its own ``watchdog_s`` after its last command,
+which it had within ``L`` of its last state), and then brakes at
+``a_max = accel_limit`` to rest; it may also brake at once. Along its last heading it is
+therefore between ``D_near`` (braking at once) and ``D_far`` (coasting at its last speed
+``v_0`` until ``T_b``, then braking), and off that line by what ``a`` adds; with
+``t_c = min(t, T_b)``, ``t_b = max(t - T_b, 0)``::
+
+    D_far  = |v_0| t_c + |v_0| t_s - a_max t_s^2 / 2,     t_s = min(t_b, |v_0| / a_max)
+    D_near = |v_0| t_n - a_max t_n^2 / 2,                 t_n = min(t, |v_0| / a_max)
+    centre = p_0 + (v_0 / |v_0|) (D_far + D_near) / 2
+    R      = (D_far - D_near) / 2 + a t_c^2 / 2 + (a T_b) min(t_b, (|v_0| + a T_b) / a_max)
+    grow = R(tau + L) + sigma_p,   closing = dR/dt + sigma_v,   velocity = dcentre/dt
+
+so a robot silent for good stays an obstacle of bounded size where it must have stopped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.scenario import Dynamics
+
+
+class LatencyConfigError(ValueError):
+    """A latency setting that cannot work; the message names the field and the fix."""
+
+
+@dataclass(frozen=True)
+class LatencyConfig:
+    """What the filter assumes of the link (module docstring). The defaults cover 150 ms.
+
+    Attributes:
+        enabled: predict and tighten (False: the filter judges the measured state as it is).
+        command_delay_s: bound ``L`` on the time from sending a command to it acting (transport
+            plus actuation, jitter included) [s]; a measured bound, if larger, wins.
+        stale_after_s: a state older than this makes its robot a fixed obstacle [s].
+        accel_uncertainty: ``delta_a``, bound on achieved minus asked acceleration [m/s^2].
+        position_noise: ``sigma_p``, bound on the position measurement error [m].
+        velocity_noise: ``sigma_v``, bound on the velocity measurement error [m/s].
+        watchdog_s: a robot that hears no command brakes on its own after this long [s].
+    """
+
+    enabled: bool = True
+    command_delay_s: float = 0.15
+    stale_after_s: float = 0.15
+    accel_uncertainty: float = 0.05
+    position_noise: float = 0.0
+    velocity_noise: float = 0.0
+    watchdog_s: float = 0.1
+    spread_weight: float = 0.25
+
+    def __post_init__(self) -> None:
+        for name in ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
+                     "velocity_noise", "watchdog_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, int | float) and math.isfinite(value)
+                                               and value >= 0):
+                raise LatencyConfigError(f"latency.{name} must be a finite number >= 0, got {value!r}")
+        if self.stale_after_s <= 0:
+            raise LatencyConfigError(f"latency.stale_after_s must be > 0 seconds, got {self.stale_after_s!r}")
+
+
+def horizon_ticks(age_s: np.ndarray, delay_s: float, dt: float) -> np.ndarray:
+    """(N,) ticks ``ceil((tau + L) / dt)`` from each measurement to the new command acting."""
+    return np.ceil((np.asarray(age_s) + delay_s) / dt - 1e-9).astype(np.int64).clip(min=0)
+
+
+def reach(pos0: np.ndarray, vel0: np.ndarray, t: np.ndarray, brake_after: float, dynamics: Dynamics,
+          accel: np.ndarray | float | None = None) -> tuple[np.ndarray, ...]:
+    """Where a robot that is not listening can be ``t`` seconds after its last state (module docstring).
+
+    Args:
+        pos0, vel0: (M, 2) last known centres [m] and velocities [m/s].
+        t: (M,) times since that state [s]; ``brake_after`` = ``T_b`` [s].
+        accel: (M,) the acceleration bound ``a`` until ``T_b`` [m/s^2] (default ``accel_limit``).
+
+    Returns:
+        ``(centre (M, 2), centre velocity (M, 2), radius R (M,), dR/dt (M,))``: the disc of
+        radius ``R`` around ``centre`` holds the robot's centre.
+    """
+    brake = dynamics.accel_limit
+    a = np.maximum(np.asarray(brake if accel is None else accel, dtype=np.float64), 1e-9)
+    t = np.asarray(t, dtype=np.float64)
+    speed = np.minimum(np.hypot(vel0[:, 0], vel0[:, 1]), dynamics.speed_limit)
+    heading = vel0 / np.maximum(speed, 1e-12)[:, None]
+    coast = np.minimum(t, brake_after)
+    t_b = np.maximum(t - brake_after, 0.0)
+    stop = np.minimum(t_b, speed / brake)
+    far = speed * coast + speed * stop - 0.5 * brake * stop * stop           # braking at T_b
+    far_speed = np.where(t < brake_after, speed, np.maximum(speed - brake * t_b, 0.0))
+    now = np.minimum(t, speed / brake)                                     # braking at once
+    near = speed * now - 0.5 * brake * now * now
+    near_speed = np.maximum(speed - brake * t, 0.0)
+    spread_v = a * brake_after                                  # velocity error when braking starts
+    t_err = np.minimum(t_b, (speed + spread_v) / brake)
+    radius = 0.5 * (far - near) + 0.5 * a * coast * coast + spread_v * t_err
+    rate = 0.5 * (far_speed - near_speed) + np.where(
+        t < brake_after, a * t, np.where(t_b < (speed + spread_v) / brake, spread_v, 0.0))
+    centre = pos0 + heading * (0.5 * (far + near))[:, None]
+    return centre, heading * (0.5 * (far_speed + near_speed))[:, None], radius, rate
+
+
+def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarray:
+    """(K,) per-row sums of a per-robot (N,) quantity in the row layout of
+    :mod:`controllers.safety.barrier`: ``x_i + x_j`` on pairs, ``x_i`` on object and wall rows."""
+    return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
+
+
+@dataclass
+class Prediction:
+    """The filter's picture of N robots at the moment the new command acts.
+
+    Attributes:
+        pos, vel: (N, 2) predicted centres [m] and velocities [m/s] (fixed robots: last
+            position, zero velocity).
+        grow: (N,) disc growth ``e_p`` (or the reachable radius) [m].
+        closing: (N,) approach-speed allowance ``e_v`` (or the reach speed bound) [m/s].
+        fixed: (N,) bool, robots that are obstacles, not decision variables.
+        horizon: (N,) ticks predicted.
+    """
+
+    pos: np.ndarray
+    vel: np.ndarray
+    grow: np.ndarray
+    closing: np.ndarray
+    fixed: np.ndarray
+    horizon: np.ndarray
+
+
+class LatencyPredictor:
+    """Keeps the accelerations asked of each robot (by id) and predicts over the latency.
+
+    Call :meth:`predict` with the tick's measured state, filter at the returned prediction, then
+    :meth:`record` what was asked of every robot this tick. Ids that appear start with an empty
+    history (a robot that joins holds no command); ids that vanish are forgotten.
+    """
+
+    def __init__(self, dynamics: Dynamics, config: LatencyConfig | None = None):
+        self.dynamics = dynamics
+        self.config = config or LatencyConfig()
+        max_age = self.config.stale_after_s
+        self.depth = int(horizon_ticks(np.array([max_age]), self._max_delay(None), dynamics.dt)[0]) + 1
+        self.reset()
+
+    def reset(self) -> None:
+        self._ids: tuple[str, ...] = ()
+        self._history = np.zeros((self.depth, 0, 2))       # oldest first
+        self._accel_bound: dict[str, float] = {}           # per id, from its last fresh tick
+
+    def _max_delay(self, measured: float | None) -> float:
+        return max(self.config.command_delay_s, measured or 0.0)
+
+    def _align(self, ids: tuple[str, ...]) -> None:
+        """Re-key the history rows to ``ids`` (kept for known ids, zeros for new ones)."""
+        if ids == self._ids:
+            return
+        old = {rid: k for k, rid in enumerate(self._ids)}
+        history = np.zeros((self.depth, len(ids), 2))
+        for k, rid in enumerate(ids):
+            if rid in old:
+                history[:, k] = self._history[:, old[rid]]
+        self._ids, self._history = ids, history
+
+    def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+                a_nom: np.ndarray, measured_delay_s: float | None = None,
+                fixed: np.ndarray | None = None) -> Prediction:
+        """Prediction of (N, 2) measured states of ``ages`` (N,) [s] (module docstring).
+
+        ``a_nom`` (N, 2) joins the window whose spread bounds the unknown order of commands;
+        ``fixed`` (N,) bool marks robots that are obstacles whatever their age (unknown state,
+        silent), besides those older than ``stale_after_s``.
+        """
+        cfg, dyn = self.config, self.dynamics
+        self._align(tuple(ids))
+        n = len(pos)
+        delay = self._max_delay(measured_delay_s)
+        stale = ages > cfg.stale_after_s
+        fixed = stale if fixed is None else (stale | fixed)
+        h = np.where(fixed, 0, np.minimum(horizon_ticks(ages, delay, dyn.dt), self.depth))
+        steps = int(h.max(initial=0))
+        p, v = pos.copy(), vel.copy()
+        lo, hi = a_nom.copy(), a_nom.copy()
+        for t in range(steps):
+            u = self._history[self.depth - steps + t]
+            active = (h >= steps - t)[:, None]
+            p1, v1 = dyn.step_np(p, v, u)
+            p, v = np.where(active, p1, p), np.where(active, v1, v)
+            lo, hi = np.where(active, np.minimum(lo, u), lo), np.where(active, np.maximum(hi, u), hi)
+        spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]) if n else np.zeros(0)
+        accel = cfg.spread_weight * spread + cfg.accel_uncertainty
+        grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + cfg.position_noise
+        closing = accel * dyn.dt * h + cfg.velocity_noise
+        bound = np.maximum(np.hypot(lo[:, 0], lo[:, 1]), np.hypot(hi[:, 0], hi[:, 1])) if n else lo[:, 0]
+        if steps:
+            recent = self._history[-steps:]
+            bound = np.maximum(bound, np.hypot(recent[..., 0], recent[..., 1]).max(axis=0))
+        for k in np.flatnonzero(~fixed):
+            self._accel_bound[ids[k]] = min(float(bound[k]) + cfg.accel_uncertainty, dyn.accel_limit)
+        if fixed.any():
+            brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
+            accel = np.array([self._accel_bound.get(ids[k], dyn.accel_limit) for k in np.flatnonzero(fixed)])
+            centre, centre_vel, radius, rate = reach(pos[fixed], vel[fixed], ages[fixed] + delay,
+                                                     brake_after, dyn, accel)
+            p[fixed], v[fixed] = centre, centre_vel
+            grow[fixed] = radius + cfg.position_noise
+            closing[fixed] = rate + cfg.velocity_noise
+        return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h)
+
+    def record(self, ids: tuple[str, ...], accel: np.ndarray) -> None:
+        """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last)."""
+        self._align(tuple(ids))
+        self._history = np.roll(self._history, -1, axis=0)
+        self._history[-1] = accel
+
+
+__all__ = ["LatencyConfig", "LatencyConfigError", "LatencyPredictor", "Prediction", "horizon_ticks",
+           "reach", "row_sums"]
