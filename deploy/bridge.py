@@ -1,21 +1,57 @@
 """The controller process's loop: robot states in, a controller callable, commands out.
 
 ``deploy/`` never imports ``stack/``: the controller is a plain callable
-``controller(FleetState) -> (N, 2)`` accelerations [m/s^2] for the N robots present.
+``controller(FleetState) -> (N, 2)`` accelerations [m/s^2] for the N rows it is given.
 
-One tick (:meth:`Bridge.step`):
-    1. wait for a fresh state from some robot, then up to ``gather_s`` for every other present
-       robot's (a fleet publishes its states as a burst, so one tick answers one burst);
-    2. present robots = liveliness token present and newest state younger than
-       ``stale_after_s``; live robots with older states are *stale* and left out (counted);
-       N changes on the fly as robots join, leave or go stale;
-    3. if live robots exist but the newest state of any of them is older than
-       ``estop_after_s``, the picture is too old: the fleet e-stop is raised (latched; an
-       operator clears it);
-    4. ``FleetState`` of the present robots (registry order) -> controller -> commands, each
-       with ``ttl_ms`` and the answered ``state_seq``. A controller error, a wrong shape or a
-       non-finite value sends BRAKE to every present robot instead (counted); a robot
-       reporting FAULT (its watchdog latch) gets a STOP command, which re-arms it.
+Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic clock):
+    * **row**: liveliness token present and a *usable* state (one not discarded below). Every
+      row is in the ``FleetState`` with ``state_age_s`` = ``now - receive time + uplink
+      excess``, where the uplink excess is how much longer this state took than the fastest
+      transfer seen from that robot (``receive - send_time_ns``, both robot clocks cancel; the
+      floor follows clock drift up to 200 ppm). Stale or not, a robot never leaves the
+      controller's picture while it is live;
+    * **silent**: seen before, but its token is gone (left, crashed, frozen past the link
+      lease), or it is live and its latest state was discarded (it rejoined, or the bridge
+      stalled, and has sent nothing since). Passed as ``FleetState.silent`` (last position,
+      velocity, age) so the safety layer keeps it as an obstacle; never commanded. A robot
+      whose token is gone gets its last state discarded, so after a rejoin it is a row again
+      only with a new state (the controller keys its estimates by robot id and resets them);
+    * **unknown**: live without a usable state: sent BRAKE (``state_seq`` 0) on each tick.
+
+Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
+own fresh velocity) when its state is older than ``stale_after_s`` when the command goes out
+(the controller's own time counts) or not finite, whatever the controller said; otherwise the controller's row, or BRAKE for every row when the controller
+raises, returns a wrong shape or a non-finite value (counted). A fresh row whose robot reports
+FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at rest until a
+command without STOP).
+
+Fleet e-stop (latched, reason 1 = ``ESTOP_STALE_PICTURE``; an operator clears it): raised when
+any single live robot has been silent longer than ``estop_after_s`` while the bridge runs,
+silence = ``min(state age, time since the bridge could hear it)``, where the bridge can hear a
+robot from the moment its token appeared or the bridge resumed from a stall.
+
+Controller stall (**the recovery rule**): when two consecutive looks at the fleet lie more than
+``estop_after_s`` apart beyond the tick's own wait (``timeout_s + gather_s``) -- the process was
+frozen (SIGSTOP), starved, or its controller hung -- the bridge does not act on its old picture:
+every state received before the stall is discarded, ``on_stall()`` runs (e.g. reset the
+controller's estimators, which saw no motion meanwhile), the command round trips in flight are
+forgotten, and each robot becomes a row again with its next state. Meanwhile the robots' own
+watchdogs braked them and, past their latch time, latched them (FAULT); once their fresh states
+arrive they are re-armed through FAULT -> STOP -> the next command and the fleet drives on.
+A stall never raises the e-stop by itself; a robot still silent ``estop_after_s`` after the
+resume does. Tested with a 3 s SIGSTOP of the bridge process, 5 runs, one outcome
+(``tests/deploy/test_bridge_stall.py``).
+
+Command delay: every command's send time is kept; a STATE whose ``last_cmd_seq`` names one for
+the first time closes a round trip on the bridge's clock (command out, robot accepted and acted,
+state back). The ``delay_percentile`` of the last ``delay_window`` round trips (at least 8) is
+``FleetState.command_delay_s``: a conservative bound on transport + actuation (it includes the
+robot's wait for its next tick and the uplink). ``summary()`` reports it.
+
+One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
+for every other live robot's (a fleet publishes its states as a burst, so one tick answers one
+burst); check for a stall; classify; e-stop rule; ``FleetState`` -> controller -> commands, each
+with ``ttl_ms`` and the answered ``state_seq``. N changes on the fly as robots join or leave.
 
 Episodes (``BridgeConfig.episode_ticks`` = T): a fleet that resets its world every T ticks
 without closing its links (:mod:`deploy.fleet_sim` with ``episodes``) publishes state ``seq``
@@ -27,8 +63,10 @@ the count is in-band, so it stays right when a burst goes unanswered.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,30 +74,37 @@ from typing import Any
 import numpy as np
 
 from deploy.transport import FleetLink, ReceivedState, TransportConfig
-from deploy.wire import CmdFlags, RobotRegistry, StateStatus
-from sim.fleet import FleetState
+from deploy.wire import CmdFlags, CmdMsg, RobotRegistry, StateStatus
+from sim.fleet import FleetState, SilentRobots
 
 log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
-ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because the states are too old
+ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
+DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
+MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
+NO_FLAGS = CmdFlags(0)
 
 
 @dataclass(frozen=True)
 class BridgeConfig:
-    """ttl_ms: command validity; stale_after_s / estop_after_s: state ages [s];
-    gather_s: how long a tick waits for the rest of a burst of states [s];
-    episode_ticks: ticks per fleet episode (see the module docstring), or None;
+    """ttl_ms: command validity [ms]; stale_after_s: state age [s] past which a row gets BRAKE;
+    estop_after_s: silence [s] of one live robot that raises the fleet e-stop, and the gap that
+    counts as a stall of the bridge itself; gather_s: how long a tick waits for the rest of a
+    burst of states [s]; episode_ticks: ticks per fleet episode (module docstring), or None;
     lossless: publish commands with congestion control BLOCK, for a lock-stepped fleet that
     waits for every answer (``fleet-sim --lockstep``); the default DROP is for real time
-    (see :mod:`deploy.transport`, Delivery)."""
+    (:mod:`deploy.transport`, Delivery); delay_percentile, delay_window: the command delay
+    bound is this percentile of the last delay_window round trips."""
 
     ttl_ms: int = 150
-    stale_after_s: float = 0.3
+    stale_after_s: float = 0.15
     estop_after_s: float = 1.0
     gather_s: float = 0.01
     episode_ticks: int | None = None
     lossless: bool = False
+    delay_percentile: float = 99.0
+    delay_window: int = 256
 
     def __post_init__(self) -> None:
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
@@ -67,41 +112,155 @@ class BridgeConfig:
             raise ValueError(f"episode_ticks must be a positive integer or None, got {self.episode_ticks!r}")
         if not self.gather_s >= 0:
             raise ValueError(f"gather_s must be >= 0 seconds, got {self.gather_s!r}")
-        if not 1 <= self.ttl_ms <= 65535:
-            raise ValueError(f"ttl_ms must be in 1..65535, got {self.ttl_ms!r}")
-        if not 0 < self.stale_after_s <= self.estop_after_s:
-            raise ValueError("need 0 < stale_after_s <= estop_after_s, got "
-                             f"{self.stale_after_s!r}, {self.estop_after_s!r}")
+        if isinstance(self.ttl_ms, bool) or not isinstance(self.ttl_ms, int) \
+                or not 1 <= self.ttl_ms <= 65535:
+            raise ValueError(f"ttl_ms must be an integer in 1..65535, got {self.ttl_ms!r}")
+        if not (math.isfinite(self.estop_after_s) and 0 < self.stale_after_s <= self.estop_after_s):
+            raise ValueError("need 0 < stale_after_s <= estop_after_s (finite seconds), got "
+                             f"stale_after_s={self.stale_after_s!r}, estop_after_s={self.estop_after_s!r}")
+        if not 50.0 <= self.delay_percentile <= 100.0:
+            raise ValueError(f"delay_percentile must be in [50, 100], got {self.delay_percentile!r}")
+        if isinstance(self.delay_window, bool) or not isinstance(self.delay_window, int) \
+                or self.delay_window < MIN_ROUND_TRIPS:
+            raise ValueError(f"delay_window must be an integer >= {MIN_ROUND_TRIPS}, "
+                             f"got {self.delay_window!r}")
+
+
+def row_flags(controller_flags: CmdFlags, age_s: float, finite: bool, status: StateStatus,
+              stale_after_s: float) -> CmdFlags:
+    """CMD flags for one row (module docstring): BRAKE for a stale or non-finite state whatever
+    the controller said; else the controller's flags, plus STOP to re-arm a robot in FAULT."""
+    if not finite or not age_s <= stale_after_s:
+        return CmdFlags.BRAKE
+    if status & StateStatus.FAULT:
+        return controller_flags | CmdFlags.STOP
+    return controller_flags
+
+
+class UplinkExcess:
+    """Per robot, how much longer a state took than the fastest transfer seen [ns].
+
+    ``receive - send_time_ns`` is the uplink delay plus the (unknown, constant) offset between
+    the robot's clock and ours; its running minimum, allowed to creep up by DRIFT_ALLOWANCE for
+    clocks that run at different rates, estimates the offset plus the fastest transfer. A new
+    epoch (the robot restarted, maybe its clock too) starts over."""
+
+    def __init__(self) -> None:
+        self._floor: dict[str, tuple[int, float, int]] = {}  # robot -> (epoch, floor, when)
+
+    def excess_ns(self, rs: ReceivedState) -> float:
+        offset = rs.receive_time_ns - rs.msg.send_time_ns
+        prev = self._floor.get(rs.robot)
+        if prev is None or prev[0] != rs.msg.epoch:
+            floor = float(offset)
+        else:
+            floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, rs.receive_time_ns - prev[2]), offset)
+        self._floor[rs.robot] = (rs.msg.epoch, floor, rs.receive_time_ns)
+        return offset - floor
+
+
+class RoundTrips:
+    """Command round trips on the bridge's clock: CMD sent -> first STATE whose ``last_cmd_seq``
+    names it [ns]; :meth:`bound_s` is the configured percentile of the recent ones."""
+
+    KEEP = 64  # send times kept per robot
+
+    def __init__(self, window: int, percentile: float):
+        self.percentile = percentile
+        self.samples: deque[int] = deque(maxlen=window)
+        self._sent: dict[str, dict[int, int]] = {}
+        self._matched: dict[str, int] = {}
+        self._bound: float | None = None
+
+    def sent(self, robot: str, msg: CmdMsg) -> None:
+        sent = self._sent.setdefault(robot, {})
+        sent[msg.seq] = msg.send_time_ns
+        if len(sent) > self.KEEP:
+            del sent[next(iter(sent))]
+
+    def observe(self, rs: ReceivedState) -> None:
+        seq = rs.msg.last_cmd_seq
+        if not seq or self._matched.get(rs.robot) == seq:
+            return
+        self._matched[rs.robot] = seq
+        sent = self._sent.get(rs.robot, {}).get(seq)
+        if sent is not None and rs.receive_time_ns >= sent:
+            self.samples.append(rs.receive_time_ns - sent)
+            self._bound = None
+
+    def forget_sent(self) -> None:
+        """Commands sent before a stall cannot time a round trip: drop their send times."""
+        self._sent.clear()
+
+    def bound_s(self) -> float | None:
+        if len(self.samples) < MIN_ROUND_TRIPS:
+            return None
+        if self._bound is None:
+            self._bound = float(np.percentile(self.samples, self.percentile)) / 1e9
+        return self._bound
+
+    def summary(self) -> dict[str, float] | None:
+        if not self.samples:
+            return None
+        ms = np.asarray(self.samples, dtype=np.float64) / 1e6
+        return {"count": len(ms), "p50": float(np.percentile(ms, 50)),
+                "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
 
 @dataclass
 class TickRecord:
     tick: int
-    robots: tuple[str, ...]  # present robots, in command row order
-    stale: tuple[str, ...]
+    robots: tuple[str, ...]  # rows, in command row order
+    stale: tuple[str, ...]  # rows sent BRAKE because their state was older than stale_after_s
     commands: np.ndarray  # (N, 2) [m/s^2] sent (zeros where BRAKE/STOP was sent)
     controller_s: float  # time in the controller callable [s]
+    silent: tuple[str, ...] = ()  # FleetState.silent robots
+    ages: np.ndarray | None = None  # (N,) state ages of the rows [s]
+    flags: tuple[CmdFlags, ...] = ()  # CMD flags sent per row
 
 
 @dataclass
 class BridgeStats:
     ticks: int = 0
-    stale_marks: int = 0
+    stale_marks: int = 0  # stale rows, summed over ticks
     controller_faults: int = 0
     rearms: int = 0
     estops: int = 0
     robot_counts: list[tuple[int, int]] = field(default_factory=list)  # (tick, N) on change
+    silent_marks: int = 0  # silent robots, summed over ticks
+    silent_counts: list[tuple[int, int]] = field(default_factory=list)  # (tick, M) on change
+    nonfinite_brakes: int = 0
+    unknown_brakes: int = 0
+    stalls: int = 0
+    longest_stall_s: float = 0.0
+    estop_robot: str | None = None  # the robot whose silence raised the e-stop
+    estop_silence_s: float | None = None
+
+
+@dataclass
+class _View:
+    rows: list[ReceivedState] = field(default_factory=list)
+    ages: list[float] = field(default_factory=list)
+    silent: list[tuple[ReceivedState, float]] = field(default_factory=list)
+    unknown: list[str] = field(default_factory=list)
+    silence: tuple[str, float] | None = None  # the live robot silent longest, and for how long
+
+
+def _key(rs: ReceivedState) -> tuple[int, int]:
+    return rs.msg.epoch, rs.msg.seq
 
 
 class Bridge:
     """Controller side of a fleet. ``targets`` maps each robot to its target slot (2,) [m];
-    ``object_pose`` is (3,) [m, m, rad]; ``on_episode(k)`` see the module docstring."""
+    ``object_pose`` is (3,) [m, m, rad]; ``on_episode(k)`` and ``on_stall()``: see the module
+    docstring."""
 
     def __init__(self, fleet: str, registry: RobotRegistry,
                  transport: TransportConfig, controller: Controller, *,
                  targets: Mapping[str, np.ndarray], object_pose: np.ndarray,
                  config: BridgeConfig = BridgeConfig(),
-                 on_episode: Callable[[int], Any] | None = None):
+                 on_episode: Callable[[int], Any] | None = None,
+                 on_stall: Callable[[], Any] | None = None):
         missing = [r for r in registry.names if r not in targets]
         if missing:
             raise ValueError(f"targets are missing for robots {missing}; give one (x, y) per robot")
@@ -112,90 +271,186 @@ class Bridge:
         self.config = config
         self.link = FleetLink(fleet, registry, transport, lossless=config.lossless)
         self.stats = BridgeStats()
-        self._answered: dict[str, int] = {}  # robot -> state seq last answered
+        self.uplink = UplinkExcess()
+        self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
+        self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
+        self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
+        self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
+        self._resume_ns = 0  # end of the last stall [ns]
+        self._last_look_ns: int | None = None
         self._stop = threading.Event()
         self._start = time.monotonic()
         self.on_episode = on_episode
+        self.on_stall = on_stall
         self.episode: int | None = None  # fleet episode of the last burst answered
 
     # ------------------------------------------------------------------ helpers
-    def _fresh(self, states: Mapping[str, ReceivedState], robot: str) -> bool:
+    def _unanswered(self, states: Mapping[str, ReceivedState], robot: str) -> bool:
         s = states.get(robot)
-        return s is not None and s.msg.seq != self._answered.get(robot)
+        return s is not None and _key(s) != self._answered.get(robot) \
+            and _key(s) != self._discard.get(robot)
 
     def _wait_burst(self, timeout_s: float) -> bool:
         link = self.link
-        if not link.wait_for(lambda: any(self._fresh(link.latest_states(), r)
+        if not link.wait_for(lambda: any(self._unanswered(link.latest_states(), r)
                                          for r in link.alive_robots), timeout_s):
             return False
-        link.wait_for(lambda: all(self._fresh(link.latest_states(), r)
+        link.wait_for(lambda: all(self._unanswered(link.latest_states(), r)
                                   for r in link.alive_robots), self.config.gather_s)
         return True
+
+    def _age_s(self, rs: ReceivedState, now: int) -> float:
+        return max(0.0, now - rs.receive_time_ns + self.uplink.excess_ns(rs)) / 1e9
 
     def stop(self) -> None:
         self._stop.set()
 
+    # ------------------------------------------------------------------ the picture
+    def _check_stall(self, now: int, states: Mapping[str, ReceivedState], timeout_s: float) -> None:
+        """The recovery rule (module docstring): a gap between two looks beyond the tick's own
+        wait and ``estop_after_s`` discards every state received so far."""
+        last, self._last_look_ns = self._last_look_ns, now
+        if last is None:
+            return
+        gap_s = (now - last) / 1e9 - timeout_s - self.config.gather_s
+        if gap_s <= self.config.estop_after_s:
+            return
+        log.warning("the bridge stalled for %.2f s: discarding every state received before, "
+                    "waiting for fresh ones (latched robots are re-armed)", gap_s)
+        self.stats.stalls += 1
+        self.stats.longest_stall_s = max(self.stats.longest_stall_s, gap_s)
+        self._resume_ns = now
+        self._discard.update((r, _key(rs)) for r, rs in states.items())
+        self.round_trips.forget_sent()
+        if self.on_stall is not None:
+            self.on_stall()
+
+    def _classify(self, now: int, states: Mapping[str, ReceivedState]) -> _View:
+        """Rows, silent and unknown robots, and the longest silence of a live one."""
+        view = _View()
+        alive = self.link.alive_robots
+        for robot in self.registry.names:
+            rs = states.get(robot)
+            if robot not in alive:
+                self._heard_since.pop(robot, None)
+                if rs is not None:
+                    self._discard[robot] = _key(rs)
+                    view.silent.append((rs, self._age_s(rs, now)))
+                continue
+            since = max(self._heard_since.setdefault(robot, now), self._resume_ns)
+            age = self._age_s(rs, now) if rs is not None else math.inf
+            silence = min(age, (now - since) / 1e9)
+            if view.silence is None or silence > view.silence[1]:
+                view.silence = (robot, silence)
+            if rs is not None and _key(rs) != self._discard.get(robot):
+                self._discard.pop(robot, None)
+                view.rows.append(rs)
+                view.ages.append(age)
+            else:
+                view.unknown.append(robot)
+                if rs is not None:
+                    view.silent.append((rs, age))
+        return view
+
+    def _check_estop(self, view: _View) -> None:
+        if view.silence is None or view.silence[1] <= self.config.estop_after_s \
+                or self.link.estop_engaged:
+            return
+        robot, silence = view.silence
+        log.error("robot %s has been silent for %.3f s: raising the fleet e-stop", robot, silence)
+        self.link.raise_estop(ESTOP_STALE_PICTURE)
+        self.stats.estops += 1
+        self.stats.estop_robot, self.stats.estop_silence_s = robot, float(silence)
+
+    def _fleet_state(self, view: _View) -> FleetState:
+        rows = [rs.msg for rs in view.rows]
+        silent = None
+        if view.silent:
+            silent = SilentRobots(tuple(rs.robot for rs, _ in view.silent),
+                                  np.array([rs.msg.position for rs, _ in view.silent]),
+                                  np.array([rs.msg.velocity for rs, _ in view.silent]),
+                                  np.array([age for _, age in view.silent]))
+        return FleetState(
+            time=time.monotonic() - self._start, step=self.stats.ticks,
+            positions=np.array([m.position for m in rows]),
+            velocities=np.array([m.velocity for m in rows]),
+            targets=np.array([self.targets[rs.robot] for rs in view.rows]),
+            object_pose=self.object_pose.copy(), robot_ids=tuple(rs.robot for rs in view.rows),
+            state_age_s=np.array(view.ages), silent=silent,
+            command_delay_s=self.round_trips.bound_s())
+
+    def _run_controller(self, state: FleetState) -> tuple[CmdFlags, np.ndarray, float]:
+        n = state.num_robots
+        t0 = time.perf_counter()
+        try:
+            out = np.asarray(self.controller(state), dtype=np.float64)
+            if out.shape != (n, 2) or not np.all(np.isfinite(out)):
+                raise ValueError(f"controller returned shape {out.shape} or non-finite values "
+                                 f"for {n} robots")
+            return NO_FLAGS, out, time.perf_counter() - t0
+        except Exception:
+            log.exception("controller failed: braking every robot this tick")
+            self.stats.controller_faults += 1
+            return CmdFlags.BRAKE, np.zeros((n, 2)), time.perf_counter() - t0
+
+    def _count(self, view: _View) -> None:
+        s = self.stats
+        for counts, value in ((s.robot_counts, len(view.rows)), (s.silent_counts, len(view.silent))):
+            if (not counts and value) or (counts and counts[-1][1] != value):
+                counts.append((s.ticks, value))
+        s.silent_marks += len(view.silent)
+
+    def _new_episode(self, view: _View) -> None:
+        if self.config.episode_ticks is None:
+            return
+        episode = (max(rs.msg.seq for rs in view.rows) - 1) // self.config.episode_ticks
+        if episode != self.episode:
+            self.episode = episode
+            if self.on_episode is not None:
+                self.on_episode(episode)
+
     # ------------------------------------------------------------------ one tick
     def step(self, timeout_s: float = 0.1) -> TickRecord | None:
-        """Answer one burst of states (None if none came within ``timeout_s``)."""
-        got = self._wait_burst(timeout_s)
+        """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
+        self._wait_burst(timeout_s)
         now = self.link.clock_ns()
         states = self.link.latest_states()
-        alive = [r for r in self.registry.names if r in self.link.alive_robots and r in states]
-        ages = {r: (now - states[r].receive_time_ns) / 1e9 for r in alive}
-        if alive and min(ages.values()) > self.config.estop_after_s \
-                and not self.link.estop_engaged:
-            log.error("newest robot state is %.3f s old: raising the fleet e-stop",
-                      min(ages.values()))
-            self.link.raise_estop(ESTOP_STALE_PICTURE)
-            self.stats.estops += 1
-        if not got:
+        self._check_stall(now, states, timeout_s)
+        view = self._classify(now, states)
+        self._check_estop(view)
+        if not any(self._unanswered(states, rs.robot) for rs in view.rows):
             return None
-        present = tuple(r for r in alive if ages[r] <= self.config.stale_after_s)
-        stale = tuple(r for r in alive if ages[r] > self.config.stale_after_s)
+        self._count(view)
+        for robot in view.unknown:
+            self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.BRAKE)
+            self.stats.unknown_brakes += 1
+        self._new_episode(view)
+        for rs in view.rows:
+            self.round_trips.observe(rs)
+        state = self._fleet_state(view)
+        controller_flags, commands, controller_s = self._run_controller(state)
+        late_s = (self.link.clock_ns() - now) / 1e9  # the picture aged while the controller ran
+        finite = np.isfinite(state.positions).all(1) & np.isfinite(state.velocities).all(1)
+        sent_flags = []
+        for i, rs in enumerate(view.rows):
+            flags = row_flags(controller_flags, view.ages[i] + late_s, bool(finite[i]),
+                              rs.msg.status, self.config.stale_after_s)
+            self.stats.nonfinite_brakes += not finite[i]
+            self.stats.rearms += bool(flags & CmdFlags.STOP)
+            if flags & (CmdFlags.BRAKE | CmdFlags.STOP):
+                commands[i] = 0.0
+            msg = self.link.send_command(rs.robot, commands[i], self.config.ttl_ms, flags,
+                                         state_seq=rs.msg.seq)
+            self.round_trips.sent(rs.robot, msg)
+            self._answered[rs.robot] = _key(rs)
+            sent_flags.append(flags)
+        stale = tuple(rs.robot for rs, age in zip(view.rows, view.ages, strict=True)
+                      if not age + late_s <= self.config.stale_after_s)
         self.stats.stale_marks += len(stale)
-        if not self.stats.robot_counts or self.stats.robot_counts[-1][1] != len(present):
-            self.stats.robot_counts.append((self.stats.ticks, len(present)))
-        commands = np.zeros((len(present), 2))
-        controller_s = 0.0
-        if present:
-            rows = [states[r].msg for r in present]
-            if self.config.episode_ticks is not None:
-                episode = (max(m.seq for m in rows) - 1) // self.config.episode_ticks
-                if episode != self.episode:
-                    self.episode = episode
-                    if self.on_episode is not None:
-                        self.on_episode(episode)
-            fleet_state = FleetState(
-                time=time.monotonic() - self._start, step=self.stats.ticks,
-                positions=np.array([m.position for m in rows]),
-                velocities=np.array([m.velocity for m in rows]),
-                targets=np.array([self.targets[r] for r in present]),
-                object_pose=self.object_pose.copy(), robot_ids=present)
-            t0 = time.perf_counter()
-            flags = CmdFlags(0)
-            try:
-                out = np.asarray(self.controller(fleet_state), dtype=np.float64)
-                if out.shape != (len(present), 2) or not np.all(np.isfinite(out)):
-                    raise ValueError(f"controller returned shape {out.shape} or non-finite values "
-                                     f"for {len(present)} robots")
-                commands = out
-            except Exception:
-                log.exception("controller failed: braking every robot this tick")
-                self.stats.controller_faults += 1
-                flags = CmdFlags.BRAKE
-            controller_s = time.perf_counter() - t0
-            for i, robot in enumerate(present):
-                msg = rows[i]
-                robot_flags = flags
-                if msg.status & StateStatus.FAULT:
-                    robot_flags |= CmdFlags.STOP
-                    self.stats.rearms += 1
-                self.link.send_command(robot, commands[i], self.config.ttl_ms, robot_flags,
-                                       state_seq=msg.seq)
-                self._answered[robot] = msg.seq
         self.stats.ticks += 1
-        return TickRecord(self.stats.ticks - 1, present, stale, commands, controller_s)
+        return TickRecord(self.stats.ticks - 1, state.robot_ids, stale, commands, controller_s,
+                          tuple(rs.robot for rs, _ in view.silent), state.state_age_s,
+                          tuple(sent_flags))
 
     def run(self, max_ticks: int | None = None,
             on_tick: Callable[[TickRecord], Any] | None = None) -> BridgeStats:
@@ -211,7 +466,13 @@ class Bridge:
         return {"ticks": s.ticks, "stale_marks": s.stale_marks,
                 "controller_faults": s.controller_faults, "rearms": s.rearms, "estops": s.estops,
                 "robot_counts": s.robot_counts, "rejects": self.link.rejects.snapshot(),
-                "estop_engaged": self.link.estop_engaged, "lossless": self.link.lossless}
+                "estop_engaged": self.link.estop_engaged, "lossless": self.link.lossless,
+                "silent_marks": s.silent_marks, "silent_counts": s.silent_counts,
+                "nonfinite_brakes": s.nonfinite_brakes, "unknown_brakes": s.unknown_brakes,
+                "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,
+                "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
+                "command_delay_s": self.round_trips.bound_s(),
+                "round_trip_ms": self.round_trips.summary()}
 
     def close(self) -> None:
         self.link.close()
@@ -223,4 +484,5 @@ class Bridge:
         self.close()
 
 
-__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "TickRecord"]
+__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "RoundTrips", "TickRecord",
+           "UplinkExcess", "row_flags"]

@@ -1,7 +1,9 @@
-"""Bridge and fleet-sim in this process over real Zenoh: stale robots, e-stop, bad controllers."""
+"""Bridge and fleet-sim in this process over real Zenoh: stale, silent and rejoining robots, the
+per-robot e-stop, the stall rule, measured command delay, bad controllers."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -9,10 +11,10 @@ import numpy as np
 import pytest
 
 from controllers.scripted import ScriptedController
-from deploy.bridge import ESTOP_STALE_PICTURE, Bridge, BridgeConfig
+from deploy.bridge import ESTOP_STALE_PICTURE, Bridge, BridgeConfig, row_flags
 from deploy.fleet_sim import FleetSim, FleetSimConfig, robot_names
 from deploy.transport import RobotLink, TransportConfig, free_tcp_port
-from deploy.wire import CmdFlags, RobotRegistry
+from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.scenario import make_scenario
 
 ROBOTS = ("r0", "r1")
@@ -52,27 +54,67 @@ def _tick(bridge, links, publishing):
     return bridge.step(timeout_s=0.1)
 
 
-def test_stale_robot_is_left_out_then_the_old_picture_raises_the_estop(fleet):
+def _last_flags(link, after_seq=0):
+    assert link.wait_for(lambda: link.latest_command is not None
+                         and link.latest_command.msg.seq > after_seq, 5.0)
+    return link.latest_command.msg.flags
+
+
+def test_a_stale_robot_stays_in_the_picture_is_braked_and_alone_raises_the_estop(fleet):
     bridge, links, seen = fleet
     record = _tick(bridge, links, links)
     assert record.robots == ROBOTS and record.stale == ()
     assert seen[-1].num_robots == 2 and np.allclose(seen[-1].targets, [[0.2, 0.2], [0.8, 0.8]])
-    assert links[1].wait_for(lambda: links[1].latest_command is not None, 5.0)
-    start = time.monotonic()
-    while time.monotonic() - start < 0.35:  # r1 falls silent; r0 keeps publishing
+    assert not _last_flags(links[1]) & CmdFlags.BRAKE
+    silent_from = time.monotonic()
+    while time.monotonic() - silent_from < 0.3:  # r1 falls silent; r0 keeps publishing
         record = _tick(bridge, links, links[:1])
         time.sleep(0.02)
-    assert record.robots == ("r0",) and record.stale == ("r1",)
-    assert seen[-1].robot_ids == ("r0",)
-    assert bridge.stats.robot_counts == [(0, 2), (bridge.stats.robot_counts[1][0], 1)]
+    assert record.robots == ROBOTS and record.stale == ("r1",)   # kept, not dropped
+    assert seen[-1].robot_ids == ROBOTS
+    ages = seen[-1].state_age_s
+    assert ages[1] > 0.2 and ages[0] < 0.1
+    assert record.flags[1] == CmdFlags.BRAKE and not record.flags[0] & CmdFlags.BRAKE
+    assert _last_flags(links[1]) == CmdFlags.BRAKE    # what r1 actually received
+    assert not _last_flags(links[0]) & CmdFlags.BRAKE
     assert not bridge.link.estop_engaged
-    start = time.monotonic()
-    while not bridge.link.estop_engaged and time.monotonic() - start < 5.0:
-        assert _tick(bridge, links, []) is None  # nobody publishes: the picture ages
+    while not bridge.link.estop_engaged and time.monotonic() - silent_from < 5.0:
+        _tick(bridge, links, links[:1])   # r0 stays fresh: only r1's silence can raise it
+        time.sleep(0.02)
     assert bridge.link.estop_engaged and bridge.stats.estops == 1
+    assert time.monotonic() - silent_from > 0.6
+    assert bridge.summary()["estop_robot"] == "r1"
     for link in links:
         assert link.wait_for(lambda lk=link: lk.estopped, 5.0)
         assert link.estop_reason == ESTOP_STALE_PICTURE
+
+
+def test_a_robot_that_leaves_stays_a_silent_obstacle_until_it_rejoins(fleet):
+    bridge, links, seen = fleet
+    links[1].publish_state((0.7, 0.6), (0.05, 0.0))
+    _tick(bridge, links, links[:1])
+    links[1].close()   # r1 leaves the link: its liveliness token goes at once
+    assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+    start = time.monotonic()
+    while time.monotonic() - start < 0.8:   # longer than estop_after_s
+        record = _tick(bridge, links, links[:1])
+        time.sleep(0.02)
+    assert record.robots == ("r0",) and record.silent == ("r1",)
+    silent = seen[-1].silent
+    assert silent.ids == ("r1",) and np.allclose(silent.positions, [[0.7, 0.6]])
+    assert np.allclose(silent.velocities, [[0.05, 0.0]]) and silent.age_s[0] > 0.7
+    assert not bridge.link.estop_engaged   # a robot that left is not a silent live robot
+    rejoined = RobotLink("bf", "r1", REGISTRY, links[0].session)   # r1 back, on r0's session
+    links.insert(0, rejoined)   # closed before the session it borrows
+    assert bridge.link.wait_for(lambda: "r1" in bridge.link.alive_robots, 5.0)
+    record = _tick(bridge, links, links[1:2])     # live again, but no state since: still silent
+    assert record.robots == ("r0",) and record.silent == ("r1",)
+    assert _last_flags(rejoined) == CmdFlags.BRAKE and rejoined.latest_command.msg.state_seq == 0
+    sent = rejoined.publish_state((0.71, 0.6), (0.0, 0.0))
+    assert bridge.link.wait_for(lambda: bridge.link.state_of("r1").msg.epoch == sent.epoch, 5.0)
+    record = _tick(bridge, links, links[1:2])
+    assert record.robots == ROBOTS and record.silent == ()
+    assert np.allclose(seen[-1].positions[1], [0.71, 0.6])
 
 
 def test_a_failing_controller_brakes_every_robot_and_is_counted(fleet):
@@ -115,3 +157,103 @@ def test_fleet_sim_obeys_the_estop(tmp_path):
     assert all(t["modes"] == ["estop"] * 3 for t in trace[first + 2:])
     assert max(trace[first + 10]["speeds"]) < 1e-3
     assert result["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+
+
+def test_row_flags_brake_stale_and_non_finite_rows_and_rearm_fresh_faulted_ones():
+    fresh, stale = 0.01, 0.5
+    assert row_flags(CmdFlags(0), fresh, True, StateStatus(0), 0.15) == CmdFlags(0)
+    assert row_flags(CmdFlags(0), stale, True, StateStatus(0), 0.15) == CmdFlags.BRAKE
+    assert row_flags(CmdFlags(0), math.nan, True, StateStatus(0), 0.15) == CmdFlags.BRAKE
+    assert row_flags(CmdFlags(0), fresh, False, StateStatus.FAULT, 0.15) == CmdFlags.BRAKE
+    assert row_flags(CmdFlags(0), fresh, True, StateStatus.FAULT, 0.15) == CmdFlags.STOP
+    assert row_flags(CmdFlags.BRAKE, fresh, True, StateStatus.FAULT, 0.15) \
+        == CmdFlags.BRAKE | CmdFlags.STOP
+    assert row_flags(CmdFlags(0), stale, True, StateStatus.FAULT, 0.15) == CmdFlags.BRAKE
+
+
+def test_command_round_trips_are_measured_from_the_wire_and_passed_on(fleet):
+    """r0 answers each command only after HOLD_S (as a robot acting on its next tick would):
+    the bound handed to the controller must cover that, and come from no other source."""
+    bridge, links, seen = fleet
+    hold_s = 0.03
+    link = links[0]
+    for _ in range(20):
+        before = link.latest_command.msg.seq if link.latest_command else 0
+        _tick(bridge, links, links[:1])
+        _last_flags(link, before)
+        time.sleep(hold_s)
+    delay = seen[-1].command_delay_s
+    assert delay is not None and hold_s <= delay < hold_s + 0.1
+    summary = bridge.summary()
+    assert summary["round_trip_ms"]["count"] >= 15 and summary["command_delay_s"] >= hold_s
+    assert summary["round_trip_ms"]["p50"] >= 1e3 * hold_s
+
+
+def test_a_state_that_queued_on_the_uplink_is_aged_and_braked():
+    """The robot's clock is 1000 s off ours (another host); one state then reaches the bridge
+    0.3 s later than the fastest transfer, as one stuck in a queue would: its age says so."""
+    port = free_tcp_port()
+    offset = [1000 * 10**9]
+    clock = lambda: time.monotonic_ns() + offset[0]  # noqa: E731
+    seen = []
+    bridge = Bridge("up", RobotRegistry(("r0",)), TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)),
+                    lambda s: seen.append(s) or np.zeros((s.num_robots, 2)),
+                    targets={"r0": np.zeros(2)}, object_pose=np.zeros(3))
+    link = None
+    try:
+        link = RobotLink("up", "r0", RobotRegistry(("r0",)),
+                         TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)), clock_ns=clock)
+        assert link.wait_for(lambda: link.controller_alive, 20.0)
+        assert bridge.link.wait_for(lambda: "r0" in bridge.link.alive_robots, 20.0)
+        for _ in range(5):
+            link.publish_state((0.5, 0.5), (0.0, 0.0))
+            record = bridge.step(timeout_s=1.0)
+            assert record is not None and record.stale == ()
+        assert seen[-1].state_age_s[0] < 0.05
+        offset[0] -= 300_000_000   # this state was sent 0.3 s before it arrives
+        link.publish_state((0.5, 0.5), (0.0, 0.0))
+        record = bridge.step(timeout_s=1.0)
+        assert seen[-1].state_age_s[0] >= 0.3 and record.stale == ("r0",)
+        assert record.flags == (CmdFlags.BRAKE,)
+    finally:
+        if link is not None:
+            link.close()
+        bridge.close()
+
+
+def test_a_starved_bridge_discards_its_old_picture_and_rearms_without_an_estop(tmp_path):
+    """The bridge loop stops looking for longer than estop_after_s while the fleet runs (lock-step
+    fleet-sim in a thread: it times out and its watchdogs latch). The stall rule: no e-stop,
+    the states from before are dropped, latched robots come back through FAULT -> STOP."""
+    scenario = make_scenario("paper-3")
+    port = free_tcp_port()
+    names = robot_names(3)
+    sim = FleetSim(FleetSimConfig(fleet="st", scenario=scenario, rate_hz=None, max_ticks=80,
+                                  lockstep_timeout_s=0.05,
+                                  transport=TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))))
+    result = {}
+    thread = threading.Thread(target=lambda: result.update(sim.run()))
+    thread.start()
+    stalls = []
+    bridge = Bridge("st", RobotRegistry(names), TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)),
+                    ScriptedController(scenario), targets=dict(zip(names, scenario.targets, strict=True)),
+                    object_pose=np.zeros(3), on_stall=lambda: stalls.append(time.monotonic()))
+    try:
+        while bridge.stats.ticks < 10:
+            bridge.step(timeout_s=1.0)
+        time.sleep(1.5)    # starved: longer than estop_after_s (1 s) without a look
+        first = None
+        while thread.is_alive():
+            record = bridge.step(timeout_s=0.1)
+            if record is not None and first is None:
+                first = record
+    finally:
+        thread.join(timeout=30)
+        bridge.close()
+    summary = bridge.summary()
+    assert summary["stalls"] == 1 and len(stalls) == 1 and summary["longest_stall_s"] > 1.0
+    assert summary["estops"] == 0 and not summary["estop_engaged"]
+    assert summary["rearms"] >= 3
+    modes = [t["modes"] for t in result["trace"]]
+    latched = next(i for i, m in enumerate(modes) if m == ["latched"] * 3)
+    assert any(m == ["run"] * 3 for m in modes[latched:])   # driving again after the re-arm
