@@ -12,15 +12,17 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 
 from deploy.transport import TransportConfig, free_tcp_port
 from deploy.wire import CMD_BODY, HEADER, MAGIC, STATE_BODY, WIRE_VERSION, MsgType
+from sim.scenario import make_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 120.0  # generous: includes interpreter start-up on a loaded machine
-SCRIPTED = ["--policy", "scripted", "--no-safety", "--no-mec"]
+SCRIPTED = ["--policy", "scripted"]  # safety filter and MEC on (the defaults)
 
 
 class Proc:
@@ -86,6 +88,26 @@ def assert_task_done(report: dict) -> None:
     assert report["success"], report["final_distance"]
 
 
+def offline_ticks(report: dict, robot: int) -> list[int]:
+    return [t["tick"] for t in report["trace"] if t["modes"][robot] == "offline"]
+
+
+def silent_contacts(report: dict, robot: int) -> tuple[int, float]:
+    """While ``robot`` is off the link: (ticks on which it touches another robot, smallest
+    distance between its centre and another's [m]), from fleet-sim's true positions."""
+    ticks = offline_ticks(report, robot)
+    assert ticks, f"robot {robot} never went offline"
+    pos = np.array([report["trace"][t]["positions"] for t in ticks])          # (T, N, 2)
+    contact = np.array([report["trace"][t]["contacts"] for t in ticks])[:, robot, 0]
+    gaps = np.linalg.norm(pos - pos[:, robot:robot + 1], axis=2)
+    gaps[:, robot] = np.inf
+    return int(contact.sum()), float(gaps.min())
+
+
+TOUCH = 2 * make_scenario("paper-5").robot_radius  # centre distance at contact [m]
+SILENT_IN_THE_WAY = ["--leave", "r2@60"]  # r2 stops where r3 and r4 pass on their lanes later
+
+
 def test_scripted_controller_brings_five_robots_home_without_collision(tmp_path):
     sim, bridge, proc = run_pair(tmp_path, ["--ticks", "150"], SCRIPTED)
     assert_task_done(sim)
@@ -107,8 +129,8 @@ def test_control_stack_with_safety_and_mec_over_zenoh(tmp_path):
 
 
 def test_task_completes_with_a_fifth_of_the_commands_dropped(tmp_path):
-    sim, _, _ = run_pair(tmp_path, ["--ticks", "180", "--drop-commands", "0.2"], SCRIPTED)
-    total = 180 * 5
+    sim, _, _ = run_pair(tmp_path, ["--ticks", "240", "--drop-commands", "0.2"], SCRIPTED)
+    total = 240 * 5
     assert 0.1 * total < sim["dropped_commands"] < 0.3 * total
     assert_task_done(sim)
 
@@ -141,7 +163,44 @@ def test_robots_leaving_and_rejoining_change_n_and_the_task_completes(tmp_path):
     assert bridge["rearms"] >= 1  # r4 came back latched and was re-armed with STOP
     modes = [t["modes"][4] for t in sim["trace"]]
     assert modes[35] == "offline" and "latched" in modes[50:53]
+    assert silent_contacts(sim, 4)[0] == 0
     assert_task_done(sim)
+
+
+def test_a_robot_that_falls_silent_in_the_others_path_is_never_touched(tmp_path):
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "200", *SILENT_IN_THE_WAY], SCRIPTED)
+    assert [n for _, n in bridge["robot_counts"]] == [5, 4]
+    assert [m for _, m in bridge["silent_counts"]] == [1]      # passed on as an obstacle
+    ticks = offline_ticks(sim, 2)
+    assert ticks[0] == 60 and len(ticks) == 140
+    parked = np.array([sim["trace"][t]["positions"][2] for t in ticks[10:]])
+    assert np.ptp(parked, axis=0).max() < 1e-3     # braked, and stays where it stopped
+    touches, closest = silent_contacts(sim, 2)
+    assert touches == 0 and closest >= TOUCH, (touches, closest)
+    assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+
+
+def test_without_the_filter_the_others_do_run_into_the_silent_robot(tmp_path):
+    """The comparison that gives the test above its teeth: the same run, unfiltered."""
+    sim, _, _ = run_pair(tmp_path, ["--ticks", "200", *SILENT_IN_THE_WAY],
+                         ["--policy", "scripted", "--no-safety", "--no-mec"])
+    touches, closest = silent_contacts(sim, 2)
+    assert touches > 0 and closest < TOUCH
+
+
+def test_a_robot_that_leaves_in_the_others_path_and_rejoins_is_never_touched(tmp_path):
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "300", *SILENT_IN_THE_WAY,
+                                         "--join", "r2@100"], SCRIPTED)
+    assert [n for _, n in bridge["robot_counts"]] == [5, 4, 5]
+    assert offline_ticks(sim, 2) == list(range(60, 100))
+    touches, closest = silent_contacts(sim, 2)
+    assert touches == 0 and closest >= TOUCH, (touches, closest)
+    modes = [t["applied"][2] for t in sim["trace"]]
+    assert modes[100] == "stop" and modes[101] == "run"   # re-armed (FAULT -> STOP) and driving
+    assert bridge["rearms"] >= 1
+    path = np.array([t["positions"][2] for t in sim["trace"][100:]])
+    assert np.linalg.norm(path - path[0], axis=1).max() > 0.01   # it moves again
+    assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
 
 
 def _cmd_bytes(robot_id: int, seq: int, acc=(0.0, 0.0), ttl_ms: int = 100) -> bytes:
