@@ -316,6 +316,17 @@ class FleetSim:
                 elif robot.link is None:
                     self._open_link(robot)
 
+    def _trace_entry(self, modes: list[str]) -> dict[str, Any]:
+        """This tick's trace entry (the true state; see the module docstring, Trace)."""
+        true = self.world.true_state()
+        c = self.world.contacts
+        entry = {"tick": self.tick, "t": round(true.time, 6), "modes": modes,
+                 "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist(),
+                 "positions": true.positions.round(6).tolist(),
+                 "contacts": np.stack((c.robot, c.object, c.wall), -1).astype(int).tolist()}
+        self.trace.append(entry)
+        return entry
+
     def _wait_lockstep(self, answered: dict[str, int]) -> bool:
         """Wait for every answer (see the module docstring); False on a timeout."""
         deadline = time.monotonic() + self.config.lockstep_timeout_s
@@ -369,13 +380,7 @@ class FleetSim:
                         published_ns = published_ns or time.perf_counter_ns()
                         msg = robot.link.publish_state(state.positions[i], state.velocities[i], status)
                         answered[robot.name] = msg.seq
-                true = self.world.true_state()
-                c = self.world.contacts
-                entry = {"tick": self.tick, "t": round(true.time, 6), "modes": modes,
-                         "speeds": np.linalg.norm(true.velocities, axis=1).round(6).tolist(),
-                         "positions": true.positions.round(6).tolist(),
-                         "contacts": np.stack((c.robot, c.object, c.wall), -1).astype(int).tolist()}
-                self.trace.append(entry)
+                entry = self._trace_entry(modes)
                 round_trip_ms = None
                 if cfg.rate_hz is None:
                     if self._wait_lockstep(answered) and published_ns is not None:
