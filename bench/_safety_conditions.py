@@ -13,10 +13,11 @@ model error of part (a). Per condition, on the same seeds:
   ``collisions_filter_off``;
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
   given): success and contact episodes with the default stack and bare;
-* the MEC's tracking error [mm]: the scripted commands recorded on the nominal model, replayed
-  open loop through the condition's world with the MEC on and off (filter off), against the
-  nominal trajectory under the same delay (the MEC compensates model error, not latency; a
-  frozen robot is left out).
+* the MEC's tracking error [mm]: the scripted commands (``|a| <= 0.6``, within a 0.7-gain
+  robot's reach) recorded on the nominal model, replayed open loop through the condition's world
+  with the MEC on and off (filter off), against the nominal trajectory under the same delay (the
+  MEC compensates model error, not latency; a frozen robot is left out): part (b) of
+  bench/safety.py, per condition.
 """
 
 from __future__ import annotations

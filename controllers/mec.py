@@ -22,7 +22,7 @@ at once (arrays (N, 2))::
 
     predict:    v^- = clip_norm((1 - c dt) v_hat + dt (u_prev + d_hat), speed_limit),   d^- = d_hat
     update:     e = y - v^-,   v_hat = v^- + K_v e,   d_hat = clip_norm(d^- + K_d e, max_disturbance)
-    compensate: u = clip_norm(a_safe - d_hat, accel_limit)
+    compensate: u = clip_norm(a_safe - c, accel_limit),   c = d_hat shrunk by its noise (Noise)
 
 so the plant achieves ``u + d ~= a_safe``: it follows the nominal model under the safe command.
 A gain error (a plant achieving only ``g u``) is the disturbance ``d = (g - 1) u``; the loop then
@@ -51,10 +51,29 @@ switched off (``d_hat`` is not applied, status ``GATED``) until the score falls 
 
 **Noise.** A gain designed for ``sigma_y`` = 5 mm/s turns 2 cm/s of velocity noise into
 ``d_hat`` noise of several tenths of m/s^2, which the compensation then injects (tracking became
-worse than without it). So each robot's observer picks its noise level from its own innovations:
-the slowly averaged innovation variance per axis (forgetting ``NOISE_FORGET``) selects the
-largest of the levels ``sigma_y 2^l`` whose steady-state innovation variance ``H P H^T + R`` it
-exceeds, and with it that level's steady-state gain (noisier measurements, a smaller gain).
+worse than without it). So each robot's observer measures its own noise. The innovations
+would mix noise with model error (a gain error is a disturbance that changes with the command),
+so it uses the one-step residual ``r_k = y_k - (1 - c dt) y_{k-1} - dt u`` (``u`` the command
+of the hypothesis in charge), which is ``dt d + n_k - (1 - c dt) n_{k-1}``: its change from tick
+to tick has the variance ``(1 + (2 - c dt)^2 + (1 - c dt)^2) sigma^2`` plus what a changing
+disturbance adds (small: ``dt`` times its change). Averaged (a plain mean over the first ticks,
+then forgetting ``NOISE_FORGET``), it selects the level ``sigma_y 2^l`` nearest to it (in
+ratio), and with it that level's steady-state gain. Even then an estimate
+of a disturbance that is not there wanders by ``sigma_dhat``, the standard deviation that the
+level's measurement noise alone gives ``d_hat`` (the steady state of
+``e' = (I - K H) F e - K n``, a discrete Lyapunov equation), and compensating it drives the robot on a random
+walk: with 2 cm/s of noise the MEC tracked 30 mm worse than none. So only the part of ``d_hat``
+beyond ``SIGNIFICANCE`` = 4 standard deviations of the wander that the measured noise
+``sigma^`` gives the gain in use, in excess of what the design noise gives it, is compensated
+(a soft threshold on its norm; none at or below the design noise, so a gain error is
+compensated in full there; ``w_l = sigma_dhat,l / sigma_y,l``, the wander per unit noise)::
+
+    c = d_hat max(0, 1 - theta / |d_hat|),   theta = 4 w_l sqrt(max(sigma^2 - sigma_y^2, 0))
+    u = clip_norm(a_safe - c, accel_limit)
+
+With 2 cm/s of noise a robot with a real gain error is then left uncompensated unless the error
+stands out of the noise: less compensation, never a random walk. A robot's first
+``WARMUP_UPDATES`` measurements only estimate (its noise level is not known before).
 
 Estimates are keyed by robot id (``ids`` of :meth:`ModelErrorCompensator.step`): a robot that
 leaves takes its estimate with it, a robot that joins starts afresh, and rows may reorder.
@@ -79,6 +98,8 @@ from sim.scenario import Dynamics
 
 NOISE_LEVELS = 6        # velocity noise levels sigma_y * 2^l, l = 0..5 (up to 32 sigma_y)
 NOISE_FORGET = 0.95     # forgetting factor of the innovation variance that picks the level
+SIGNIFICANCE = 4.0      # d_hat is shrunk by this many standard deviations of its excess wander
+WARMUP_UPDATES = 2      # a robot's first updates only estimate: its noise level is not known yet
 
 
 class MecStatus(StrEnum):
@@ -109,6 +130,8 @@ class MecConfig:
             expected innovation variance (module docstring, Gate).
         switch_ratio: another hypothesis takes charge when its score is below this fraction of
             the score of the one in charge, in (0, 1].
+        adapt_noise: measure each robot's velocity noise and adapt gain and compensation to it
+            (module docstring, Noise); False: the fixed design gain, every ``d_hat`` compensated.
     """
 
     velocity_noise: float = 0.005
@@ -119,6 +142,7 @@ class MecConfig:
     forget: float = 0.7
     gate_ratio: float = 50.0
     switch_ratio: float = 0.1
+    adapt_noise: bool = True
 
     def __post_init__(self) -> None:
         for name in ("velocity_noise", "velocity_process_noise", "disturbance_rate"):
@@ -155,12 +179,17 @@ def steady_state_gain(dynamics: Dynamics, config: MecConfig) -> np.ndarray:
     return _riccati(dynamics, config)[0]
 
 
-def _riccati(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, float]:
-    """Steady-state gain (2,) and innovation variance ``H P H^T + R`` [(m/s)^2] per axis."""
+def _riccati(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, float, float]:
+    """Steady-state gain (2,), innovation variance ``H P H^T + R`` [(m/s)^2] per axis and the
+    standard deviation of ``d_hat`` driven by the measurement noise alone [m/s^2]."""
     f, _, h, q, r = observer_model(dynamics, config)
     p = scipy.linalg.solve_discrete_are(f.T, h.T, q, r)
     s = float((h @ p @ h.T + r)[0, 0])
-    return (p @ h.T / s).ravel(), s
+    k = p @ h.T / s
+    # the estimate's wander under measurement noise alone: e' = (I - K H) F e - K n
+    closed = (np.eye(2) - k @ h) @ f
+    wander = scipy.linalg.solve_discrete_lyapunov(closed, k @ k.T * r[0, 0])
+    return k.ravel(), s, float(np.sqrt(wander[1, 1]))
 
 
 def _clip_norm(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -183,6 +212,8 @@ class MecResult:
         time_s: time of the call [s].
         delay_ticks: (N,) the delay hypothesis that explains each robot best [ticks].
         gated: (N,) bool, robots whose compensation is off this tick (module docstring, Gate).
+        compensation: (N, 2) what was subtracted from ``a_safe``: ``d_hat`` shrunk by its own
+            noise, 0 where gated [m/s^2].
     """
 
     a_cmd: np.ndarray
@@ -191,11 +222,7 @@ class MecResult:
     time_s: float
     delay_ticks: np.ndarray = None      # type: ignore[assignment]
     gated: np.ndarray = None            # type: ignore[assignment]
-
-    @property
-    def applied(self) -> np.ndarray:
-        """(N, 2) the compensation in ``a_cmd``: ``d_hat``, or 0 where gated [m/s^2]."""
-        return np.where(self.gated[:, None], 0.0, self.d_hat)
+    compensation: np.ndarray = None     # type: ignore[assignment]
 
 
 class ModelErrorCompensator:
@@ -209,12 +236,15 @@ class ModelErrorCompensator:
     def __init__(self, dynamics: Dynamics, config: MecConfig | None = None):
         self.dynamics = dynamics
         self.config = config or MecConfig()
-        self.gain, self.innovation_var = _riccati(dynamics, self.config)
+        self.gain, self.innovation_var, _ = _riccati(dynamics, self.config)
         # noise levels the observer adapts to, sigma_y * 2^l (module docstring, Noise)
         levels = [_riccati(dynamics, dataclasses.replace(self.config, velocity_noise=self.config.velocity_noise * 2**k))
-                  for k in range(NOISE_LEVELS)]
-        self.level_gain = np.array([g for g, _ in levels])                   # (L, 2)
-        self.level_var = np.array([v for _, v in levels])                    # (L,)
+                  for k in range(NOISE_LEVELS if self.config.adapt_noise else 1)]
+        self.level_gain = np.array([g for g, _, _ in levels])                # (L, 2)
+        self.level_var = np.array([v for _, v, _ in levels])                 # (L,)
+        self.level_d_std = np.array([sd for _, _, sd in levels])             # (L,) [m/s^2]
+        self.level_noise_var = (self.config.velocity_noise * 2.0 ** np.arange(len(levels))) ** 2
+        self.level_wander = self.level_d_std / np.sqrt(self.level_noise_var)   # d_hat std per unit noise
         self.max_disturbance = (self.config.max_disturbance if self.config.max_disturbance is not None
                                 else dynamics.accel_limit)
         self.hypotheses = self.config.max_delay_ticks + 1
@@ -225,7 +255,7 @@ class ModelErrorCompensator:
         """Forget every estimate (the next :meth:`step` starts afresh)."""
         self.ids: tuple[str, ...] | None = None
         self.v_hat = self.d_hat = self.score = self.sent = self.charge = self.level = None
-        self.noise_var = None
+        self.noise_var = self.noise_count = self.y_prev = self.r_prev = None
 
     @property
     def u_prev(self) -> np.ndarray | None:
@@ -240,7 +270,9 @@ class ModelErrorCompensator:
         v_hat, d_hat = np.repeat(v0[None], b, axis=0), np.zeros((b, n, 2))
         score, sent = np.zeros((b, n)), np.zeros((b, n, 2))
         charge = np.zeros(n, dtype=np.int64)
-        level, noise_var = np.zeros(n, dtype=np.int64), np.full(n, self.level_var[0])
+        level, noise_var = np.zeros(n, dtype=np.int64), np.full(n, self.config.velocity_noise**2)
+        noise_count = np.zeros(n)
+        y_prev, r_prev = np.where(valid[:, None], vel, np.nan), np.full((n, 2), np.nan)
         if self.ids is not None:
             old = {rid: k for k, rid in enumerate(self.ids)}
             rows = [(k, old[rid]) for k, rid in enumerate(ids) if rid in old]
@@ -249,9 +281,12 @@ class ModelErrorCompensator:
                 v_hat[:, new], d_hat[:, new] = self.v_hat[:, prev], self.d_hat[:, prev]
                 score[:, new], sent[:, new] = self.score[:, prev], self.sent[:, prev]
                 charge[new], level[new], noise_var[new] = self.charge[prev], self.level[prev], self.noise_var[prev]
+                noise_count[new] = self.noise_count[prev]
+                y_prev[new], r_prev[new] = self.y_prev[prev], self.r_prev[prev]
                 fresh[new] = False
         self.ids, self.v_hat, self.d_hat, self.score, self.sent = ids, v_hat, d_hat, score, sent
-        self.charge, self.level, self.noise_var = charge, level, noise_var
+        self.charge, self.level, self.noise_var, self.noise_count = charge, level, noise_var, noise_count
+        self.y_prev, self.r_prev = y_prev, r_prev
         return fresh
 
     def step(self, velocity: np.ndarray, a_safe: np.ndarray,
@@ -296,8 +331,18 @@ class ModelErrorCompensator:
         best = self.charge
         d_hat = self.d_hat[best, rows]
         gated = self.score[best, rows] > self.gate_level[self.level]
+        norm = np.hypot(d_hat[:, 0], d_hat[:, 1])
+        # the wander of this level's gain under the measured noise, beyond that at the design noise
+        upper = self.noise_var * (1.0 + 2.0 / np.sqrt(np.maximum(self.noise_count, 1.0)))  # few samples: wary
+        excess = np.maximum(upper - self.config.velocity_noise**2, 0.0)
+        threshold = SIGNIFICANCE * self.level_wander[self.level] * np.sqrt(excess)
+        if not self.config.adapt_noise:
+            threshold = np.zeros(len(target))
+        keep = np.maximum(0.0, 1.0 - threshold / np.maximum(norm, 1e-300))
+        warming = (self.noise_count < WARMUP_UPDATES) & self.config.adapt_noise   # noise not known yet
+        compensation = np.where((gated | warming)[:, None], 0.0, d_hat * keep[:, None])
         good_all = bool(np.isfinite(target).all())
-        desired = target - np.where(gated[:, None], 0.0, d_hat)
+        desired = target - compensation
         if not good_all:
             desired = np.where(np.isfinite(target).all(axis=1)[:, None], desired, 0.0)
         a_cmd, clipped = _clip_norm(desired, self.dynamics.accel_limit)
@@ -312,7 +357,8 @@ class ModelErrorCompensator:
         elif status is MecStatus.OK and clipped.any():
             status = MecStatus.CLIPPED
         return MecResult(a_cmd=a_cmd, d_hat=d_hat.copy(), status=status,
-                         time_s=time.perf_counter() - self._start, delay_ticks=best.copy(), gated=gated)
+                         time_s=time.perf_counter() - self._start, delay_ticks=best.copy(), gated=gated,
+                         compensation=compensation)
 
     def _update(self, vel: np.ndarray, update: np.ndarray) -> None:
         """One predict/update of every hypothesis for the (N,) robots in ``update``."""
@@ -331,12 +377,23 @@ class ModelErrorCompensator:
         self.d_hat = d * np.minimum(1.0, self.max_disturbance / np.maximum(norm, 1e-300))
         sq = (innovation * innovation).sum(axis=2)
         self.score = np.where(update[None], self.config.forget * self.score + sq, self.score)
-        # noise: the slowly averaged innovation variance per axis of the hypothesis in charge
-        own = 0.5 * sq[self.charge, np.arange(sq.shape[1])]
-        self.noise_var = np.where(update, NOISE_FORGET * self.noise_var + (1 - NOISE_FORGET) * own,
+        self._track_noise(vel, update, u[self.charge, np.arange(len(vel))])
+
+    def _track_noise(self, vel: np.ndarray, update: np.ndarray, u: np.ndarray) -> None:
+        """Measurement noise from the change of the one-step residual (module docstring, Noise)."""
+        dt, c = self.dynamics.dt, self.dynamics.damping
+        residual = vel - (1.0 - c * dt) * self.y_prev - dt * u           # dt d + n_k - (1 - c dt) n_{k-1}
+        change = residual - self.r_prev                                  # dt (d_k - d_{k-1}) + noise
+        good = update & np.isfinite(change).all(axis=1)
+        own = 0.5 * (change * change).sum(axis=1) / (1.0 + (2.0 - c * dt) ** 2 + (1.0 - c * dt) ** 2)
+        self.noise_count = self.noise_count + good               # a plain mean until it forgets
+        weight = np.maximum(1.0 - NOISE_FORGET, 1.0 / np.maximum(self.noise_count, 1.0))
+        self.noise_var = np.where(good, (1 - weight) * self.noise_var + weight * np.nan_to_num(own),
                                   self.noise_var)
-        self.level = np.clip(np.searchsorted(self.level_var, self.noise_var, side="right") - 1,
-                             0, NOISE_LEVELS - 1)
+        self.y_prev = np.where(update[:, None], vel, np.nan)
+        self.r_prev = np.where(update[:, None], residual, np.nan)
+        ratio = np.maximum(self.noise_var, 1e-30)[:, None] / self.level_noise_var[None]
+        self.level = np.abs(np.log(ratio)).argmin(axis=1)
 
     def replace_last_command(self, a_cmd: np.ndarray, shift: bool = False) -> None:
         """Tell the observers the (N, 2) command actually sent this tick (``shift``: a new tick)."""

@@ -442,7 +442,7 @@ class ControlStack:
             if safe is not None:
                 a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(a_cmd), n)
             self.mec.replace_last_command(a_cmd)
-            achieved = a_cmd + np.where((mec.gated | stale)[:, None], 0.0, mec.d_hat)
+            achieved = a_cmd + np.where(stale[:, None], 0.0, mec.compensation)
         if stale.any():                         # not listening or not seen: brake, as the robot would
             a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
             achieved = np.where(stale[:, None], a_cmd, achieved)

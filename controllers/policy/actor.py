@@ -30,6 +30,7 @@ from controllers.policy.layers import (
     check_tokens,
     keep_self_valid,
     mlp,
+    zero_masked,
 )
 from sim.observations import TOKEN_DIM, flat_dim
 
@@ -70,7 +71,7 @@ class TypedSDPAActor(nn.Module):
     def _encode(self, obs: torch.Tensor, mask: torch.Tensor | None):
         check_tokens(obs, mask, self.token_dim)
         e, n, t = obs.shape[0], obs.shape[1], obs.shape[2]
-        x = self.embedding(obs.reshape(e * n, t, self.token_dim) * self.input_scale, n)
+        x = self.embedding(zero_masked(obs, mask).reshape(e * n, t, self.token_dim) * self.input_scale, n)
         return x, keep_self_valid(mask, e * n, t)
 
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -125,7 +126,7 @@ class SlotSDPAActor(nn.Module):
         if n != self.num_robots:
             raise ValueError(f"this slot actor was built for {self.num_robots} robots but got {n}; "
                              f"grow it with controllers.policy.grow_slot_actor(actor, {n})")
-        f = obs.reshape(e * n, t, self.token_dim) * self.input_scale
+        f = zero_masked(obs, mask).reshape(e * n, t, self.token_dim) * self.input_scale
         x = torch.cat((self.embed_position(f[:, :1, 0:2]), self.embed_velocity(f[:, :1, 2:4]),
                        self.embed_targets(f[:, 1:n + 1]), self.embed_robots(f[:, n + 1:2 * n]),
                        self.embed_object(f[:, 2 * n:])), 1)                      # (B, 2N+2, D)

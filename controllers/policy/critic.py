@@ -20,6 +20,7 @@ from controllers.policy.layers import (
     check_tokens,
     keep_self_valid,
     mlp,
+    zero_masked,
 )
 from sim.observations import TOKEN_DIM, flat_dim
 
@@ -62,7 +63,7 @@ class AttentionCritic(nn.Module):
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         check_tokens(obs, mask, self.token_dim)
         e, n, t = obs.shape[0], obs.shape[1], obs.shape[2]
-        x = self.embedding(obs.reshape(e * n, t, self.token_dim) * self.input_scale, n)
+        x = self.embedding(zero_masked(obs, mask).reshape(e * n, t, self.token_dim) * self.input_scale, n)
         h = torch.relu(self.token_pool(x[:, 0], x, keep_self_valid(mask, e * n, t))).view(e, n, -1)
         c = self.robot_attention(h, h, None)                                   # (E, N, D)
         values = self.value_head(torch.cat((h, c), -1)).squeeze(-1)            # (E, N)

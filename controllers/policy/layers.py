@@ -97,6 +97,17 @@ def check_tokens(obs: torch.Tensor, mask: torch.Tensor | None, feature_dim: int)
                          f"{obs.shape[:3]}, got {mask.shape}")
 
 
+def zero_masked(obs: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """(E, N, T, F) tokens with every masked token's features set to 0 (the robot's own token,
+    column 0, always kept): attention gives a masked key weight 0, but 0 x NaN is NaN, so a
+    masked token holding NaN or inf would still turn every action into NaN."""
+    if mask is None:
+        return obs
+    keep = mask.to(torch.bool).clone()
+    keep[..., 0] = True
+    return torch.where(keep.unsqueeze(-1), obs, torch.zeros((), dtype=obs.dtype))
+
+
 def keep_self_valid(mask: torch.Tensor | None, batch: int, width: int) -> torch.Tensor | None:
     """(..., T) token mask -> (batch, width) bool with column 0 (the robot itself) always valid."""
     if mask is None:

@@ -230,7 +230,9 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
     dropped, sdot_drift = None, sdot
     if prediction is not None:
         s = s - row_sums(prediction.grow, dist.pair_i, dist.pair_j)
-        sdot = sdot - row_sums(prediction.closing, dist.pair_i, dist.pair_j)
+        allowance = row_sums(prediction.closing, dist.pair_i, dist.pair_j)
+        sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)
+        sdot = sdot - allowance
         if prediction.fixed.any():
             free = row_sums((~prediction.fixed).astype(np.float64), dist.pair_i, dist.pair_j)
             dropped = free == 0

@@ -280,7 +280,7 @@ class SafetyFilter:
         # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too (dropped rows: -inf)
         if np.isnan(terms.bound).any() or (terms.bound == np.inf).any():
             return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
-                                   clearance)
+                                   clearance, prediction=prediction)
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
         status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
         if (terms.rows_times(nominal) >= terms.bound).all():
@@ -295,8 +295,10 @@ class SafetyFilter:
                 status = SafetyStatus.SLACK
             solve_time = time.perf_counter() - t_solve
             if a is None:
-                return self._brake_all(vel, reason, start, clearance, terms, solve_time)
+                return self._brake_all(vel, reason, start, clearance, terms, solve_time, prediction)
             a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
+            if fixed is not None and fixed.any():
+                a[fixed] = 0.0                       # held at 0 by the QP, to solver tolerance
         braked, contact = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if self.config.postcheck:
             if isinstance(terms, FusedTerms):
@@ -356,10 +358,11 @@ class SafetyFilter:
         return u, float(sigma.max(initial=0.0)), "slack QP (DAQP)"
 
     def _brake_all(self, vel: np.ndarray, reason: str, start: float, clearance: float = math.nan,
-                   terms: BarrierTerms | None = None, solve_time: float = 0.0) -> SafetyResult:
+                   terms: BarrierTerms | None = None, solve_time: float = 0.0,
+                   prediction: Prediction | None = None) -> SafetyResult:
         n = len(vel)
         return SafetyResult(
-            a_safe=braking_acceleration(vel, self.dynamics), status=SafetyStatus.FALLBACK_BRAKE,
+            a_safe=braking_acceleration(vel, self.dynamics, prediction), status=SafetyStatus.FALLBACK_BRAKE,
             reason=reason, braked=np.ones(n, dtype=bool), contact=np.zeros(n, dtype=bool),
             min_barrier=float(terms.h.min()) if terms is not None else math.nan,
             min_clearance=clearance,

@@ -35,13 +35,29 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
+from controllers.safety.latency import Prediction
 from sim.scenario import Dynamics, clip_norm
 
 
-def braking_acceleration(vel: np.ndarray, dynamics: Dynamics) -> np.ndarray:
+def braking_acceleration(vel: np.ndarray, dynamics: Dynamics,
+                         prediction: Prediction | None = None) -> np.ndarray:
     """(N, 2) maximum-braking command for (N, 2) velocities [m/s]: :meth:`Dynamics.brake`, the
-    one braking law of the robots and the filter; non-finite velocities give 0."""
-    return dynamics.brake(vel)
+    one braking law of the robots and the filter; non-finite velocities give 0.
+
+    With a latency ``prediction`` the velocity is a prediction ``h`` ticks ahead, and the command
+    may act up to ``h`` ticks earlier, on a robot that has already braked: stopping in one tick
+    from the predicted velocity then overshoots and the next tick brakes back (robots at a
+    standstill chattered into contact). So a robot slow enough to stop within one tick
+    (``|c v - v / dt| < accel_limit``) spreads its stop over ``h + 1`` ticks,
+    ``c v - v / ((h + 1) dt)``; a faster one brakes at the limit, as :meth:`Dynamics.brake`
+    (spreading that too let a robot brake slower than the one ahead of it stopped)."""
+    one_tick = dynamics.brake(vel)
+    if prediction is None or not prediction.horizon.any():
+        return one_tick
+    v = np.where(np.isfinite(vel), vel, 0.0)
+    ticks = (prediction.horizon + 1.0)[:, None]
+    slow = np.hypot(*(dynamics.damping * v - v / dynamics.dt).T) < dynamics.accel_limit
+    return np.where(slow[:, None], dynamics.damping * v - v / (ticks * dynamics.dt), one_tick)
 
 
 def predict_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
@@ -153,7 +169,7 @@ class SweepChecker:
         braked = np.zeros(len(pos), dtype=bool)
         grow = None if prediction is None else prediction.grow
         mine = np.ones(len(pos), dtype=bool) if prediction is None else ~prediction.fixed
-        brake = braking_acceleration(vel, self.dynamics)
+        brake = braking_acceleration(vel, self.dynamics, prediction)
         bad = self.failing(pos, vel, acc, object_clearance, grow)
         for _ in range(len(pos)):
             new = bad & ~braked & mine

@@ -16,7 +16,8 @@ REPO = Path(__file__).resolve().parents[2]
 def test_safety_bench_json_shape():
     out = subprocess.run(
         [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--steps", "15",
-         "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5"],
+         "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5",
+         "--conditions", "delay2,frozen_robot", "--condition-episodes", "2", "--task-episodes", "1"],
         cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
     doc = json.loads(out.stdout)   # stdout holds the document alone; progress is on stderr
     inv = doc["invariance"]
@@ -26,9 +27,23 @@ def test_safety_bench_json_shape():
     mec = doc["mec"]
     assert mec["tracking_error_without"] > 0 and mec["tracking_error_with"] >= 0
     assert set(doc["latency_ms"]) == {"3", "5"}
+    cond = doc["conditions"]
+    assert set(cond) == {"delay2", "frozen_robot"}
+    for entry in cond.values():          # the keys other tools read
+        assert entry["episodes"] == 2 and entry["scripted_episodes"] == 1
+        assert entry["collisions_filter_on"] <= entry["collisions_filter_off"] <= 2
+        assert set(entry["tracking_error_mm"]) == {"mec", "no_mec"}
+        assert entry["success_scripted"] in (0.0, 1.0)
+    assert cond["delay2"]["collisions_filter_off"] == 2     # bare robots at full thrust collide
     for row in doc["latency_ms"].values():
         assert 0 < row["p50"] <= row["p99"]
         assert 0 < row["policy_p50"] and 0 < row["safety_p50"]
+
+
+def test_safety_bench_rejects_an_unknown_condition():
+    out = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--conditions", "delay9"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "unknown condition" in out.stderr and "delay_jitter" in out.stderr
 
 
 def test_safety_bench_rejects_a_missing_policy():

@@ -1,0 +1,144 @@
+"""Latency prediction and tightening: hand-worked numbers, soundness of the bounds, fixed robots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controllers.safety import SafetyFilter, SafetyStatus
+from controllers.safety.latency import (
+    LatencyConfig,
+    LatencyConfigError,
+    LatencyPredictor,
+    Prediction,
+    horizon_ticks,
+    reach,
+    row_sums,
+)
+from sim.scenario import Dynamics, transport_scenario
+
+DYN = Dynamics()            # dt 0.05 s, damping 0.5 1/s, accel limit 1, speed limit 0.4
+
+
+def test_horizon_counts_the_state_age_and_the_command_delay_in_ticks():
+    # (0 + 0.15) / 0.05 = 3; (0.05 + 0.15) / 0.05 = 4; 0.02 s of age still costs a whole tick
+    np.testing.assert_array_equal(horizon_ticks(np.array([0.0, 0.05, 0.02]), 0.15, 0.05), [3, 4, 4])
+    np.testing.assert_array_equal(horizon_ticks(np.array([0.0]), 0.0, 0.05), [0])
+
+
+def test_prediction_runs_the_recorded_commands_and_grows_by_the_hand_worked_bounds():
+    cfg = LatencyConfig(command_delay_s=0.1, accel_uncertainty=0.1, position_noise=0.002,
+                        velocity_noise=0.01, spread_weight=1.0)
+    pred = LatencyPredictor(DYN, cfg)
+    ids = ("a",)
+    u1, u2 = np.array([[0.4, 0.0]]), np.array([[0.4, 0.3]])
+    pred.record(ids, u1)
+    pred.record(ids, u2)
+    pos, vel = np.array([[0.5, 0.5]]), np.array([[0.1, 0.0]])
+    out = pred.predict(ids, pos, vel, np.zeros(1), np.array([[0.4, 0.3]]))
+    p, v = DYN.step_np(*DYN.step_np(pos, vel, u1), u2)          # oldest first, h = 0.1 / 0.05 = 2
+    np.testing.assert_allclose(out.pos, p)
+    np.testing.assert_allclose(out.vel, v)
+    assert out.horizon.tolist() == [2]
+    # window {u1, u2, a_nom}: box diagonal 0.3 -> A = 0.3 + 0.1 = 0.4 m/s^2, h = 2
+    # e_p = A dt^2 h (h + 1) / 2 + sigma_v dt h + sigma_p = 0.4 * 0.0025 * 3 + 0.01 * 0.1 + 0.002
+    # e_v = A dt h + sigma_v = 0.4 * 0.1 + 0.01
+    np.testing.assert_allclose(out.grow, [0.003 + 0.001 + 0.002])
+    np.testing.assert_allclose(out.closing, [0.04 + 0.01])
+    assert not out.fixed.any()
+
+
+def test_history_is_keyed_by_robot_id_and_a_new_robot_holds_no_command():
+    pred = LatencyPredictor(DYN, LatencyConfig(command_delay_s=0.05, accel_uncertainty=0.0))
+    pred.record(("a", "b"), np.array([[1.0, 0.0], [0.0, 1.0]]))
+    pos, vel = np.zeros((2, 2)) + 0.5, np.zeros((2, 2))
+    out = pred.predict(("b", "c"), pos, vel, np.zeros(2), np.zeros((2, 2)))
+    np.testing.assert_allclose(out.vel[0], [0.0, DYN.dt * 1.0])        # b ran its own command
+    np.testing.assert_allclose(out.vel[1], [0.0, 0.0])                 # c: none yet
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_the_bounds_hold_for_any_order_of_the_window_commands(seed):
+    """With spread weight 1 the tightening bounds what it claims: whichever commands of the
+    window (the last h sent and the new one) acted at each of the h ticks, in any order and with
+    repeats (a delay that jitters, a held command), plus any model error within delta_a, the robot
+    ends within ``grow`` of the prediction and its velocity within ``closing``. (Robots stay
+    below the speed limit here; the clip only shrinks differences.)"""
+    rng = np.random.default_rng(seed)
+    cfg = LatencyConfig(command_delay_s=0.15, accel_uncertainty=0.05, spread_weight=1.0)
+    dyn = Dynamics(speed_limit=10.0)
+    scale = rng.uniform(0, 1)
+    window = list(rng.uniform(-1, 1, (3, 1, 2)) * scale)
+    a_nom = rng.uniform(-1, 1, (1, 2)) * scale
+    pred = LatencyPredictor(dyn, cfg)
+    for u in window:
+        pred.record(("r",), u)
+    pos, vel = rng.uniform(0.3, 0.7, (1, 2)), rng.uniform(-0.2, 0.2, (1, 2))
+    out = pred.predict(("r",), pos, vel, np.zeros(1), a_nom)
+    assert out.horizon.tolist() == [3]
+    choices = window + [a_nom]
+    p, v = pos.copy(), vel.copy()
+    for _ in range(3):
+        error = rng.normal(size=2)
+        error *= cfg.accel_uncertainty * rng.uniform(0, 1) / np.linalg.norm(error)
+        p, v = dyn.step_np(p, v, choices[int(rng.integers(len(choices)))] + error)
+    assert np.linalg.norm(p - out.pos) <= out.grow[0] + 1e-12
+    assert np.linalg.norm(v - out.vel) <= out.closing[0] + 1e-12
+
+
+def test_reach_of_a_robot_at_rest_and_of_one_moving_hand_worked():
+    # at rest: the centre stays, R = a t^2 / 2 while t <= T_b
+    centre, cvel, radius, rate = reach(np.array([[0.5, 0.5]]), np.zeros((1, 2)), np.array([0.2]), 0.3, DYN,
+                                       np.array([0.5]))
+    np.testing.assert_allclose(centre, [[0.5, 0.5]])
+    np.testing.assert_allclose(radius, [0.5 * 0.5 * 0.04])
+    np.testing.assert_allclose(rate, [0.5 * 0.2])
+    # moving at 0.2 m/s along x, t = 0.5 s, T_b = 0.3 s, a = 0 (it only ever ran zero commands):
+    # far: coast 0.3 s (0.06 m), then brake 0.2 s at 1 m/s^2 from 0.2 m/s: 0.04 - 0.02 = 0.02 m
+    # near: brake at once, stops after 0.2 s: 0.02 m. Interval [0.02, 0.08]: centre 0.05, R 0.03
+    centre, cvel, radius, rate = reach(np.array([[0.5, 0.5]]), np.array([[0.2, 0.0]]), np.array([0.5]), 0.3,
+                                       DYN, np.array([0.0]))
+    np.testing.assert_allclose(centre, [[0.55, 0.5]], atol=1e-12)
+    np.testing.assert_allclose(radius, [0.03], atol=1e-9)
+    np.testing.assert_allclose(cvel, [[0.0, 0.0]], atol=1e-12)       # both ends at rest by then
+    # long silent: nothing grows any more
+    later = reach(np.array([[0.5, 0.5]]), np.array([[0.2, 0.0]]), np.array([5.0]), 0.3, DYN, np.array([0.0]))
+    np.testing.assert_allclose(later[2], radius, atol=1e-9)
+    assert later[3][0] == 0.0
+
+
+def test_row_sums_follow_the_barrier_row_layout():
+    x = np.array([1.0, 2.0, 4.0])
+    pi, pj = np.triu_indices(3, 1)
+    np.testing.assert_allclose(row_sums(x, pi, pj), [3, 5, 6, 1, 2, 4, 1, 1, 1, 1, 2, 2, 2, 2, 4, 4, 4, 4])
+
+
+def test_a_fixed_robot_is_an_obstacle_not_a_decision_variable():
+    """Robot 1 is not listening: the filter cannot move it (a_safe = 0) and makes robot 0 brake
+    before its grown disc, which a filter that could count on robot 1 would not."""
+    sc = transport_scenario(2)
+    filt = SafetyFilter(sc)
+    pos = np.array([[0.3, 0.9], [0.45, 0.9]])
+    vel = np.array([[0.3, 0.0], [0.0, 0.0]])
+    a_nom = np.array([[1.0, 0.0], [0.0, 0.0]])
+    listening = Prediction(pos, vel, np.zeros(2), np.zeros(2), np.zeros(2, dtype=bool), np.zeros(2, int))
+    deaf = Prediction(pos, vel, np.array([0.0, 0.02]), np.zeros(2), np.array([False, True]), np.zeros(2, int))
+    both = filt.filter(pos, vel, a_nom, prediction=listening)
+    alone = filt.filter(pos, vel, a_nom, prediction=deaf)
+    np.testing.assert_allclose(alone.a_safe[1], 0.0)
+    assert alone.status is not SafetyStatus.UNCHANGED
+    assert alone.a_safe[0, 0] < both.a_safe[0, 0] - 0.1               # it brakes harder alone
+    # two fixed robots: their row is dropped, nothing to solve
+    none = filt.filter(pos, vel, np.zeros((2, 2)),
+                       prediction=Prediction(pos, vel, np.zeros(2), np.zeros(2), np.ones(2, bool), np.zeros(2, int)))
+    assert none.terms.bound[0] == -np.inf
+
+
+def test_bad_latency_settings_name_the_field():
+    with pytest.raises(LatencyConfigError, match="latency.command_delay_s"):
+        LatencyConfig(command_delay_s=-0.1)
+    with pytest.raises(LatencyConfigError, match="latency.stale_after_s"):
+        LatencyConfig(stale_after_s=0.0)

@@ -1,0 +1,114 @@
+"""Forward invariance on an imperfect link: the default stack (filter + MEC) in pymunk, with teeth.
+
+Each condition is a :class:`sim.pymunk_world.ModelError` of a real link: command delay of 1-3
+ticks, a delay that jitters 1-3 ticks from command to command, measurement noise (1 cm, 2 cm/s),
+20 % of the states lost, a robot that freezes mid-episode. Robots (3-8, random starts inside
+the safe set of the default latency bound) keep adversarial modes: full thrust at the nearest
+robot, at the object, at the nearest wall, or along a random direction. The default
+``StackConfig()`` never lets two shapes touch; the same episodes with the latency terms switched
+off (``LatencyConfig(enabled=False)``: the filter judges the state it is given, as before) do.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.safety import SafetyFilter, analytic_distances
+from controllers.safety.latency import LatencyConfig
+from sim.fleet import FleetState
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import transport_scenario
+from stack.pipeline import ControlStack, StackConfig, run_episode
+
+STEPS = 60
+WALL_DIRS = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+CONDITIONS = {
+    "delay1": ModelError(delay_ticks=1),
+    "delay2": ModelError(delay_ticks=2),
+    "delay3": ModelError(delay_ticks=3),
+    "delay_jitter": ModelError(delay_ticks=1, delay_jitter_ticks=2),
+    "noise": ModelError(position_noise_std=0.01, velocity_noise_std=0.02),
+    "drops": ModelError(state_drop=0.2),
+}
+NO_LATENCY = StackConfig(latency=LatencyConfig(enabled=False))
+
+
+class Adversary:
+    """FleetState -> (N, 2): each robot keeps one mode (module docstring) for the episode."""
+
+    def __init__(self, scenario, rng):
+        n = scenario.num_robots
+        self.scenario, self.rng = scenario, rng
+        self.modes = rng.integers(0, 4, n)
+        self.fixed = rng.normal(size=(n, 2))
+
+    def __call__(self, state: FleetState) -> np.ndarray:
+        pos, n = state.positions, state.num_robots
+        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1) + np.eye(n) * 1e9
+        walls = np.stack([pos[:, 0], 1 - pos[:, 0], pos[:, 1], 1 - pos[:, 1]], 1)
+        thrust = np.stack([pos[np.argmin(d, axis=1)] - pos, self.scenario.object_center - pos,
+                           WALL_DIRS[np.argmin(walls, axis=1)], self.fixed])[self.modes, np.arange(n)]
+        return thrust / np.maximum(np.linalg.norm(thrust, axis=1, keepdims=True), 1e-12)
+
+
+def start(world: PymunkWorld, rng, coast_ticks: int = 3) -> FleetState:
+    """Positions 3 cm apart, velocities scaled until h >= 0 holds at the state and at every state
+    the robots coast to over ``coast_ticks`` (no robot can brake before its first command)."""
+    sc = world.scenario
+    filt = SafetyFilter(sc)
+    pos = np.zeros((0, 2))
+    while len(pos) < sc.num_robots:
+        cand = np.vstack([pos, rng.uniform(0.06, 0.94, (1, 2))])
+        if analytic_distances(cand, sc.robot_radius, sc.arena, sc.polygon).min_clearance() >= 0.03:
+            pos = cand
+    vel = rng.normal(0.0, 0.15, pos.shape)
+
+    def safe(p, v):
+        for _ in range(coast_ticks + 1):
+            if filt.barrier(p, v).h.min() < 0:
+                return False
+            p, v = sc.dynamics.step_np(p, v, np.zeros_like(v))
+        return True
+
+    while not safe(pos, vel):
+        vel *= 0.8
+    world.set_state(pos, vel)
+    return world.read_state()
+
+
+def collided(seed: int, model_error: ModelError | None, config: StackConfig,
+             robots: tuple[int, int] = (3, 8)) -> bool:
+    """One adversarial episode of ``robots[0] .. robots[1]`` robots; ``model_error`` None: a
+    random robot freezes at tick 10-30."""
+    rng = np.random.default_rng(seed)
+    sc = transport_scenario(robots[0] + seed % (robots[1] - robots[0] + 1))
+    if model_error is None:
+        model_error = ModelError(freeze=(int(rng.integers(sc.num_robots)), int(rng.integers(10, 30))))
+    world = PymunkWorld(sc, model_error)
+    stack = ControlStack(sc, Adversary(sc, rng), config)
+    return run_episode(world, stack, seed, STEPS, start=lambda w: start(w, rng)).collided
+
+
+# (condition, robots, episodes): one tick of delay and dropped states take a crowd (8-14 robots)
+# before the filter without latency terms is caught out (1 of 16 episodes each, measured)
+CASES = [("delay1", (8, 14), 16), ("delay2", (3, 8), 10), ("delay3", (3, 8), 10),
+         ("delay_jitter", (3, 8), 10), ("noise", (3, 8), 10), ("drops", (8, 14), 16)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "robots", "episodes"), CASES)
+def test_no_contact_on_an_imperfect_link_and_contacts_without_the_latency_terms(name, robots, episodes):
+    seeds = range(episodes)
+    on = [s for s in seeds if collided(s, CONDITIONS[name], StackConfig(), robots)]
+    assert on == [], f"{name}: seeds {on} collided with the default stack"
+    off = sum(collided(s, CONDITIONS[name], NO_LATENCY, robots) for s in seeds)
+    assert off >= 1, f"{name}: no teeth, the filter without latency terms never collided"
+
+
+@pytest.mark.slow
+def test_a_frozen_robot_is_kept_clear_of_and_is_run_into_without_the_latency_terms():
+    seeds = range(20)
+    on = [s for s in seeds if collided(s, None, StackConfig())]
+    assert on == []
+    assert sum(collided(s, None, NO_LATENCY) for s in seeds) >= 1
