@@ -192,6 +192,14 @@ def _riccati(dynamics: Dynamics, config: MecConfig) -> tuple[np.ndarray, float, 
     return k.ravel(), s, float(np.sqrt(wander[1, 1]))
 
 
+def _clip_rows(x: np.ndarray, limit: float) -> np.ndarray:
+    """(..., 2) rows scaled down to norm <= limit (``x`` itself when none exceeds it)."""
+    sq = x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1]
+    if sq.max(initial=0.0) <= limit * limit:
+        return x
+    return x * np.minimum(1.0, limit / np.sqrt(np.maximum(sq, 1e-300)))[..., None]
+
+
 def _clip_norm(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows of (N, 2) ``x`` scaled down to norm <= limit, and (N,) which rows were scaled."""
     norm = np.hypot(x[:, 0], x[:, 1])
@@ -245,6 +253,7 @@ class ModelErrorCompensator:
         self.level_d_std = np.array([sd for _, _, sd in levels])             # (L,) [m/s^2]
         self.level_noise_var = (self.config.velocity_noise * 2.0 ** np.arange(len(levels))) ** 2
         self.level_wander = self.level_d_std / np.sqrt(self.level_noise_var)   # d_hat std per unit noise
+        self.level_midpoints = np.sqrt(self.level_noise_var[:-1] * self.level_noise_var[1:])
         self.max_disturbance = (self.config.max_disturbance if self.config.max_disturbance is not None
                                 else dynamics.accel_limit)
         self.hypotheses = self.config.max_delay_ticks + 1
@@ -367,16 +376,17 @@ class ModelErrorCompensator:
         # hypothesis delta ran the command sent delta + 1 ticks ago: sent[-1 - delta]
         u = self.sent[::-1][:b]                                         # (B, N, 2)
         v_pred = (1.0 - c * dt) * self.v_hat + dt * (u + self.d_hat)
-        speed = np.hypot(v_pred[..., 0], v_pred[..., 1])[..., None]     # the plant's speed limit
-        v_pred = v_pred * np.minimum(1.0, self.dynamics.speed_limit / np.maximum(speed, 1e-300))
-        innovation = np.where(update[None, :, None], vel[None] - v_pred, 0.0)
+        v_pred = _clip_rows(v_pred, self.dynamics.speed_limit)               # the plant's speed limit
+        everyone = bool(update.all())
+        innovation = vel[None] - v_pred
+        if not everyone:
+            innovation = np.where(update[None, :, None], innovation, 0.0)
         gain = self.level_gain[self.level]                                  # (N, 2)
         self.v_hat = v_pred + gain[None, :, :1] * innovation
-        d = self.d_hat + gain[None, :, 1:] * innovation
-        norm = np.hypot(d[..., 0], d[..., 1])[..., None]
-        self.d_hat = d * np.minimum(1.0, self.max_disturbance / np.maximum(norm, 1e-300))
+        self.d_hat = _clip_rows(self.d_hat + gain[None, :, 1:] * innovation, self.max_disturbance)
         sq = (innovation * innovation).sum(axis=2)
-        self.score = np.where(update[None], self.config.forget * self.score + sq, self.score)
+        score = self.config.forget * self.score + sq
+        self.score = score if everyone else np.where(update[None], score, self.score)
         self._track_noise(vel, update, u[self.charge, np.arange(len(vel))])
 
     def _track_noise(self, vel: np.ndarray, update: np.ndarray, u: np.ndarray) -> None:
@@ -384,19 +394,21 @@ class ModelErrorCompensator:
         dt, c = self.dynamics.dt, self.dynamics.damping
         residual = vel - (1.0 - c * dt) * self.y_prev - dt * u           # dt d + n_k - (1 - c dt) n_{k-1}
         change = residual - self.r_prev                                  # dt (d_k - d_{k-1}) + noise
-        good = update & np.isfinite(change).all(axis=1)
         own = 0.5 * (change * change).sum(axis=1) / (1.0 + (2.0 - c * dt) ** 2 + (1.0 - c * dt) ** 2)
+        good = update & np.isfinite(own)
         self.noise_count = self.noise_count + good               # a plain mean until it forgets
         weight = np.maximum(1.0 - NOISE_FORGET, 1.0 / np.maximum(self.noise_count, 1.0))
-        self.noise_var = np.where(good, (1 - weight) * self.noise_var + weight * np.nan_to_num(own),
-                                  self.noise_var)
-        self.y_prev = np.where(update[:, None], vel, np.nan)
-        self.r_prev = np.where(update[:, None], residual, np.nan)
-        ratio = np.maximum(self.noise_var, 1e-30)[:, None] / self.level_noise_var[None]
-        self.level = np.abs(np.log(ratio)).argmin(axis=1)
+        self.noise_var = np.where(good, (1 - weight) * self.noise_var + weight * own, self.noise_var)
+        if update.all():
+            self.y_prev, self.r_prev = vel, residual
+        else:
+            self.y_prev = np.where(update[:, None], vel, np.nan)
+            self.r_prev = np.where(update[:, None], residual, np.nan)
+        # the nearest level in ratio: above the geometric midpoint of two levels, the upper one
+        self.level = (self.noise_var[:, None] > self.level_midpoints[None]).sum(axis=1)
 
     def replace_last_command(self, a_cmd: np.ndarray, shift: bool = False) -> None:
         """Tell the observers the (N, 2) command actually sent this tick (``shift``: a new tick)."""
         if shift:
-            self.sent = np.roll(self.sent, -1, axis=0)
+            self.sent[:-1] = self.sent[1:]
         self.sent[-1] = a_cmd

@@ -1,8 +1,17 @@
 r"""ControlStack: one control tick from a fleet state to the commands sent to the robots.
 
-Data path of :meth:`ControlStack.tick` for N robots (N may change from one tick to the next)::
+Data path of :meth:`ControlStack.tick` for N robots (N may change from one tick to the next;
+every per-robot estimate is keyed by robot id)::
 
-    FleetState (positions, velocities, targets (N, 2) numpy float64; object pose)
+    FleetState (positions, velocities, targets (N, 2) numpy float64; object pose; per-row state
+                ages; silent robots; a measured command delay)
+      -> rows:     a row with a non-finite state stands in at its id's last finite state (none
+                   yet: nobody moves this tick); a row older than the latency config's
+                   ``stale_after_s``, or standing in, is *stale*: an obstacle, sent braking
+      -> MEC in:   controllers.mec.ModelErrorCompensator.update(vel, ids) (optional): a bank of
+                   Kalman observers over command delays 0..3 ticks, noise-adaptive; its velocity
+                   estimate replaces the measured one for policy and filter
+                   (``estimated_velocity``); dropped or stale rows only predict
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
@@ -11,38 +20,37 @@ Data path of :meth:`ControlStack.tick` for N robots (N may change from one tick 
                    (the tick writes the tokens into a float32 buffer kept per N and, every token
                    being valid, passes ``mask=None`` to a network whose forward accepts it, else
                    an all-true mask kept per N; a TorchScript forward is called directly)
-      -> safety:   controllers.safety.SafetyFilter.filter(pos, vel, a_nom)   (optional)
+      -> latency:  controllers.safety.latency.LatencyPredictor: every robot (silent ones
+                   appended) predicted to where the new command acts, over its state age plus
+                   the command delay, through the commands in flight; discs grown by what the
+                   prediction cannot know; stale and silent robots fixed obstacles with their
+                   reachable disc
+      -> safety:   controllers.safety.SafetyFilter.filter(..., prediction=) (optional)
                    => a_safe (N, 2), SafetyStatus
-      -> MEC:      controllers.mec.ModelErrorCompensator.step(measured vel, a_safe)   (optional;
-                   the compensator keeps the previous command it returned as its model input)
-                   => a_cmd = clip_norm(a_safe - d_hat, accel_limit) (N, 2), MecStatus
-      -> commands  a_cmd (N, 2) numpy float64, always finite
+      -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
+      -> re-check: controllers.safety.recheck: a_cmd must satisfy the barrier rows too, else
+                   its robots' compensation is withdrawn
+      -> commands  a_cmd (N, 2) numpy float64, always finite; stale rows the braking law; the
+                   acceleration each robot is to achieve is recorded for the next prediction
 
-Non-finite values never pass on. A non-finite fleet state (position or velocity) or a
-non-finite policy output replaces the affected stage's output with the maximum-braking command
-``clip_norm(c v - v / dt, accel_limit)`` (``v`` non-finite -> 0) and says so in
-:attr:`TickResult.policy_status`; a non-finite final command (which no stage should produce) is
-replaced the same way with :attr:`TickResult.brake_reason` set. Exceptions raised by a policy
-propagate: a bug is not a data error.
+Non-finite values never pass on. A non-finite policy output replaces the policy's output with
+the maximum-braking command ``clip_norm(c v - v / dt, accel_limit)`` (``v`` non-finite -> 0) and
+says so in :attr:`TickResult.policy_status`; a non-finite final command (which no stage should
+produce) is replaced the same way with :attr:`TickResult.brake_reason` set. Exceptions raised
+by a policy propagate: a bug is not a data error.
 
 Threads: torch's intra-op thread count is the caller's choice. For one fleet (batch of 1) on the
 control path call ``torch.set_num_threads(1)`` once before the loop: more threads only add
 synchronisation cost for tensors this small.
 
-:func:`run_episode` drives any :class:`sim.fleet.Fleet` with a stack and judges the episode with
-:mod:`sim.metrics` (success, final distance, collisions), plus the stack's own counters
-(interventions, slack, fallback, braking) and the nominal-model tracking error (see
-:func:`nominal_step`).
+:func:`run_episode` (:mod:`stack.episodes`) drives any :class:`sim.fleet.Fleet` with a stack
+and judges the episode.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
-import json
+import copy
 import time
-import warnings
-import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -63,15 +71,12 @@ from controllers.safety import (
 from controllers.safety.latency import LatencyConfig, LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
 from sim.fleet import FleetState
-from sim.observations import LAYOUT_VERSION, TOKEN_DIM, flat, fleet_tokens_np
+from sim.observations import flat, fleet_tokens_np
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
+from stack.policy_io import StackError, _mask_is_optional, load_policy
 
 PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
-
-
-class StackError(ValueError):
-    """A stack that cannot be built or a policy that cannot be loaded; the message says the fix."""
 
 
 class PolicyStatus(StrEnum):
@@ -165,105 +170,48 @@ class StackConfig:
     estimated_velocity: bool = True
 
 
-def is_torchscript_file(path: str | Path) -> bool:
-    """True when ``path`` is a TorchScript archive (a zip holding ``*/constants.pkl``)."""
-    try:
-        with zipfile.ZipFile(path) as archive:
-            return any(name.endswith("/constants.pkl") for name in archive.namelist())
-    except (zipfile.BadZipFile, OSError):
-        return False
-
-
-def load_policy(path: str | Path, num_robots: int | None = None) -> nn.Module:
-    """A policy module from a TorchScript file or a training checkpoint, in eval mode.
-
-    A TorchScript file written by ``formation export`` carries ``meta.json``
-    (:mod:`deploy.export`); its format and observation layout version must be the ones this code
-    builds (:data:`sim.observations.LAYOUT_VERSION`), else :class:`StackError` says which differ:
-    a policy trained on another token layout would silently read the wrong features. A bare
-    ``torch.jit.save`` of an actor has no ``meta.json`` and no layout to check; it is loaded as is.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise StackError(f"policy file {str(path)!r} does not exist; give a TorchScript file or a "
-                         "checkpoint.pt written by training")
-    if is_torchscript_file(path):
-        return _load_torchscript(path)
-    from controllers.mappo.checkpoint import CheckpointError, load_actor
-
-    try:
-        return load_actor(path, num_robots)
-    except CheckpointError as exc:
-        raise StackError(str(exc)) from None
-    except Exception as exc:  # a file torch cannot read at all: say what was expected
-        raise StackError(f"{str(path)!r} is neither a TorchScript file nor a training checkpoint "
-                         f"({type(exc).__name__}: {exc})") from None
-
-
-def _load_torchscript(path: Path) -> torch.jit.ScriptModule:
-    """Load a TorchScript policy and check its ``meta.json``, if it has one (see :func:`load_policy`)."""
-    from deploy.export import EXPORT_FORMAT, EXPORT_FORMAT_VERSION, META_FILE
-
-    extra = {META_FILE: ""}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=DeprecationWarning, module="torch.jit")
-        module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
-    if extra[META_FILE]:
-        try:
-            meta = json.loads(extra[META_FILE])
-        except ValueError:
-            raise StackError(f"{str(path)!r}: its {META_FILE} is not valid JSON; export the policy "
-                             "again with `formation export`") from None
-        if not isinstance(meta, dict):
-            raise StackError(f"{str(path)!r}: its {META_FILE} is not a JSON object; export it again")
-        fmt = (meta.get("format"), meta.get("format_version"))
-        if fmt != (EXPORT_FORMAT, EXPORT_FORMAT_VERSION):
-            raise StackError(f"{str(path)!r} is a {fmt[0]} v{fmt[1]} file, not {EXPORT_FORMAT} "
-                             f"v{EXPORT_FORMAT_VERSION}; export it again with `formation export`")
-        if meta.get("layout_version") != LAYOUT_VERSION:
-            raise StackError(f"{str(path)!r} was exported for observation layout "
-                             f"{meta.get('layout_version')!r} but this code builds layout "
-                             f"{LAYOUT_VERSION}; export a policy trained on layout {LAYOUT_VERSION}")
-        if meta.get("token_dim", TOKEN_DIM) != TOKEN_DIM:
-            raise StackError(f"{str(path)!r} expects {meta.get('token_dim')} features per token but "
-                             f"this code builds {TOKEN_DIM}; export a policy trained on this layout")
-    return module.eval()
-
-
-def _mask_is_optional(network: nn.Module) -> bool:
-    """True when ``network.forward(obs, mask)`` accepts ``mask=None`` (or takes no mask)."""
-    if isinstance(network, torch.jit.ScriptModule):
-        args = [a for a in network.forward.schema.arguments if a.name != "self"]
-        return len(args) < 2 or isinstance(args[1].type, torch.OptionalType)
-    params = list(inspect.signature(network.forward).parameters.values())
-    return len(params) < 2 or params[1].default is None
-
-
 class LastKnown:
     """The last finite state of each robot id, to stand in for a row that arrives non-finite."""
 
     def __init__(self):
         self._rows: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
+        self._ids: tuple[str, ...] = ()
+        self._measured = np.zeros(0)
+
+    def _measured_for(self, ids: tuple[str, ...]) -> np.ndarray:
+        if ids != self._ids:
+            self._ids = ids
+            self._measured = np.array([self._rows[r][2] if r in self._rows else -np.inf for r in ids])
+        return self._measured
 
     def store(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
               now: float) -> None:
+        """Every row is finite: remember it (arrays per row; the per-id table when ids change)."""
+        measured = now - ages
+        self._measured_for(ids)
+        self._measured = measured
+        self._pos, self._vel = pos, vel
+        self._stored_ids = ids
+
+    def _flush(self) -> None:
+        """Move the rows kept as arrays into the per-id table."""
+        ids = getattr(self, "_stored_ids", ())
         for k, rid in enumerate(ids):
-            self._rows[rid] = (pos[k], vel[k], now - ages[k])
+            self._rows[rid] = (self._pos[k], self._vel[k], float(self._measured[k]))
+        self._stored_ids = ()
 
     def new_measurement(self, ids: tuple[str, ...], ages: np.ndarray, now: float) -> np.ndarray:
         """(N,) bool: rows measured after the state last stored for their id (a dropped
         update repeats the old one: it must not count twice as news)."""
-        out = np.ones(len(ids), dtype=bool)
-        for k, rid in enumerate(ids):
-            known = self._rows.get(rid)
-            if known is not None and now - ages[k] <= known[2] + 1e-9:
-                out[k] = False
-        return out
+        if ids != self._ids:
+            self._flush()
+        return now - ages > self._measured_for(ids) + 1e-9
 
     def fill(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
              now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Rows with a non-finite position or velocity replaced by their last finite state (its
         age counted from when it was measured); (N,) bool of rows with none to stand in."""
+        self._flush()
         pos, vel, ages = pos.copy(), vel.copy(), ages.copy()
         bad = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
         unplaced = np.zeros(len(ids), dtype=bool)
@@ -276,6 +224,7 @@ class LastKnown:
             else:
                 unplaced[k] = True
                 vel[k] = np.where(np.isfinite(vel[k]), vel[k], 0.0)
+        self._ids = ()                                    # re-read from the table next time
         return pos, vel, ages, unplaced
 
 
@@ -422,7 +371,8 @@ class ControlStack:
             t_obs = t_pol = time.perf_counter_ns()
         else:
             if unknown.any() or vel is not state.velocities:
-                state = dataclasses.replace(state, positions=pos, velocities=vel, state_age_s=ages)
+                state = copy.copy(state)        # same shapes: no need to validate again
+                state.positions, state.velocities, state.state_age_s = pos, vel, ages
             a_nom, t_obs, t_pol = self._policy(state, t0)
             if not np.isfinite(a_nom).all():
                 a_nom = self.brake(vel)

@@ -80,7 +80,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.scenario import Dynamics
+from sim.scenario import Dynamics, clip_norm
 
 
 class LatencyConfigError(ValueError):
@@ -208,21 +208,23 @@ class LatencyPredictor:
     def reset(self) -> None:
         self._ids: tuple[str, ...] = ()
         self._history = np.zeros((self.depth, 0, 2))       # oldest first
-        self._accel_bound: dict[str, float] = {}           # per id, from its last fresh tick
+        self._accel_bound = np.zeros(0)                    # per robot, from its last fresh tick
 
     def _max_delay(self, measured: float | None) -> float:
         return max(self.config.command_delay_s, measured or 0.0)
 
     def _align(self, ids: tuple[str, ...]) -> None:
-        """Re-key the history rows to ``ids`` (kept for known ids, zeros for new ones)."""
+        """Re-key the rows to ``ids`` (kept for known ids; new ones: no command, any acceleration)."""
         if ids == self._ids:
             return
         old = {rid: k for k, rid in enumerate(self._ids)}
         history = np.zeros((self.depth, len(ids), 2))
+        bound = np.full(len(ids), self.dynamics.accel_limit)
         for k, rid in enumerate(ids):
             if rid in old:
                 history[:, k] = self._history[:, old[rid]]
-        self._ids, self._history = ids, history
+                bound[k] = self._accel_bound[old[rid]]
+        self._ids, self._history, self._accel_bound = ids, history, bound
 
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
@@ -235,44 +237,61 @@ class LatencyPredictor:
         """
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
-        n = len(pos)
         delay = self._max_delay(measured_delay_s)
         stale = ages > cfg.stale_after_s
         fixed = stale if fixed is None else (stale | fixed)
         h = np.where(fixed, 0, np.minimum(horizon_ticks(ages, delay, dyn.dt), self.depth))
-        steps = int(h.max(initial=0))
-        p, v = pos.copy(), vel.copy()
-        lo, hi = a_nom.copy(), a_nom.copy()
-        for t in range(steps):
-            u = self._history[self.depth - steps + t]
-            active = (h >= steps - t)[:, None]
-            p1, v1 = dyn.step_np(p, v, u)
-            p, v = np.where(active, p1, p), np.where(active, v1, v)
-            lo, hi = np.where(active, np.minimum(lo, u), lo), np.where(active, np.maximum(hi, u), hi)
-        spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1]) if n else np.zeros(0)
+        p, v, lo, hi = self._roll_forward(pos, vel, a_nom, h)
+        spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
         accel = cfg.spread_weight * spread + cfg.accel_uncertainty
         grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + cfg.position_noise
         closing = accel * dyn.dt * h + cfg.velocity_noise
-        bound = np.maximum(np.hypot(lo[:, 0], lo[:, 1]), np.hypot(hi[:, 0], hi[:, 1])) if n else lo[:, 0]
-        if steps:
-            recent = self._history[-steps:]
-            bound = np.maximum(bound, np.hypot(recent[..., 0], recent[..., 1]).max(axis=0))
-        for k in np.flatnonzero(~fixed):
-            self._accel_bound[ids[k]] = min(float(bound[k]) + cfg.accel_uncertainty, dyn.accel_limit)
+        corner = np.maximum(np.abs(lo), np.abs(hi))           # |u| <= |corner| on the window's box
+        fresh_bound = np.minimum(np.hypot(corner[:, 0], corner[:, 1]) + cfg.accel_uncertainty,
+                                 dyn.accel_limit)
+        self._accel_bound = np.where(fixed, self._accel_bound, fresh_bound)
         if fixed.any():
             brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
-            accel = np.array([self._accel_bound.get(ids[k], dyn.accel_limit) for k in np.flatnonzero(fixed)])
             centre, centre_vel, radius, rate = reach(pos[fixed], vel[fixed], ages[fixed] + delay,
-                                                     brake_after, dyn, accel)
+                                                     brake_after, dyn, self._accel_bound[fixed])
             p[fixed], v[fixed] = centre, centre_vel
             grow[fixed] = radius + cfg.position_noise
             closing[fixed] = rate + cfg.velocity_noise
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h)
 
+    def _roll_forward(self, pos: np.ndarray, vel: np.ndarray, a_nom: np.ndarray,
+                      h: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Each robot through its last ``h_i`` recorded commands (oldest first); the per-axis
+        box ``lo, hi`` of those commands and ``a_nom``."""
+        dyn = self.dynamics
+        steps = int(h.max(initial=0))
+        p, v = pos, vel
+        if steps == 0:
+            return p.copy(), v.copy(), a_nom, a_nom
+        recent = self._history[self.depth - steps:]                       # (steps, N, 2)
+        if (h == steps).all():                                            # the common case
+            keep, vmax2 = 1.0 - dyn.damping * dyn.dt, dyn.speed_limit ** 2
+            for u in recent:                      # Dynamics.step_np; u is clipped when recorded
+                v = keep * v + dyn.dt * u
+                sq = v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]
+                if sq.max() > vmax2:
+                    v = v * np.minimum(1.0, dyn.speed_limit / np.sqrt(np.maximum(sq, 1e-300)))[:, None]
+                p = p + dyn.dt * v
+            return p, v, np.minimum(recent.min(axis=0), a_nom), np.maximum(recent.max(axis=0), a_nom)
+        lo, hi = a_nom.copy(), a_nom.copy()
+        for t, u in enumerate(recent):
+            active = (h >= steps - t)[:, None]
+            p1, v1 = dyn.step_np(p, v, u)
+            p, v = np.where(active, p1, p), np.where(active, v1, v)
+            lo, hi = np.where(active, np.minimum(lo, u), lo), np.where(active, np.maximum(hi, u), hi)
+        return p, v, lo, hi
+
     def record(self, ids: tuple[str, ...], accel: np.ndarray) -> None:
-        """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last)."""
+        """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last),
+        clipped to the actuator limit."""
+        accel = clip_norm(accel, self.dynamics.accel_limit)
         self._align(tuple(ids))
-        self._history = np.roll(self._history, -1, axis=0)
+        self._history[:-1] = self._history[1:]
         self._history[-1] = accel
 
 

@@ -38,6 +38,7 @@ from deploy.transport import TransportConfig
 from deploy.wire import RobotRegistry
 from sim.fleet import FleetState
 from sim.scenario import Scenario, make_scenario
+from stack.commands.latency_args import add_command_delay_arg, latency_config
 
 
 class ScriptedFleetController:
@@ -78,6 +79,7 @@ def register(sub) -> None:
                    help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--no-safety", action="store_true", help="skip the safety filter")
     p.add_argument("--no-mec", action="store_true", help="skip the model error compensator")
+    add_command_delay_arg(p)
     p.add_argument("--ttl-ms", type=int, default=d.ttl_ms, metavar="MS",
                    help="command validity [ms] (default %(default)s)")
     p.add_argument("--stale-after", type=float, default=d.stale_after_s, metavar="S",
@@ -109,12 +111,15 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def build_stack(scenario: Scenario, policy: str, safety: bool, mec: bool):
-    """ControlStack(policy -> safety -> MEC); ``policy`` a file or 'scripted'."""
+def build_stack(scenario: Scenario, policy: str, safety: bool, mec: bool, latency=None):
+    """ControlStack(policy -> safety -> MEC); ``policy`` a file or 'scripted'; ``latency`` a
+    :class:`controllers.safety.latency.LatencyConfig` (default: 150 ms)."""
+    from controllers.safety.latency import LatencyConfig
     from stack.pipeline import ControlStack, StackConfig
 
     source = ScriptedFleetController(scenario) if policy == "scripted" else policy
-    return ControlStack(scenario, source, StackConfig(safety=safety, mec=mec))
+    return ControlStack(scenario, source, StackConfig(safety=safety, mec=mec,
+                                                      latency=latency or LatencyConfig()))
 
 
 def build_controller(scenario: Scenario, policy: str, safety: bool, mec: bool):
@@ -201,7 +206,8 @@ def run(args) -> int:
     torch.set_num_threads(1)
     try:
         scenario = make_scenario(args.scenario)
-        stack = build_stack(scenario, args.policy, not args.no_safety, not args.no_mec)
+        stack = build_stack(scenario, args.policy, not args.no_safety, not args.no_mec,
+                            latency_config(args))
         recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)

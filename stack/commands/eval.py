@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
+from stack.commands.latency_args import add_command_delay_arg, latency_config
 
 MODEL_ERROR_FIELDS = {f.name for f in dataclasses.fields(ModelError)}
 
@@ -45,13 +46,17 @@ def parse_model_error(text: str | None) -> ModelError:
             if key == "disturbance":
                 x, _, y = raw.partition(":")
                 values[key] = (float(x), float(y or 0.0))
-            elif key == "delay_ticks":
+            elif key in ("delay_ticks", "delay_jitter_ticks"):
                 values[key] = int(raw)
+            elif key == "freeze":
+                robot, _, tick = raw.partition(":")
+                values[key] = (int(robot), int(tick))
             else:
                 values[key] = float(raw)
         except ValueError:
             raise EvalArgumentError(f"--model-error: {key}={raw!r} is not a number"
-                                    + (" (disturbance is X:Y in m/s^2)" if key == "disturbance" else "")) from None
+                                    + (" (disturbance is X:Y in m/s^2)" if key == "disturbance" else "")
+                                    + (" (freeze is ROBOT:TICK)" if key == "freeze" else "")) from None
     try:
         return ModelError(**values)
     except ValueError as exc:
@@ -85,7 +90,10 @@ def register(sub) -> None:
                    help="model error compensator in the pymunk world (default on)")
     p.add_argument("--model-error", default=None, metavar="K=V,...",
                    help="pymunk ModelError fields, e.g. gain=0.7,lag_tau=0.05,floor_friction=0.1,"
-                        "disturbance=0.1:0")
+                        "disturbance=0.1:0; a real link: delay_ticks=2,delay_jitter_ticks=1,"
+                        "state_drop=0.2,position_noise_std=0.01,velocity_noise_std=0.02,freeze=2:40 "
+                        "(robot 2 goes silent at tick 40)")
+    add_command_delay_arg(p)
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
     p.set_defaults(func=run)
 
@@ -170,10 +178,15 @@ def _pymunk(args, scenario, model_error: ModelError) -> dict:
         policy = ScriptedController(scenario)
     else:
         policy = load_policy(args.policy_path, scenario.num_robots)
-    stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec))
+    try:
+        latency = latency_config(args)
+    except ValueError as exc:
+        raise EvalArgumentError(str(exc)) from None
+    stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec, latency=latency))
     world = PymunkWorld(scenario, model_error, seed=args.seed)
     out = _episodes(args, world, stack, safety=safety, mec=mec)
     out["model_error"] = dataclasses.asdict(model_error)
+    out["command_delay_ms"] = args.command_delay_ms
     return out
 
 

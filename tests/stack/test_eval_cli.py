@@ -23,6 +23,10 @@ def test_parse_model_error_fields():
         parse_model_error("gain=fast")
     with pytest.raises(EvalArgumentError, match="gain must be > 0"):
         parse_model_error("gain=-1")
+    link = parse_model_error("delay_ticks=1,delay_jitter_ticks=2,state_drop=0.2,freeze=2:40")
+    assert link == ModelError(delay_ticks=1, delay_jitter_ticks=2, state_drop=0.2, freeze=(2, 40))
+    with pytest.raises(EvalArgumentError, match="ROBOT:TICK"):
+        parse_model_error("freeze=2")
 
 
 def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
@@ -35,6 +39,7 @@ def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
     assert data["model_error"]["gain"] == 0.8
     assert data["collision_rate"] == 0.0 and 0 <= data["success_rate"] <= 1
     assert data["tick_p50_ms"] > 0
+    assert data["command_delay_ms"] == 150.0                 # safe for 150 ms by default
     assert "success_rate" in capsys.readouterr().out
 
 
@@ -60,6 +65,7 @@ def test_torchscript_batched_eval_and_ignored_flags(tmp_path, capsys):
     (["eval", "--policy", "scripted", "--scenario", "paper-99"], "unknown scenario"),
     (["eval", "--policy", "scripted", "--episodes", "0"], "--episodes"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--model-error", "gain"], "FIELD=VALUE"),
+    (["eval", "--policy", "scripted", "--world", "pymunk", "--command-delay-ms", "-5"], "--command-delay-ms"),
 ])
 def test_bad_arguments_exit_2_with_a_message(argv, message, capsys):
     assert main(argv) == 2
