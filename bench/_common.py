@@ -118,3 +118,25 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], file=None
 def print_json(document: dict[str, Any]) -> None:
     """The result document on stdout, one line, nothing else."""
     print(json.dumps(document), flush=True)
+
+
+def map_episodes(fn: Callable[[Any], dict], tasks: Sequence[Any], workers: int, desc: str,
+                 chunksize: int = 2) -> list[dict]:
+    """``fn`` over ``tasks`` with a progress bar on stderr: in ``workers`` forked processes
+    (results in completion order) or, with one worker, in this process."""
+    import multiprocessing
+
+    from tqdm import tqdm
+
+    rows = []
+    with tqdm(total=len(tasks), desc=desc, unit="ep", file=sys.stderr) as bar:
+        if workers > 1:
+            with multiprocessing.get_context("fork").Pool(workers) as pool:
+                for row in pool.imap_unordered(fn, tasks, chunksize=chunksize):
+                    rows.append(row)
+                    bar.update()
+        else:
+            for task in tasks:
+                rows.append(fn(task))
+                bar.update()
+    return rows

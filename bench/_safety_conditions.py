@@ -23,13 +23,11 @@ model error of part (a). Per condition, on the same seeds:
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
-import sys
 
 import numpy as np
 import torch
 from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start
-from tqdm import tqdm
+from _common import map_episodes
 
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
@@ -145,28 +143,13 @@ def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
     return {key: 1000.0 * float(np.mean(v)) for key, v in errors.items()}
 
 
-def _map(fn, tasks: list, workers: int, desc: str) -> list[dict]:
-    rows = []
-    with tqdm(total=len(tasks), desc=desc, unit="ep", file=sys.stderr) as bar:
-        if workers > 1:
-            with multiprocessing.get_context("fork").Pool(workers) as pool:
-                for row in pool.imap_unordered(fn, tasks, chunksize=2):
-                    rows.append(row)
-                    bar.update()
-        else:
-            for task in tasks:
-                rows.append(fn(task))
-                bar.update()
-    return rows
-
-
 def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: int,
                    mec_episodes: int, workers: int, seed: int, policy: str | None) -> dict:
     """The ``conditions`` document: one entry per condition (module docstring)."""
-    adversarial = _map(adversarial_episode, [(nm, seed + k, steps) for nm in names for k in range(episodes)],
+    adversarial = map_episodes(adversarial_episode, [(nm, seed + k, steps) for nm in names for k in range(episodes)],
                        workers, "conditions: adversarial")
     sources = [None] + ([policy] if policy is not None else [])
-    tasks = _map(task_episode, [(nm, seed + k, src) for nm in names for k in range(task_episodes)
+    tasks = map_episodes(task_episode, [(nm, seed + k, src) for nm in names for k in range(task_episodes)
                                 for src in sources], workers, "conditions: scripted/policy")
     doc = {}
     for nm in names:

@@ -4,7 +4,9 @@
     draws N in 3..16 (``transport-N``), a model error (gain 0.7..1.0 per robot, actuator lag
     0..0.05 s, floor friction 0..0.1 m/s^2, a constant disturbance up to 0.05 m/s^2 and white
     disturbance 0.02 m/s^2 per axis), random robot positions with >= 0.03 m clearance and random
-    velocities scaled into the barrier's safe set ``h >= 0``. Every robot keeps one adversarial
+    velocities scaled into the barrier's safe set ``h >= 0`` at the state and at every state the
+    robots coast to over the default latency bound (3 ticks: a robot cannot brake before its
+    first command arrives). Every robot keeps one adversarial
     mode: full thrust at its nearest neighbour, at the object, at the nearest wall, along a fixed
     random direction, along a fresh random direction every tick, the scripted controller, or
     (with ``--policy``) a trained policy. The ControlStack runs with the MEC on, once with the
@@ -40,7 +42,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -55,6 +56,7 @@ import torch  # noqa: E402
 from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start  # noqa: E402
 from _common import (  # noqa: E402
     add_output_args,
+    map_episodes,
     positive_int,
     positive_int_list,
     print_json,
@@ -115,18 +117,7 @@ def invariance_episode(task: tuple[int, int, str | None, str]) -> dict:
 def run_invariance(episodes: int, steps: int, workers: int, seed: int, policy: str | None,
                    geometry: str = "fused") -> dict:
     tasks = [(seed + k, steps, policy, geometry) for k in range(episodes)]
-    rows = []
-    bar = tqdm(total=episodes, desc="invariance", unit="ep", file=sys.stderr)
-    if workers > 1:
-        with multiprocessing.get_context("fork").Pool(workers) as pool:
-            for row in pool.imap_unordered(invariance_episode, tasks, chunksize=4):
-                rows.append(row)
-                bar.update()
-    else:
-        for task in tasks:
-            rows.append(invariance_episode(task))
-            bar.update()
-    bar.close()
+    rows = map_episodes(invariance_episode, tasks, workers, "invariance", chunksize=4)
     on = [r["seed"] for r in rows if r["collided_on"]]
     ticks = episodes * steps
     return {"episodes": episodes, "steps": steps, "collisions_filter_on": len(on),
