@@ -99,7 +99,7 @@ from sim.scenario import Dynamics
 NOISE_LEVELS = 6        # velocity noise levels sigma_y * 2^l, l = 0..5 (up to 32 sigma_y)
 NOISE_FORGET = 0.95     # forgetting factor of the innovation variance that picks the level
 SIGNIFICANCE = 4.0      # d_hat is shrunk by this many standard deviations of its excess wander
-WARMUP_UPDATES = 2      # a robot's first updates only estimate: its noise level is not known yet
+WARMUP_UPDATES = 1      # a robot's first updates only estimate: its noise level is not known yet
 
 
 class MecStatus(StrEnum):
