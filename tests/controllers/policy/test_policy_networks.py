@@ -111,6 +111,28 @@ def test_mask_hides_tokens_and_a_lone_self_token_gives_no_nan():
         assert torch.isfinite(build_critic(CriticConfig(), n)(obs, only_self)).all()
 
 
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_masked_token_holding_nan_or_inf_never_reaches_the_actions(bad):
+    """Attention gives a masked key weight 0, but 0 x NaN is NaN: without zeroing the masked
+    tokens (layers.zero_masked) every action of every robot became NaN (checked)."""
+    torch.manual_seed(4)
+    n = 3
+    pos, vel, targets, poly, arena = random_state(n)
+    obs, mask = obs_of(pos, vel, targets, poly, arena)
+    mask, poisoned = mask.clone(), obs.clone()
+    mask[..., 3] = False                        # a target token nobody may read
+    poisoned[..., 3, :] = bad
+    with torch.no_grad():
+        for net in (build_actor(ActorConfig(variant="typed"), n), build_actor(ActorConfig(variant="slot"), n),
+                    build_critic(CriticConfig(), n)):
+            out = net(poisoned, mask)
+            assert torch.isfinite(out).all()
+            assert torch.equal(out, net(obs, mask))                       # and it changes nothing
+            scripted = torch.jit.script(net) if not isinstance(net, SlotSDPAActor) else None
+            if scripted is not None:
+                assert torch.equal(scripted(poisoned, mask), out)
+
+
 def test_bad_observation_shapes_name_the_fix():
     actor = build_actor(ActorConfig(variant="typed"), 3)
     with pytest.raises(ValueError, match="2\\*num_robots\\+1"):
