@@ -209,6 +209,7 @@ class LatencyPredictor:
         self._ids: tuple[str, ...] = ()
         self._history = np.zeros((self.depth, 0, 2))       # oldest first
         self._accel_bound = np.zeros(0)                    # per robot, from its last fresh tick
+        self._remembered: dict[str, float] = {}            # the same, by id, for ids that went
 
     def _max_delay(self, measured: float | None) -> float:
         return max(self.config.command_delay_s, measured or 0.0)
@@ -218,13 +219,14 @@ class LatencyPredictor:
         if ids == self._ids:
             return
         old = {rid: k for k, rid in enumerate(self._ids)}
+        # a robot's bound outlives a tick it is missing from (it may come back as silent)
+        self._remembered.update(zip(self._ids, self._accel_bound.tolist(), strict=True))
         history = np.zeros((self.depth, len(ids), 2))
-        bound = np.full(len(ids), self.dynamics.accel_limit)
+        bound = np.array([self._remembered.get(rid, self.dynamics.accel_limit) for rid in ids])
         for k, rid in enumerate(ids):
             if rid in old:
                 history[:, k] = self._history[:, old[rid]]
-                bound[k] = self._accel_bound[old[rid]]
-        self._ids, self._history, self._accel_bound = ids, history, bound
+        self._ids, self._history, self._accel_bound = ids, history, bound.reshape(len(ids))
 
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
@@ -246,9 +248,12 @@ class LatencyPredictor:
         accel = cfg.spread_weight * spread + cfg.accel_uncertainty
         grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + cfg.position_noise
         closing = accel * dyn.dt * h + cfg.velocity_noise
-        corner = np.maximum(np.abs(lo), np.abs(hi))           # |u| <= |corner| on the window's box
-        fresh_bound = np.minimum(np.hypot(corner[:, 0], corner[:, 1]) + cfg.accel_uncertainty,
-                                 dyn.accel_limit)
+        steps = int(h.max(initial=0))
+        largest = np.hypot(a_nom[:, 0], a_nom[:, 1])            # the largest command of the window
+        if steps:
+            recent = self._history[self.depth - steps:]
+            largest = np.maximum(largest, np.sqrt((recent * recent).sum(axis=2)).max(axis=0))
+        fresh_bound = np.minimum(largest + cfg.accel_uncertainty, dyn.accel_limit)
         self._accel_bound = np.where(fixed, self._accel_bound, fresh_bound)
         if fixed.any():
             brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
