@@ -244,7 +244,6 @@ class ModelErrorCompensator:
     def __init__(self, dynamics: Dynamics, config: MecConfig | None = None):
         self.dynamics = dynamics
         self.config = config or MecConfig()
-        self.gain, self.innovation_var, _ = _riccati(dynamics, self.config)
         # noise levels the observer adapts to, sigma_y * 2^l (module docstring, Noise)
         levels = [_riccati(dynamics, dataclasses.replace(self.config, velocity_noise=self.config.velocity_noise * 2**k))
                   for k in range(NOISE_LEVELS if self.config.adapt_noise else 1)]
@@ -265,11 +264,6 @@ class ModelErrorCompensator:
         self.ids: tuple[str, ...] | None = None
         self.v_hat = self.d_hat = self.score = self.sent = self.charge = self.level = None
         self.noise_var = self.noise_count = self.y_prev = self.r_prev = None
-
-    @property
-    def u_prev(self) -> np.ndarray | None:
-        """(N, 2) the last command sent (None before the first step)."""
-        return None if self.sent is None else self.sent[-1]
 
     def _align(self, ids: tuple[str, ...], vel: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Re-key the estimates to ``ids``; (N,) bool of robots that start afresh this tick."""
@@ -308,7 +302,7 @@ class ModelErrorCompensator:
     def update(self, velocity: np.ndarray, ids: tuple[str, ...] | None = None) -> np.ndarray:
         """Take this tick's measured (N, 2) velocities (NaN rows: no new measurement, predict
         only); returns the (N, 2) velocity estimate of the hypothesis in charge [m/s]."""
-        self._start = time.perf_counter()
+        start = time.perf_counter()
         vel = np.asarray(velocity, dtype=np.float64)
         if vel.ndim != 2 or vel.shape[1] != 2:
             raise ValueError(f"ModelErrorCompensator.update: velocity must have shape (num_robots, 2), "
@@ -327,10 +321,13 @@ class ModelErrorCompensator:
         best = np.argmin(self.score, axis=0)                            # (N,)
         take = self.score[best, rows] < self.config.switch_ratio * self.score[self.charge, rows]
         self.charge = np.where(take, best, self.charge)
+        self._update_s = time.perf_counter() - start
         return self.v_hat[self.charge, rows]
 
     def compensate(self, a_safe: np.ndarray) -> MecResult:
-        """``a_cmd = clip_norm(a_safe - d_hat, accel_limit)`` for (N, 2) ``a_safe`` (after :meth:`update`)."""
+        """``a_cmd = clip_norm(a_safe - c, accel_limit)`` for (N, 2) ``a_safe`` (after :meth:`update`;
+        ``time_s`` of the result is the time of both calls)."""
+        start = time.perf_counter()
         target = np.asarray(a_safe, dtype=np.float64)
         if self.ids is None or target.shape != (len(self.ids), 2):
             raise ValueError(f"ModelErrorCompensator.compensate: velocity and a_safe must both have "
@@ -366,7 +363,7 @@ class ModelErrorCompensator:
         elif status is MecStatus.OK and clipped.any():
             status = MecStatus.CLIPPED
         return MecResult(a_cmd=a_cmd, d_hat=d_hat.copy(), status=status,
-                         time_s=time.perf_counter() - self._start, delay_ticks=best.copy(), gated=gated,
+                         time_s=self._update_s + time.perf_counter() - start, delay_ticks=best.copy(), gated=gated,
                          compensation=compensation)
 
     def _update(self, vel: np.ndarray, update: np.ndarray) -> None:

@@ -103,7 +103,6 @@ class TickResult:
         brake_reason: why a stage output was replaced by braking ("" when none was).
         stale: (N,) bool, robots treated as obstacles this tick (state older than the latency
             config's ``stale_after_s``, or not finite): they were sent the braking law.
-        horizon_ticks: the longest latency prediction of the filter this tick [ticks].
         timings_ns: nanoseconds per stage: observe, policy, safety, mec, total.
     """
 
@@ -116,7 +115,6 @@ class TickResult:
     safety_reason: str = ""
     brake_reason: str = ""
     stale: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    horizon_ticks: int = 0
     timings_ns: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -171,60 +169,50 @@ class StackConfig:
 
 
 class LastKnown:
-    """The last finite state of each robot id, to stand in for a row that arrives non-finite."""
+    """The last finite state of each robot id: when it was measured, and what stands in for a
+    row that arrives non-finite. Rows are kept as arrays in the order of the last ids seen
+    (re-keyed, with a table for the ids not in the picture, only when the ids change)."""
 
     def __init__(self):
-        self._rows: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
         self._ids: tuple[str, ...] = ()
-        self._measured = np.zeros(0)
+        self._pos, self._vel, self._measured = np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+        self._away: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}
 
-    def _measured_for(self, ids: tuple[str, ...]) -> np.ndarray:
-        if ids != self._ids:
-            self._ids = ids
-            self._measured = np.array([self._rows[r][2] if r in self._rows else -np.inf for r in ids])
-        return self._measured
-
-    def store(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
-              now: float) -> None:
-        """Every row is finite: remember it (arrays per row; the per-id table when ids change)."""
-        measured = now - ages
-        self._measured_for(ids)
-        self._measured = measured
-        self._pos, self._vel = pos, vel
-        self._stored_ids = ids
-
-    def _flush(self) -> None:
-        """Move the rows kept as arrays into the per-id table."""
-        ids = getattr(self, "_stored_ids", ())
-        for k, rid in enumerate(ids):
-            self._rows[rid] = (self._pos[k], self._vel[k], float(self._measured[k]))
-        self._stored_ids = ()
+    def _align(self, ids: tuple[str, ...]) -> None:
+        if ids == self._ids:
+            return
+        table = dict(self._away)
+        table.update((rid, (self._pos[k], self._vel[k], self._measured[k])) for k, rid in enumerate(self._ids))
+        none = (np.full(2, np.nan), np.full(2, np.nan), -np.inf)
+        rows = [table.pop(rid, none) for rid in ids]
+        self._ids, self._away = ids, table
+        self._pos = np.array([r[0] for r in rows]).reshape(-1, 2)
+        self._vel = np.array([r[1] for r in rows]).reshape(-1, 2)
+        self._measured = np.array([r[2] for r in rows], dtype=np.float64)
 
     def new_measurement(self, ids: tuple[str, ...], ages: np.ndarray, now: float) -> np.ndarray:
-        """(N,) bool: rows measured after the state last stored for their id (a dropped
-        update repeats the old one: it must not count twice as news)."""
-        if ids != self._ids:
-            self._flush()
-        return now - ages > self._measured_for(ids) + 1e-9
+        """(N,) bool: rows measured after the state last kept for their id (a dropped update
+        repeats the old one: it must not count twice as news)."""
+        self._align(ids)
+        return now - ages > self._measured + 1e-9
 
-    def fill(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
-             now: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Rows with a non-finite position or velocity replaced by their last finite state (its
-        age counted from when it was measured); (N,) bool of rows with none to stand in."""
-        self._flush()
-        pos, vel, ages = pos.copy(), vel.copy(), ages.copy()
-        bad = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
-        unplaced = np.zeros(len(ids), dtype=bool)
-        for k, rid in enumerate(ids):
-            if not bad[k]:
-                self._rows[rid] = (pos[k], vel[k], now - ages[k])
-            elif rid in self._rows:
-                pos[k], vel[k], measured = self._rows[rid]
-                ages[k] = max(now - measured, 0.0)
-            else:
-                unplaced[k] = True
-                vel[k] = np.where(np.isfinite(vel[k]), vel[k], 0.0)
-        self._ids = ()                                    # re-read from the table next time
+    def update(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+               now: float, unknown: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Keep the finite rows; the ``unknown`` (non-finite) ones replaced by their last finite
+        state, its age counted from when it was measured. Returns ``(pos, vel, ages, unplaced)``,
+        ``unplaced`` (N,) bool: unknown rows with no state to stand in."""
+        self._align(ids)
+        if not unknown.any():
+            self._pos, self._vel, self._measured = pos, vel, now - ages
+            return pos, vel, ages, unknown
+        keep = ~unknown
+        self._pos, self._vel = np.where(keep[:, None], pos, self._pos), np.where(keep[:, None], vel, self._vel)
+        self._measured = np.where(keep, now - ages, self._measured)
+        unplaced = unknown & ~np.isfinite(self._measured)
+        standing_in = unknown & ~unplaced
+        ages = np.where(standing_in, np.maximum(now - self._measured, 0.0), ages)
+        pos = np.where(unplaced[:, None], pos, self._pos)
+        vel = np.where(unplaced[:, None], np.where(np.isfinite(vel), vel, 0.0), self._vel)
         return pos, vel, ages, unplaced
 
 
@@ -235,6 +223,7 @@ class SafeStage:
     result: SafetyResult
     prediction: Prediction | None
     size: int
+    ids: tuple[str, ...]
 
     def full(self, rows: np.ndarray) -> np.ndarray:
         """(M, 2): the N commanded rows, then the silent robots' (the filter's answer, 0)."""
@@ -353,11 +342,7 @@ class ControlStack:
         ids = state.robot_ids
         unknown = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
         news = self._last_known.new_measurement(ids, ages, state.time) & ~unknown
-        if unknown.any():
-            pos, vel, ages, unplaced = self._last_known.fill(ids, pos, vel, ages, state.time)
-        else:
-            self._last_known.store(ids, pos, vel, ages, state.time)
-            unplaced = unknown
+        pos, vel, ages, unplaced = self._last_known.update(ids, pos, vel, ages, state.time, unknown)
         stale = unknown | (ages > self.config.latency.stale_after_s)
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
             v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
@@ -391,22 +376,22 @@ class ControlStack:
             a_cmd, mec_status = mec.a_cmd, mec.status
             if safe is not None:
                 a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(a_cmd), n)
-            self.mec.replace_last_command(a_cmd)
             achieved = a_cmd + np.where(stale[:, None], 0.0, mec.compensation)
         if stale.any():                         # not listening or not seen: brake, as the robot would
             a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
             achieved = np.where(stale[:, None], a_cmd, achieved)
+        if self.mec is not None:
+            self.mec.replace_last_command(a_cmd)
         t_mec = time.perf_counter_ns()
         if not np.isfinite(a_cmd).all():   # no stage should get here; the last line of defence
             a_cmd = self.brake(vel)
             brake_reason = (brake_reason + "; " if brake_reason else "") + "final command not finite: braking"
-        if self.predictor is not None:
-            self.predictor.record(ids, clip_norm(achieved, self.dynamics.accel_limit))
+        if self.predictor is not None:         # the silent robots' rows too (asked nothing)
+            self.predictor.record(safe.ids, safe.full(achieved))
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
             brake_reason=brake_reason, stale=stale,
-            horizon_ticks=int(safe.prediction.horizon.max(initial=0)) if safe and safe.prediction else 0,
             timings_ns={"observe": t_obs - t0, "policy": t_pol - t_obs, "safety": t_safe - t_pol,
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 
@@ -449,7 +434,7 @@ class ControlStack:
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
-        return SafeStage(result, prediction, len(pos))
+        return SafeStage(result, prediction, len(pos), ids)
 
     def _resize(self, n: int) -> None:
         """A new robot count: the filter builds (once) and caches its QP for N; the compensator

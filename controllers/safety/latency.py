@@ -209,7 +209,7 @@ class LatencyPredictor:
         self._ids: tuple[str, ...] = ()
         self._history = np.zeros((self.depth, 0, 2))       # oldest first
         self._accel_bound = np.zeros(0)                    # per robot, from its last fresh tick
-        self._remembered: dict[str, float] = {}            # the same, by id, for ids that went
+        self._remembered: dict[str, float] = {}            # the same by id, for ids now away
 
     def _max_delay(self, measured: float | None) -> float:
         return max(self.config.command_delay_s, measured or 0.0)

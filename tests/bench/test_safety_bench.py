@@ -33,7 +33,6 @@ def test_safety_bench_json_shape():
         assert entry["episodes"] == 2 and entry["scripted_episodes"] == 1
         assert entry["collisions_filter_on"] <= entry["collisions_filter_off"] <= 2
         assert set(entry["tracking_error_mm"]) == {"mec", "no_mec"}
-        assert entry["success_scripted"] in (0.0, 1.0)
     assert cond["delay2"]["collisions_filter_off"] == 2     # bare robots at full thrust collide
     for row in doc["latency_ms"].values():
         assert 0 < row["p50"] <= row["p99"]

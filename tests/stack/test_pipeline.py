@@ -141,6 +141,30 @@ def test_nan_network_output_and_nan_state_brake():
     np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(moving.velocities, sc.dynamics)[0])
 
 
+def test_a_repeated_state_is_no_news_and_a_robot_away_keeps_its_last_state():
+    """A dropped update repeats the old measurement with a larger age: the MEC must not take it
+    again; a robot missing from a tick and back with a non-finite state stands in at its last one."""
+    from stack.pipeline import LastKnown
+
+    known = LastKnown()
+    ids, pos, vel = ("a", "b"), np.array([[0.1, 0.2], [0.3, 0.4]]), np.array([[0.1, 0.0], [0.0, 0.1]])
+    assert known.new_measurement(ids, np.zeros(2), 1.0).tolist() == [True, True]
+    known.update(ids, pos, vel, np.zeros(2), 1.0, np.zeros(2, dtype=bool))
+    # b's update was lost: the same measurement, 0.05 s older, at 1.05 s
+    assert known.new_measurement(ids, np.array([0.0, 0.05]), 1.05).tolist() == [True, False]
+    known.update(ids, pos, vel, np.array([0.0, 0.05]), 1.05, np.zeros(2, dtype=bool))
+    known.new_measurement(("a",), np.zeros(1), 1.1)                 # b away for a tick
+    known.update(("a",), pos[:1], vel[:1], np.zeros(1), 1.1, np.zeros(1, dtype=bool))
+    bad = np.full((2, 2), np.nan)
+    unknown = np.array([True, True])
+    known.new_measurement(("b", "c"), np.zeros(2), 1.2)
+    p, v, ages, unplaced = known.update(("b", "c"), bad, bad, np.zeros(2), 1.2, unknown)
+    np.testing.assert_allclose(p[0], pos[1])
+    np.testing.assert_allclose(v[0], vel[1])
+    assert ages[0] == pytest.approx(0.2)                            # measured at 1.0 s
+    assert unplaced.tolist() == [False, True]                       # c was never seen
+
+
 def test_robot_count_can_change_between_ticks():
     sc = make_scenario("paper-3")
     stack = ControlStack(sc, actor())
