@@ -80,6 +80,11 @@ class FleetState:
         command_delay_s: measured bound on the time from now until a command sent now acts
             (transport + actuation) [s], e.g. from a link's round trips; None: not measured.
             The safety filter covers the larger of this and its configured bound.
+        commands_pending: (N,) int, commands sent to each robot after the newest one it had
+            acted on when its row was measured (the last CMD seq sent minus the STATE's
+            ``last_cmd_seq``), -1 where unknown; None: unknown for all. The safety filter then
+            predicts each robot through exactly those commands, not through as many as its
+            latency bound allows (which counts commands that already acted twice).
     """
 
     time: float
@@ -92,6 +97,7 @@ class FleetState:
     state_age_s: np.ndarray | None = None
     silent: SilentRobots | None = None
     command_delay_s: float | None = None
+    commands_pending: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)
@@ -115,9 +121,21 @@ class FleetState:
             raise ValueError(f"FleetState.command_delay_s must be >= 0 seconds or None, "
                              f"got {self.command_delay_s!r}")
 
+        if self.commands_pending is not None:
+            pending = np.asarray(self.commands_pending).reshape(-1)
+            if pending.shape != (n,) or not np.issubdtype(pending.dtype, np.integer) or (pending < -1).any():
+                raise ValueError(f"FleetState.commands_pending must be {n} integers >= 0 (-1: unknown) "
+                                 f"or None, got {self.commands_pending!r}")
+            self.commands_pending = pending.astype(np.int64)
+
     def ages(self) -> np.ndarray:
         """(N,) state ages [s] (zeros when ``state_age_s`` is None)."""
         return np.zeros(self.num_robots) if self.state_age_s is None else self.state_age_s
+
+    def pending(self) -> np.ndarray:
+        """(N,) commands in flight per robot, -1 where unknown (all -1 when ``commands_pending`` is None)."""
+        return np.full(self.num_robots, -1, dtype=np.int64) if self.commands_pending is None \
+            else self.commands_pending
 
     @property
     def num_robots(self) -> int:

@@ -28,6 +28,7 @@ Dynamics per control tick (``dt`` = ``scenario.dynamics.dt``), per robot, with :
 
     u_k     = the newest command that has arrived by tick k: command j arrives at tick
               j + delay_ticks + J_j, J_j ~ U{0..delay_jitter_ticks}  (0 before the first) [m/s^2]
+              (a robot with a playout buffer acts on it at max(that, j + playout_ticks))
     u_k     = clip_norm(u_k, accel_limit)
     a_act  += alpha * (gain_i * u_k - a_act),  alpha = 1 - exp(-dt / lag_tau)   (alpha = 1 if tau = 0)
     a       = a_act + disturbance + w_k,       w_k ~ N(0, disturbance_std^2) per axis
@@ -48,6 +49,8 @@ by ``freeze = (robot, tick)`` delivers no state from that tick on, ignores every
 holds the last command it had for ``FROZEN_HOLD_TICKS`` more ticks and then brakes to rest with
 :meth:`sim.scenario.Dynamics.brake` (its own watchdog) and stays there. Whenever a drop or a
 freeze is configured, the state carries ``state_age_s``: the age of each delivered measurement.
+Every state carries ``commands_pending``, as a robot's STATE carries ``last_cmd_seq``: the
+commands sent after the newest one the robot had acted on when its delivered row was measured.
 Collision events come from :func:`sim.metrics.collision_events` on the true positions after each
 tick, counted as onsets (robot, step) per kind like the batched world.
 
@@ -96,6 +99,10 @@ class ModelError:
         state_drop: probability that a robot's measurement of a tick is lost on the way [0, 1).
         freeze: ``(robot row, tick)``: that robot goes silent and deaf from that tick on (see the
             module docstring), or None.
+        playout_ticks: not an error but the robot's remedy for jitter, a playout buffer: it
+            acts on command j no earlier than tick j + playout_ticks, so any delay up to that
+            becomes exactly that (0 = act on arrival). Its robot runtime can do the same with
+            the CMD's ``state_seq``: the robot tick the command answers.
     """
 
     gain: float = 1.0
@@ -110,6 +117,7 @@ class ModelError:
     delay_jitter_ticks: int = 0
     state_drop: float = 0.0
     freeze: tuple[int, int] | None = None
+    playout_ticks: int = 0
 
     def __post_init__(self) -> None:
         def number(name: str, value) -> float:
@@ -129,7 +137,7 @@ class ModelError:
         if self.gain - self.gain_spread <= 0:
             raise ValueError(f"ModelError.gain_spread = {self.gain_spread!r} must be below gain = "
                              f"{self.gain!r} so that every robot's gain stays positive")
-        for name in ("delay_ticks", "delay_jitter_ticks"):
+        for name in ("delay_ticks", "delay_jitter_ticks", "playout_ticks"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
                 raise ValueError(f"ModelError.{name} must be an integer >= 0, got {value!r}")
@@ -289,6 +297,7 @@ class PymunkWorld:
         self._sent = 0
         self._held = np.zeros((n, 2))            # the newest command each robot has received
         self._held_seq = np.zeros(n, dtype=np.int64)
+        self._delivered_seq = np.zeros(n, dtype=np.int64)  # held seq when the delivered row was measured
         self._delivered: tuple[np.ndarray, np.ndarray] | None = None
         self._age_ticks = np.zeros(n, dtype=np.int64)
         self._actuator = np.zeros((n, 2))
@@ -376,7 +385,7 @@ class PymunkWorld:
 
     def true_state(self) -> FleetState:
         """The noise-free state at this tick."""
-        return self._state(self._true_pos, self._true_vel)
+        return self._state(self._true_pos, self._true_vel, self._held_seq)
 
     # ------------------------------------------------------------- judging
     @property
@@ -404,7 +413,7 @@ class PymunkWorld:
         frozen = self.frozen
         self._sent += 1           # the held command goes out again every tick (zero-order hold)
         jitter = self._rng_link.integers(0, me.delay_jitter_ticks + 1, n) if me.delay_jitter_ticks else 0
-        self._pending.append((k + me.delay_ticks + jitter + np.zeros(n, dtype=np.int64),
+        self._pending.append((np.maximum(k + me.delay_ticks + jitter, k + me.playout_ticks) + np.zeros(n, dtype=np.int64),
                               self._sent, self._command))
         for arrival, seq, cmd in self._pending:
             take = (arrival <= k) & (seq > self._held_seq) & ~frozen
@@ -422,10 +431,12 @@ class PymunkWorld:
         """The measurement the controller gets: last delivered one for dropped or frozen robots."""
         me = self.model_error
         if me.state_drop == 0 and me.freeze is None:
+            self._delivered_seq = self._held_seq.copy()
             return
         n = self.scenario.num_robots
         if self._delivered is None:
             self._delivered = (self._meas_pos.copy(), self._meas_vel.copy())
+            self._delivered_seq = self._held_seq.copy()
             self._age_ticks = np.zeros(n, dtype=np.int64)
             return
         lost = self.frozen.copy()
@@ -433,6 +444,7 @@ class PymunkWorld:
             lost |= self._rng_link.random(n) < me.state_drop
         pos, vel = self._delivered
         pos[~lost], vel[~lost] = self._meas_pos[~lost], self._meas_vel[~lost]
+        self._delivered_seq = np.where(lost, self._delivered_seq, self._held_seq)
         self._age_ticks = np.where(lost, self._age_ticks + 1, 0)
 
     def _after_motion(self) -> None:
@@ -451,7 +463,8 @@ class PymunkWorld:
             self._meas_vel = self._true_vel + self._rng_noise.normal(0, me.velocity_noise_std, (len(self._robots), 2))
         self._deliver()
 
-    def _state(self, pos: np.ndarray, vel: np.ndarray) -> FleetState:
+    def _state(self, pos: np.ndarray, vel: np.ndarray, acted_seq: np.ndarray | None = None) -> FleetState:
         return FleetState(time=self._step * self.dt, step=self._step, positions=pos.copy(),
                           velocities=vel.copy(), targets=self._targets.copy(),
-                          object_pose=self._object_pose.copy())
+                          object_pose=self._object_pose.copy(),
+                          commands_pending=self._sent - (self._delivered_seq if acted_seq is None else acted_seq))

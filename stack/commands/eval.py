@@ -46,7 +46,7 @@ def parse_model_error(text: str | None) -> ModelError:
             if key == "disturbance":
                 x, _, y = raw.partition(":")
                 values[key] = (float(x), float(y or 0.0))
-            elif key in ("delay_ticks", "delay_jitter_ticks"):
+            elif key in ("delay_ticks", "delay_jitter_ticks", "playout_ticks"):
                 values[key] = int(raw)
             elif key == "freeze":
                 robot, _, tick = raw.partition(":")

@@ -29,3 +29,14 @@ def test_fleet_state_checks_shapes():
     with pytest.raises(ValueError, match=r"FleetState.velocities must have shape \(2, 2\)"):
         FleetState(time=0.0, step=0, positions=np.zeros((2, 2)), velocities=np.zeros((3, 2)),
                    targets=np.zeros((2, 2)), object_pose=np.zeros(3))
+
+
+def test_fleet_state_checks_the_pending_counts():
+    kw = dict(time=0.0, step=0, positions=np.zeros((2, 2)), velocities=np.zeros((2, 2)),
+              targets=np.zeros((2, 2)), object_pose=np.zeros(3))
+    for bad in (np.array([1, -2]), np.array([1.0, 2.0]), np.array([1, 2, 3])):
+        with pytest.raises(ValueError, match="FleetState.commands_pending must be 2 integers >= 0"):
+            FleetState(**kw, commands_pending=bad)
+    state = FleetState(**kw, commands_pending=[2, -1])
+    assert state.pending().tolist() == [2, -1]
+    assert FleetState(**kw).pending().tolist() == [-1, -1]

@@ -174,6 +174,32 @@ def test_delay_shifts_the_response_by_k_ticks():
     assert np.abs(delayed[6] - base[6]).max() > 1e-3                     # and the shift matters
 
 
+
+def test_each_state_counts_the_commands_sent_after_the_one_the_robot_acted_on():
+    """``commands_pending`` as a STATE's ``last_cmd_seq`` gives it: the delay in ticks once
+    commands flow; a dropped state carries the count of when it was measured plus the ticks it
+    aged; a frozen robot acts on nothing new, so its count grows by one a tick."""
+    zero = np.zeros((3, 2))
+
+    def counts(model_error, ticks=8):
+        world = PymunkWorld(SC3, model_error)
+        state, out = world.reset(seed=2), []
+        for _ in range(ticks):
+            world.send_accelerations(zero)
+            state = world.step()
+            out.append((state.commands_pending.tolist(), state.ages().round(9).tolist()))
+        return out
+
+    assert [c for c, _ in counts(ModelError(delay_ticks=2))] == [[1] * 3] + [[2] * 3] * 7
+    dropped = counts(ModelError(delay_ticks=1, state_drop=0.5), ticks=30)
+    aged = [(step + 1 - round(a / SC3.dynamics.dt), p - round(a / SC3.dynamics.dt))
+            for step, (c, ages) in enumerate(dropped) for p, a in zip(c, ages, strict=True)]
+    assert {delay for measured_at, delay in aged if measured_at >= 1} == {1}   # after the first command
+    assert max(a for _, ages in dropped for a in ages) > 0          # some states did drop
+    frozen = counts(ModelError(freeze=(1, 3)))
+    assert [c[1] for c, _ in frozen] == [0, 0, 1, 2, 3, 4, 5, 6]      # silent from the state of tick 3
+    assert [c[0] for c, _ in frozen] == [0] * 8
+
 # ------------------------------------------------------------- randomness
 ALL_ERRORS = ModelError(gain=0.85, gain_spread=0.15, lag_tau=0.1, delay_ticks=1, disturbance=(0.05, -0.02),
                         disturbance_std=0.1, floor_friction=0.05, position_noise_std=0.002,
