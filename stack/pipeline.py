@@ -344,6 +344,8 @@ class ControlStack:
         news = self._last_known.new_measurement(ids, ages, state.time) & ~unknown
         pos, vel, ages, unplaced = self._last_known.update(ids, pos, vel, ages, state.time, unknown)
         stale = unknown | (ages > self.config.latency.stale_after_s)
+        if self.predictor is not None and state.commands_pending is not None:
+            stale |= self.predictor.late(ages, state.commands_pending, state.command_delay_s)
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
             v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
             if self.config.estimated_velocity:
@@ -428,8 +430,11 @@ class ControlStack:
             a_nom = np.vstack([a_nom, np.zeros((len(silent), 2))])
         prediction = None
         if self.predictor is not None:
+            pending = state.pending()
+            if silent is not None:
+                pending = np.concatenate([pending, np.full(len(silent), -1)])
             prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
-                                                state.command_delay_s, fixed=unknown)
+                                                state.command_delay_s, fixed=unknown, pending=pending)
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

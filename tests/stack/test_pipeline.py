@@ -141,6 +141,24 @@ def test_nan_network_output_and_nan_state_brake():
     np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(moving.velocities, sc.dynamics)[0])
 
 
+
+def test_a_robot_that_acts_on_no_new_command_is_braked_though_its_state_is_fresh():
+    """Its STATE keeps naming a command 5 ticks old under the 3-tick default bound (its command
+    link is down): BRAKE, an obstacle to the others; the same robot with 3 pending is commanded."""
+    sc = make_scenario("paper-3")
+    state = PymunkWorld(sc).reset(seed=0)
+    state.velocities = np.array([[0.2, 0.0], [0.0, 0.1], [0.0, 0.0]])
+    stack = ControlStack(sc, ScriptedController(sc))
+    state.commands_pending = np.array([5, 0, 0])
+    tick = stack.tick(state)
+    assert tick.stale.tolist() == [True, False, False]
+    np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(state.velocities, sc.dynamics)[0])
+    stack.reset()
+    state.commands_pending = np.array([3, 0, 0])
+    tick = stack.tick(state)
+    assert not tick.stale.any() and np.linalg.norm(tick.a_cmd[0] - braking_acceleration(
+        state.velocities, sc.dynamics)[0]) > 1e-3
+
 def test_a_repeated_state_is_no_news_and_a_robot_away_keeps_its_last_state():
     """A dropped update repeats the old measurement with a larger age: the MEC must not take it
     again; a robot missing from a tick and back with a non-finite state stands in at its last one."""

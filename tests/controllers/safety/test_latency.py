@@ -17,7 +17,7 @@ from controllers.safety.latency import (
     reach,
     row_sums,
 )
-from sim.scenario import Dynamics, transport_scenario
+from sim.scenario import Dynamics, make_scenario, transport_scenario
 
 DYN = Dynamics()            # dt 0.05 s, damping 0.5 1/s, accel limit 1, speed limit 0.4
 
@@ -142,3 +142,79 @@ def test_bad_latency_settings_name_the_field():
         LatencyConfig(command_delay_s=-0.1)
     with pytest.raises(LatencyConfigError, match="latency.stale_after_s"):
         LatencyConfig(stale_after_s=0.0)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 2, 3])
+def test_with_the_pending_count_the_prediction_is_the_state_where_the_new_command_acts(delay):
+    """A pymunk robot with a fixed command delay reports how many commands it has yet to act on;
+    through exactly those the prediction lands on the state in which the new command starts
+    acting (to rounding), whatever the configured bound."""
+    from sim.pymunk_world import ModelError, PymunkWorld
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(delay_ticks=delay))
+    pred = LatencyPredictor(sc.dynamics, LatencyConfig(command_delay_s=0.15))
+    rng = np.random.default_rng(delay)
+    state, ids, predicted, measured = world.reset(seed=delay), ("a", "b", "c"), [], []
+    for _ in range(12):
+        u = rng.uniform(-0.3, 0.3, (3, 2))
+        out = pred.predict(ids, state.positions, state.velocities, state.ages(), u,
+                           pending=state.commands_pending)
+        assert state.commands_pending.tolist() == [min(delay, state.step)] * 3
+        predicted.append(out.pos)
+        measured.append(state.positions)
+        pred.record(ids, u)
+        world.send_accelerations(u)
+        state = world.step()
+    # the command of tick k acts from tick k + delay on (before tick `delay`, fewer were in flight)
+    checked = range(delay, len(measured) - delay)
+    for k in checked:
+        np.testing.assert_allclose(predicted[k], measured[k + delay], atol=1e-9)
+    assert len(checked) >= 6
+    assert world.collision_counts.any is False
+
+
+def test_without_the_pending_count_a_short_delay_is_predicted_off_by_the_commands_counted_twice():
+    """The teeth of the test above: one tick of delay under a 3-tick bound, the pending count
+    not told, predicts through three commands of which two had already acted."""
+    from sim.pymunk_world import ModelError, PymunkWorld
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(delay_ticks=1))
+    pred = LatencyPredictor(sc.dynamics, LatencyConfig(command_delay_s=0.15))
+    state, ids, predicted, worst = world.reset(seed=1), ("a", "b", "c"), [], 0.0
+    for _ in range(8):
+        u = np.tile([0.6, 0.0], (3, 1))
+        predicted.append(pred.predict(ids, state.positions, state.velocities, state.ages(), u).pos)
+        pred.record(ids, u)
+        world.send_accelerations(u)
+        state = world.step()
+        if state.step >= 2:                        # u_k acts from tick k + 1
+            worst = max(worst, float(np.abs(predicted[state.step - 1] - state.positions).max()))
+    assert worst > 1e-3
+
+
+def test_a_robot_whose_pending_commands_outrun_the_bound_is_an_obstacle():
+    """Fresh state, but 5 commands not acted on under a 3-tick bound: its command link is down."""
+    pred = LatencyPredictor(DYN, LatencyConfig(command_delay_s=0.15))
+    pos, vel = np.array([[0.3, 0.5], [0.6, 0.5]]), np.array([[0.1, 0.0], [0.0, 0.0]])
+    out = pred.predict(("a", "b"), pos, vel, np.zeros(2), np.zeros((2, 2)), pending=np.array([5, 3]))
+    assert out.fixed.tolist() == [True, False]
+    assert pred.late(np.zeros(2), np.array([4, 3])).tolist() == [True, False]
+    assert pred.late(np.array([0.1, 0.0]), np.array([4, 3])).tolist() == [False, False]  # 2 ticks old
+
+
+def test_a_robot_whose_delay_changes_gets_the_jitter_weight_for_a_while():
+    """Spread 0.3 m/s^2 over h = 2 ticks: grow = w * 0.3 * dt^2 * h (h + 1) / 2, w = 0.25 while the
+    observed delay holds, 0.5 from the tick it changes and for ``depth`` ticks after."""
+    cfg = LatencyConfig(command_delay_s=0.1, accel_uncertainty=0.0)
+    pred = LatencyPredictor(DYN, cfg)
+    ids, one = ("a",), np.array([1])
+    pos, vel = np.array([[0.5, 0.5]]), np.zeros((1, 2))
+    grow = []
+    for k, pending in enumerate([1, 1, 2] + [2] * pred.depth):
+        pred.record(ids, np.array([[0.4, 0.3 * (k % 2)]]))
+        out = pred.predict(ids, pos, vel, np.zeros(1), np.array([[0.4, 0.0]]), pending=one * pending)
+        grow.append(float(out.grow[0]))
+    unit = 0.3 * DYN.dt**2 * 3
+    np.testing.assert_allclose(grow[1], 0.25 * unit)
+    np.testing.assert_allclose(grow[2:2 + pred.depth], 0.5 * unit)
+    np.testing.assert_allclose(grow[-1], 0.25 * unit)
