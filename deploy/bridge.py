@@ -46,7 +46,9 @@ Command delay: every command's send time is kept; a STATE whose ``last_cmd_seq``
 the first time closes a round trip on the bridge's clock (command out, robot accepted and acted,
 state back). The ``delay_percentile`` of the last ``delay_window`` round trips (at least 8) is
 ``FleetState.command_delay_s``: a conservative bound on transport + actuation (it includes the
-robot's wait for its next tick and the uplink). ``summary()`` reports it.
+robot's wait for its next tick and the uplink). ``summary()`` reports it. The same send times
+count each row's commands still in flight (sent after its ``last_cmd_seq``):
+``FleetState.commands_pending``, so the safety filter predicts through exactly those.
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
 for every other live robot's (a fleet publishes its states as a burst, so one tick answers one
@@ -187,6 +189,20 @@ class RoundTrips:
         if sent is not None and rs.receive_time_ns >= sent:
             self.samples.append(rs.receive_time_ns - sent)
             self._bound = None
+
+    def pending(self, robot: str, last_cmd_seq: int) -> int:
+        """Commands sent to ``robot`` after the one its state says it acted on (the
+        ``FleetState.commands_pending`` of its row); -1 when that one is not among the kept
+        send times (none yet, forgotten after a stall, or older than ``KEEP`` commands)."""
+        sent = self._sent.get(robot)
+        if not last_cmd_seq or not sent or last_cmd_seq not in sent:
+            return -1
+        count = 0
+        for seq in reversed(sent):
+            if seq <= last_cmd_seq:
+                return count
+            count += 1
+        return count
 
     def forget_sent(self) -> None:
         """Commands sent before a stall cannot time a round trip: drop their send times."""
@@ -377,7 +393,9 @@ class Bridge:
             targets=np.array([self.targets[rs.robot] for rs in view.rows]),
             object_pose=self.object_pose.copy(), robot_ids=tuple(rs.robot for rs in view.rows),
             state_age_s=np.array(view.ages), silent=silent,
-            command_delay_s=self.round_trips.bound_s())
+            command_delay_s=self.round_trips.bound_s(),
+            commands_pending=np.array([self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
+                                       for rs in view.rows], dtype=np.int64).reshape(-1))
 
     def _run_controller(self, state: FleetState) -> tuple[CmdFlags, np.ndarray, float]:
         n = state.num_robots

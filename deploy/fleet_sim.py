@@ -66,6 +66,7 @@ import json
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -148,6 +149,7 @@ class _Robot:
     latched: bool = False
     estopped: bool = False
     mode: str = "idle"
+    accepted_seq: int = 0  # seq of the command in force (0: none yet)
 
 
 class FleetSim:
@@ -170,6 +172,8 @@ class FleetSim:
         self._stop = threading.Event()
         self.tick = 0
         self.dropped = 0
+        self._in_force: deque[np.ndarray] = deque(maxlen=64)  # accepted seqs per tick, newest last
+        self._acted = np.zeros(len(self.robots), dtype=np.int64)
         self.ignored_while_latched = 0
         self.lockstep_timeouts = 0
         self.trace: list[dict[str, Any]] = []
@@ -231,6 +235,7 @@ class FleetSim:
                 return
             robot.latched = False
         robot.accel = np.asarray(received.msg.acceleration, dtype=np.float64)
+        robot.accepted_seq = received.msg.seq
         robot.flags = flags
         robot.stop_held = bool(flags & CmdFlags.STOP)
         robot.cmd_tick = self.tick
@@ -378,7 +383,8 @@ class FleetSim:
                     modes.append(robot.mode if robot.link is not None else "offline")
                     if robot.link is not None:
                         published_ns = published_ns or time.perf_counter_ns()
-                        msg = robot.link.publish_state(state.positions[i], state.velocities[i], status)
+                        msg = robot.link.publish_state(state.positions[i], state.velocities[i], status,
+                                                       last_cmd_seq=int(self._acted[i]))
                         answered[robot.name] = msg.seq
                 entry = self._trace_entry(modes)
                 round_trip_ms = None
@@ -396,7 +402,9 @@ class FleetSim:
                         accels[i], _ = self._choose(robot, state.velocities[i], time.monotonic_ns())
                 entry["applied"] = [r.mode if r.link is not None else "offline" for r in self.robots]
                 self.world.send_accelerations(accels)
+                self._in_force.append(np.array([r.accepted_seq for r in self.robots], dtype=np.int64))
                 state = self.world.step()
+                self._acted = self._acted_seqs(state)
                 self.tick += 1
                 if self._episode is not None:
                     self._record_tick(round_trip_ms)
@@ -407,6 +415,13 @@ class FleetSim:
                 self._close_link(robot)
             self.session.close()
         return self.summary()
+
+    def _acted_seqs(self, state) -> np.ndarray:
+        """(N,) seq of the command each robot acted on in the motion ``state`` measures: the
+        one in force ``commands_pending`` world ticks ago (the world's own delay), the STATE's
+        ``last_cmd_seq``."""
+        back = np.minimum(state.pending(), len(self._in_force) - 1).clip(min=0)
+        return np.array([self._in_force[-1 - b][i] for i, b in enumerate(back)], dtype=np.int64)
 
     def summary(self) -> dict[str, Any]:
         outcome = self.world.outcome()

@@ -644,11 +644,14 @@ class RobotLink(_Link):
 
     # -- outbound -------------------------------------------------------------------------
     def publish_state(self, position: Sequence[float], velocity: Sequence[float],
-                      status: StateStatus = NO_STATUS) -> StateMsg:
+                      status: StateStatus = NO_STATUS, last_cmd_seq: int | None = None) -> StateMsg:
         """Publish position (x, y) [m] and velocity (x, y) [m/s].
 
-        ESTOPPED and CONTROLLER_LOST are added to ``status`` from the link's own view;
-        ``last_cmd_seq`` is the latest accepted command's seq. Raises ValueError on NaN/inf.
+        ESTOPPED and CONTROLLER_LOST are added to ``status`` from the link's own view.
+        ``last_cmd_seq``: the seq of the command the robot acted on in the motion this state
+        measures (the controller predicts through the ones after it); None: the latest
+        accepted command's, for a robot that acts on a command in the tick it accepts it.
+        Raises ValueError on NaN/inf.
         """
         self._check_open()
         with self._cond:
@@ -656,7 +659,8 @@ class RobotLink(_Link):
                 status |= StateStatus.ESTOPPED
             if not self._controller_alive:
                 status |= StateStatus.CONTROLLER_LOST
-            last_cmd_seq = self._command.msg.seq if self._command else 0
+            if last_cmd_seq is None:
+                last_cmd_seq = self._command.msg.seq if self._command else 0
         epoch, seq, now = self._stamper.next()
         msg = StateMsg(self.robot_id, epoch, seq, now, tuple(position), tuple(velocity), status,
                        last_cmd_seq)

@@ -193,7 +193,7 @@ class StateMsg:
     position: tuple[float, float]
     velocity: tuple[float, float]
     status: StateStatus = StateStatus(0)
-    last_cmd_seq: int = 0  # seq of the last CMD the robot accepted, 0 = none yet
+    last_cmd_seq: int = 0  # seq of the CMD the robot acted on in the motion this state measures, 0 = none yet
 
     def __post_init__(self) -> None:
         _normalise_pairs(self, "position", "velocity")

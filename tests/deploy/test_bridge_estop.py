@@ -257,3 +257,30 @@ def test_a_starved_bridge_discards_its_old_picture_and_rearms_without_an_estop(t
     modes = [t["modes"] for t in result["trace"]]
     latched = next(i for i, m in enumerate(modes) if m == ["latched"] * 3)
     assert any(m == ["run"] * 3 for m in modes[latched:])   # driving again after the re-arm
+
+
+def test_commands_in_flight_are_counted_from_the_state_s_last_cmd_seq(fleet):
+    """A robot that says which command it acted on lets the controller count the ones still in
+    flight (``FleetState.commands_pending``): 0 when it acted on the newest, 1 when one later
+    command had not acted yet, -1 when the seq names no command the bridge sent."""
+    bridge, links, seen = fleet
+    link = links[0]
+    for _ in range(3):
+        before = link.latest_command.msg.seq if link.latest_command else 0
+        _tick(bridge, links, links)
+        _last_flags(link, before)
+    newest = link.latest_command.msg.seq
+    assert seen[0].commands_pending.tolist() == [-1, -1]       # nothing sent before the first state
+
+    def pending_when(acted: int) -> int:
+        before = link.latest_command.msg.seq
+        for lk in links:
+            lk.publish_state((0.3, 0.4), (0.0, 0.1), last_cmd_seq=acted if lk is link else None)
+        bridge.step(timeout_s=0.1)
+        _last_flags(link, before)
+        return int(seen[-1].commands_pending[0])
+
+    assert pending_when(newest) == 0
+    latest = link.latest_command.msg.seq                         # the answer to that state
+    assert pending_when(latest - 1) == 1
+    assert pending_when(10_000) == -1
