@@ -2,7 +2,8 @@
 
 Each condition is a pymunk :class:`~sim.pymunk_world.ModelError` (see :data:`CONDITIONS`):
 command delay of 1, 2, 3 ticks (50-150 ms), a delay that jitters 1-3 ticks from command to
-command, measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
+command (robots acting on the newest command that arrived; and robots with a 3-tick playout
+buffer, ``ModelError.playout_ticks``, which turns it into exactly 3), measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
 the way, a robot that freezes mid-episode (silent and deaf, its own watchdog brakes it after
 two ticks), gain 0.7 with two ticks of delay, and the randomised gain/lag/friction/disturbance
 model error of part (a). Per condition, on the same seeds:
@@ -41,6 +42,7 @@ CONDITIONS: dict[str, dict] = {
     "delay2": {"delay_ticks": 2},
     "delay3": {"delay_ticks": 3},
     "delay_jitter": {"delay_ticks": 1, "delay_jitter_ticks": 2},
+    "delay_jitter_playout": {"delay_ticks": 1, "delay_jitter_ticks": 2, "playout_ticks": 3},
     "noise": {"position_noise_std": 0.01, "velocity_noise_std": 0.02},
     "drops": {"state_drop": 0.2},
     "frozen_robot": {"freeze": "random"},
