@@ -177,8 +177,9 @@ def test_delay_shifts_the_response_by_k_ticks():
 
 def test_each_state_counts_the_commands_sent_after_the_one_the_robot_acted_on():
     """``commands_pending`` as a STATE's ``last_cmd_seq`` gives it: the delay in ticks once
-    commands flow; a dropped state carries the count of when it was measured plus the ticks it
-    aged; a frozen robot acts on nothing new, so its count grows by one a tick."""
+    commands flow (1-3 on a jittering link, exactly 3 behind a 3-tick playout buffer); a dropped
+    state carries the count of when it was measured plus the ticks it aged; a frozen robot acts
+    on nothing new, so its count grows by one a tick."""
     zero = np.zeros((3, 2))
 
     def counts(model_error, ticks=8):
@@ -196,9 +197,16 @@ def test_each_state_counts_the_commands_sent_after_the_one_the_robot_acted_on():
             for step, (c, ages) in enumerate(dropped) for p, a in zip(c, ages, strict=True)]
     assert {delay for measured_at, delay in aged if measured_at >= 1} == {1}   # after the first command
     assert max(a for _, ages in dropped for a in ages) > 0          # some states did drop
+    jitter = dict(delay_ticks=1, delay_jitter_ticks=2)
+    datagrams = [c for c, _ in counts(ModelError(**jitter), ticks=40)][5:]
+    assert {p for c in datagrams for p in c} == {1, 2, 3}
+    buffered = [c for c, _ in counts(ModelError(**jitter, playout_ticks=3), ticks=40)][5:]
+    assert {p for c in buffered for p in c} == {3}              # the playout buffer: exactly 3
     frozen = counts(ModelError(freeze=(1, 3)))
     assert [c[1] for c, _ in frozen] == [0, 0, 1, 2, 3, 4, 5, 6]      # silent from the state of tick 3
     assert [c[0] for c, _ in frozen] == [0] * 8
+
+
 
 # ------------------------------------------------------------- randomness
 ALL_ERRORS = ModelError(gain=0.85, gain_spread=0.15, lag_tau=0.1, delay_ticks=1, disturbance=(0.05, -0.02),
