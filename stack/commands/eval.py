@@ -20,47 +20,17 @@ from tqdm import tqdm
 
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
-from stack.commands.latency_args import add_command_delay_arg, latency_config
-
-MODEL_ERROR_FIELDS = {f.name for f in dataclasses.fields(ModelError)}
+from stack.commands.latency_args import (
+    MODEL_ERROR_HELP,
+    LinkArgumentError,
+    add_command_delay_arg,
+    latency_config,
+    parse_model_error,
+)
 
 
 class EvalArgumentError(ValueError):
     """A bad command-line value; the message names the flag and the fix."""
-
-
-def parse_model_error(text: str | None) -> ModelError:
-    """``"gain=0.7,lag_tau=0.05,disturbance=0.1:0"`` -> :class:`ModelError` (x:y for the pair)."""
-    if not text:
-        return ModelError()
-    values: dict = {}
-    for item in (part.strip() for part in text.split(",")):
-        if not item:
-            continue
-        key, sep, raw = item.partition("=")
-        key = key.strip()
-        if not sep or key not in MODEL_ERROR_FIELDS:
-            raise EvalArgumentError(
-                f"--model-error: {item!r} is not FIELD=VALUE with FIELD one of {sorted(MODEL_ERROR_FIELDS)}")
-        try:
-            if key == "disturbance":
-                x, _, y = raw.partition(":")
-                values[key] = (float(x), float(y or 0.0))
-            elif key in ("delay_ticks", "delay_jitter_ticks", "playout_ticks"):
-                values[key] = int(raw)
-            elif key == "freeze":
-                robot, _, tick = raw.partition(":")
-                values[key] = (int(robot), int(tick))
-            else:
-                values[key] = float(raw)
-        except ValueError:
-            raise EvalArgumentError(f"--model-error: {key}={raw!r} is not a number"
-                                    + (" (disturbance is X:Y in m/s^2)" if key == "disturbance" else "")
-                                    + (" (freeze is ROBOT:TICK)" if key == "freeze" else "")) from None
-    try:
-        return ModelError(**values)
-    except ValueError as exc:
-        raise EvalArgumentError(f"--model-error: {exc}") from None
 
 
 def on_off(text: str) -> bool:
@@ -89,10 +59,7 @@ def register(sub) -> None:
     p.add_argument("--mec", type=on_off, default=None, metavar="on|off",
                    help="model error compensator in the pymunk world (default on)")
     p.add_argument("--model-error", default=None, metavar="K=V,...",
-                   help="pymunk ModelError fields, e.g. gain=0.7,lag_tau=0.05,floor_friction=0.1,"
-                        "disturbance=0.1:0; a real link: delay_ticks=2,delay_jitter_ticks=1,"
-                        "state_drop=0.2,position_noise_std=0.01,velocity_noise_std=0.02,freeze=2:40 "
-                        "(robot 2 goes silent at tick 40)")
+                   help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
     p.set_defaults(func=run)
@@ -103,7 +70,7 @@ def run(args) -> int:
 
     try:
         result = evaluate_from_args(args)
-    except (EvalArgumentError, ScenarioError, StackError) as exc:
+    except (EvalArgumentError, LinkArgumentError, ScenarioError, StackError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print_result(result)

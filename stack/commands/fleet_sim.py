@@ -26,8 +26,8 @@ from pathlib import Path
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
 from deploy.transport import TransportConfig
-from sim.pymunk_world import ModelError
 from sim.scenario import make_scenario
+from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
 
 
 def _event(kind: str):
@@ -51,8 +51,7 @@ def register(sub) -> None:
                            "(pair with bridge --lossless)")
     p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
-    p.add_argument("--model-error", default="{}",
-                   help='ModelError fields as JSON, e.g. \'{"gain": 0.8, "lag_tau": 0.05}\'')
+    p.add_argument("--model-error", default=None, metavar="K=V,...", help=MODEL_ERROR_HELP)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
     p.add_argument("--episodes", type=int, default=None,
@@ -83,7 +82,7 @@ def _print_episode(record: dict) -> None:
 
 def run(args) -> int:
     try:
-        model_error = ModelError(**json.loads(args.model_error))
+        model_error = parse_model_error(args.model_error)
         config = FleetSimConfig(
             fleet=args.fleet, scenario=make_scenario(args.scenario),
             transport=TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect)),

@@ -10,23 +10,30 @@ import torch
 from controllers.policy import ActorConfig, build_actor
 from sim.pymunk_world import ModelError
 from stack.cli import main
-from stack.commands.eval import EvalArgumentError, parse_model_error
+from stack.commands.latency_args import LinkArgumentError, parse_model_error
 
 
 def test_parse_model_error_fields():
     me = parse_model_error("gain=0.7,lag_tau=0.05,disturbance=0.1:-0.2,delay_ticks=2")
     assert me == ModelError(gain=0.7, lag_tau=0.05, disturbance=(0.1, -0.2), delay_ticks=2)
     assert parse_model_error(None) == ModelError()
-    with pytest.raises(EvalArgumentError, match="FIELD one of"):
+    with pytest.raises(LinkArgumentError, match="FIELD one of"):
         parse_model_error("gian=0.7")
-    with pytest.raises(EvalArgumentError, match="gain=.*not a number"):
+    with pytest.raises(LinkArgumentError, match="gain=.*not a number"):
         parse_model_error("gain=fast")
-    with pytest.raises(EvalArgumentError, match="gain must be > 0"):
+    with pytest.raises(LinkArgumentError, match="gain must be > 0"):
         parse_model_error("gain=-1")
     link = parse_model_error("delay_ticks=1,delay_jitter_ticks=2,state_drop=0.2,freeze=2:40")
     assert link == ModelError(delay_ticks=1, delay_jitter_ticks=2, state_drop=0.2, freeze=(2, 40))
-    with pytest.raises(EvalArgumentError, match="ROBOT:TICK"):
+    with pytest.raises(LinkArgumentError, match="ROBOT:TICK"):
         parse_model_error("freeze=2")
+    # the same fields as JSON (what fleet-sim took before; the demo passes dataclasses.asdict)
+    assert parse_model_error('{"gain": 0.8, "freeze": [1, 5], "playout_ticks": 3}') == \
+        ModelError(gain=0.8, freeze=(1, 5), playout_ticks=3)
+    with pytest.raises(LinkArgumentError, match=r"unknown fields \['gian'\]"):
+        parse_model_error('{"gian": 0.8}')
+    with pytest.raises(LinkArgumentError, match="not a JSON object"):
+        parse_model_error('{"gain": }')
 
 
 def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
