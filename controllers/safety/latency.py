@@ -22,7 +22,7 @@ allows (zeros before the first one: a robot at rest holds no command). That coun
 already acted a second time when the delay is shorter than the bound: with the count, 0 of 340
 adversarial episodes touch at 1 tick of delay under the 3-tick bound, 2 without; predicting
 on to ``h_i`` past the pending commands (holding the newest, or the centre of the window) made
-the delay-free conditions touch in 28-131 of 340, because the new command then acts where the
+the delay-free conditions touch in 17-131 of 340, because the new command then acts where the
 prediction did not look. A robot with more pending commands than ``h_i`` acts on commands older
 than the bound allows (its command link is down): it is not listening (below).
 
@@ -275,8 +275,7 @@ class LatencyPredictor:
         still arrives)."""
         if pending is None:
             return np.zeros(len(ages), dtype=bool)
-        h = horizon_ticks(ages, self._max_delay(measured_delay_s), self.dynamics.dt)
-        return np.asarray(pending) > h
+        return np.asarray(pending) > horizon_ticks(ages, self._max_delay(measured_delay_s), self.dynamics.dt)
 
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
@@ -292,10 +291,11 @@ class LatencyPredictor:
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
         delay = self._max_delay(measured_delay_s)
-        stale = (ages > cfg.stale_after_s) | self.late(ages, pending, measured_delay_s)
+        horizon = horizon_ticks(ages, delay, dyn.dt)
+        pending = np.full(len(ages), -1) if pending is None else np.asarray(pending)
+        stale = (ages > cfg.stale_after_s) | (pending > horizon)          # old, or late (:meth:`late`)
         fixed = stale if fixed is None else (stale | fixed)
-        h = np.where(fixed, 0, np.minimum(horizon_ticks(ages, delay, dyn.dt), self.depth - 1))
-        pending = np.full(len(h), -1) if pending is None else np.asarray(pending)
+        h = np.where(fixed, 0, np.minimum(horizon, self.depth - 1))
         known = pending >= 0
         m = np.where(known, np.minimum(pending, h), h)
         p, v = self._roll_forward(pos, vel, m)
@@ -350,7 +350,7 @@ class LatencyPredictor:
         newest ``max(h_i, m_i + 1)`` recorded (``h_i`` where the count is unknown) and ``a_nom``
         (module docstring, Tightening)."""
         depth = self.depth
-        start = np.where(known, depth - np.maximum(h, m + 1), depth - h).clip(min=0)
+        start = np.where(known, depth - np.maximum(h, m + 1), depth - h)     # >= 0: m <= h < depth
         window = ((np.arange(depth)[:, None] >= start[None, :]) & (h > 0)[None, :])[..., None]
         lo = np.minimum(np.where(window, self._history, np.inf).min(axis=0), a_nom)
         hi = np.maximum(np.where(window, self._history, -np.inf).max(axis=0), a_nom)

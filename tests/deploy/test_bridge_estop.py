@@ -15,6 +15,7 @@ from deploy.bridge import ESTOP_STALE_PICTURE, Bridge, BridgeConfig, row_flags
 from deploy.fleet_sim import FleetSim, FleetSimConfig, robot_names
 from deploy.transport import RobotLink, TransportConfig, free_tcp_port
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
+from sim.pymunk_world import ModelError
 from sim.scenario import make_scenario
 
 ROBOTS = ("r0", "r1")
@@ -284,3 +285,19 @@ def test_commands_in_flight_are_counted_from_the_state_s_last_cmd_seq(fleet):
     latest = link.latest_command.msg.seq                         # the answer to that state
     assert pending_when(latest - 1) == 1
     assert pending_when(10_000) == -1
+
+
+def test_fleet_sim_reports_the_command_its_world_acted_on_not_the_latest_accepted():
+    """A fleet-sim world with two ticks of command delay: the STATE's ``last_cmd_seq`` is the
+    command in force two ticks before, so the bridge counts two in flight."""
+    sim = FleetSim(FleetSimConfig(fleet="ac", scenario=make_scenario("paper-3"), transport=TransportConfig(), rate_hz=None,
+                                  model_error=ModelError(delay_ticks=2)))
+    sim.world.reset(seed=0)
+    for k in range(1, 7):
+        for robot in sim.robots:
+            robot.accepted_seq = 10 + k
+        sim.world.send_accelerations(np.zeros((3, 2)))
+        sim._in_force.append(np.array([r.accepted_seq for r in sim.robots]))
+        acted = sim._acted_seqs(sim.world.step())
+        if k > 2:
+            assert acted.tolist() == [10 + k - 2] * 3
