@@ -19,7 +19,10 @@
 (c) latency of ControlStack.tick (observe + policy + safety + MEC) for N robots, after warm-up,
     one torch thread, on states of scripted-controller episodes in pymunk with model error; the
     policy is the TorchScript of ``--policy`` or of an untrained typed SDPA actor. Parts are
-    reported too: observe (tokens), policy (observe + network), safety and MEC.
+    reported too: observe (tokens), policy (observe + network), policy_stage (the network
+    alone), safety and MEC. The same actor is then exported (``formation export``) as
+    TorchScript, torch.export and ONNX and each file is loaded as the ControlStack loads one
+    (``latency_ms_by_format``; ``--policy`` an exported file: that file alone).
 
 ``--geometry`` picks the safety filter's path for (a) and (c): ``fused`` (default, the fast path
 of :mod:`controllers.safety.fused`) or the reference ``fcl`` / ``analytic`` path, which gives the
@@ -33,6 +36,7 @@ same answers; run both to compare their latency.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
+"latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, ...}, ...}}``.
 """
@@ -43,6 +47,7 @@ import argparse
 import dataclasses
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -65,6 +70,7 @@ from _common import (  # noqa: E402
     set_threads,
 )
 from _safety_conditions import CONDITIONS, run_conditions  # noqa: E402
+from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
@@ -181,59 +187,94 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
 # -------------------------------------------------------------------- (c) latency
 def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
             geometry: str = "fused") -> dict:
+    """Tick latency per N with the policy as a TorchScript module in memory (the peer row of
+    :func:`latency_by_format`)."""
     out = {}
     for n in robot_counts:
-        sc = transport_scenario(n)
         if policy is not None:
             network = load_policy(policy, n)
-            if not isinstance(network, torch.jit.ScriptModule):
+            if isinstance(network, nn.Module) and not isinstance(network, torch.jit.ScriptModule):
                 network = torch.jit.script(network)
         else:
-            from controllers.policy import ActorConfig, build_actor
-
-            torch.manual_seed(seed)
-            network = torch.jit.script(build_actor(ActorConfig(), n).eval())
-        stack = ControlStack(sc, network, StackConfig(safety_config=SafetyConfig(geometry=geometry)))
-        world = PymunkWorld(sc, MEC_ERROR)
-        samples: dict[str, list[int]] = {"total": [], "observe": [], "policy": [], "safety": [],
-                                         "mec": []}
-        intervened = 0
-        episode = 0
-        bar = tqdm(total=warmup + ticks, desc=f"latency N={n}", unit="tick", file=sys.stderr, leave=False)
-        count = 0
-        while count < warmup + ticks:
-            state = world.reset(seed=seed + episode)
-            stack.reset()
-            ctl = ScriptedController(sc)
-            episode += 1
-            for _ in range(sc.dynamics.episode_steps):
-                tick = stack.tick(state)
-                count += 1
-                bar.update()
-                if count > warmup:
-                    t = tick.timings_ns
-                    samples["total"].append(t["total"])
-                    samples["observe"].append(t["observe"])
-                    samples["policy"].append(t["observe"] + t["policy"])
-                    samples["safety"].append(t["safety"])
-                    samples["mec"].append(t["mec"])
-                    intervened += tick.intervened
-                if count >= warmup + ticks:
-                    break
-                world.send_accelerations(ctl(state))
-                state = world.step()
-        bar.close()
-        row = {}
-        for part, values in samples.items():
-            ms = np.asarray(values) / 1e6
-            prefix = "" if part == "total" else f"{part}_"
-            row[f"{prefix}p50"] = float(np.percentile(ms, 50))
-            row[f"{prefix}p99"] = float(np.percentile(ms, 99))
-        row["ticks"] = ticks
-        row["intervened_fraction"] = intervened / ticks
-        row["geometry"] = geometry
-        out[str(n)] = row
+            network = torch.jit.script(_random_actor(n, seed))
+        out[str(n)] = _tick_latency(transport_scenario(n), network, ticks, warmup, seed, geometry)
     return out
+
+
+def _random_actor(n: int, seed: int) -> nn.Module:
+    from controllers.policy import ActorConfig, build_actor
+
+    torch.manual_seed(seed)
+    return build_actor(ActorConfig(), n).eval()
+
+
+def latency_by_format(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
+                      geometry: str = "fused") -> dict:
+    """Tick latency per exported file format (``formation export``: the same actor as
+    TorchScript, torch.export and ONNX, each loaded as the ControlStack loads a file), N as given.
+    The actor: ``policy`` if it is a training checkpoint, else a fresh typed actor (``seed``)."""
+    from deploy.export import DEFAULT_FORMATS, ExportedPolicy, export_policy, load_exported
+
+    loaded = load_policy(policy) if policy is not None else _random_actor(3, seed)
+    out: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        if isinstance(loaded, ExportedPolicy):        # an exported file: measure it alone
+            files = {loaded.file_format: Path(policy)}
+        else:
+            reports = export_policy(loaded, Path(tmp) / "policy", dt=0.05, trained_robots=3)
+            files = {r.meta["file_format"]: r.path for r in reports}
+        for name in DEFAULT_FORMATS:
+            if name in files:
+                network = load_exported(files[name])
+                out[name] = {str(n): _tick_latency(transport_scenario(n), network, ticks, warmup, seed,
+                                                   geometry) for n in robot_counts}
+    return out
+
+
+def _tick_latency(sc, network, ticks: int, warmup: int, seed: int, geometry: str) -> dict:
+    """p50/p99 [ms] of ControlStack.tick and its stages over ``ticks`` ticks after ``warmup``."""
+    stack = ControlStack(sc, network, StackConfig(safety_config=SafetyConfig(geometry=geometry)))
+    world = PymunkWorld(sc, MEC_ERROR)
+    samples: dict[str, list[int]] = {"total": [], "observe": [], "policy": [], "policy_stage": [],
+                                     "safety": [], "mec": []}
+    intervened = 0
+    episode = 0
+    bar = tqdm(total=warmup + ticks, desc=f"latency N={sc.num_robots}", unit="tick", file=sys.stderr,
+               leave=False)
+    count = 0
+    while count < warmup + ticks:
+        state = world.reset(seed=seed + episode)
+        stack.reset()
+        ctl = ScriptedController(sc)
+        episode += 1
+        for _ in range(sc.dynamics.episode_steps):
+            tick = stack.tick(state)
+            count += 1
+            bar.update()
+            if count > warmup:
+                t = tick.timings_ns
+                samples["total"].append(t["total"])
+                samples["observe"].append(t["observe"])
+                samples["policy"].append(t["observe"] + t["policy"])
+                samples["policy_stage"].append(t["policy"])
+                samples["safety"].append(t["safety"])
+                samples["mec"].append(t["mec"])
+                intervened += tick.intervened
+            if count >= warmup + ticks:
+                break
+            world.send_accelerations(ctl(state))
+            state = world.step()
+    bar.close()
+    row = {}
+    for part, values in samples.items():
+        ms = np.asarray(values) / 1e6
+        prefix = "" if part == "total" else f"{part}_"
+        row[f"{prefix}p50"] = float(np.percentile(ms, 50))
+        row[f"{prefix}p99"] = float(np.percentile(ms, 99))
+    row["ticks"] = ticks
+    row["intervened_fraction"] = intervened / ticks
+    row["geometry"] = geometry
+    return row
 
 
 def condition_list(text: str) -> list[str]:
@@ -282,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
         progress(f"(c) latency, N = {args.robots}, {threads} torch thread(s)")
         doc["latency_ms"] = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed,
                                     args.geometry)
+        doc["latency_ms_by_format"] = latency_by_format(args.robots, args.ticks, args.warmup,
+                                                        args.policy, args.seed, args.geometry)
     if args.only in (None, "mec"):
         progress("(b) MEC tracking")
         doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
@@ -326,6 +369,12 @@ def main(argv: list[str] | None = None) -> int:
                     [[n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "observe_p50", "policy_p50", "policy_p99",
                                                     "safety_p50", "safety_p99", "mec_p50")), r["geometry"]]
                      for n, r in doc["latency_ms"].items()])
+        print()
+        print_table(["file format", "robots", "tick p50 [ms]", "p99", "policy stage p50", "p99",
+                     "tick vs in-memory TorchScript"],
+                    [[fmt, n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_stage_p50", "policy_stage_p99")),
+                      f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x"]
+                     for fmt, rows in doc["latency_ms_by_format"].items() for n, r in rows.items()])
     return 0
 
 

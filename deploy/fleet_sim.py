@@ -63,7 +63,6 @@ published).
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from collections import deque
@@ -77,6 +76,7 @@ import zenoh
 
 from deploy.transport import RobotLink, TransportConfig
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
+from sim.files import atomic_write_text
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import Scenario
 
@@ -438,11 +438,8 @@ class FleetSim:
 
 
 def write_json(path: str | Path, document: dict[str, Any]) -> None:
-    """Atomic JSON write (temp file + os.replace)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(document))
-    os.replace(tmp, path)
+    """Atomic JSON write (:func:`sim.files.atomic_path`)."""
+    atomic_write_text(path, json.dumps(document))
 
 
 __all__ = ["FleetSim", "FleetSimConfig", "WatchdogConfig", "robot_names", "write_json"]

@@ -1,38 +1,74 @@
-"""Robot-side policy runtime: one file, needs only torch and numpy (copy it onto the robot).
+"""Robot-side policy runtime: one file, needs only numpy and onnxruntime (copy it onto the robot).
 
-    policy = RobotPolicy("policy.pt")          # loads, checks the golden file, warms up
-    accel = policy.act(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena)
+    policy = RobotPolicy("policy.onnx")        # checks hash, layout and golden file, warms up
+    accel, valid = policy.act(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena)
+
+The file is what ``formation export CKPT --format onnx`` writes; its golden file
+(``policy.golden.npz``) must lie beside it. Loading refuses a file whose ``content_sha256``
+does not match its bytes (:func:`onnx_content_ok`: any changed byte, weights or metadata), a
+foreign format or observation layout, and a file whose actions differ from its golden file.
 
 Observation tokens (layout version 1, the same as ``sim/observations.py`` of the project;
-the file's ``meta.json`` must say ``layout_version`` 1). Robot i of N builds ``2N + 1`` tokens
-of 4 features (metres, m/s; arena (W, H) centred at (W/2, H/2))::
+``meta.token_features`` of the file lists them). Robot i of N builds ``2N + 1`` tokens of 4
+features (metres, m/s; arena (W, H) centred at (W/2, H/2))::
 
     self            [p_x - W/2, p_y - H/2, v_x, v_y]
     target k        [g_k - p, 0, 0]              k = 1..N, in the fleet's target order
     other robot j   [q_j - p, u_j - v]           j != i, ascending robot order
     object          [c - p, s - p]               c: polygon centroid, s: nearest boundary point
 
-The action is the policy's mean acceleration (2,) [m/s^2], finite and bounded by the
-file's ``accel_limit``; a non-finite result raises instead of reaching the motors.
+The action is the policy's mean acceleration (2,) [m/s^2], bounded in norm by the file's
+``accel_limit``; with any input non-finite it is (0, 0) and ``valid`` is False: brake.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-import torch
 
 LAYOUT_VERSION = 1
 TOKEN_DIM = 4
 TOLERANCE = 1e-5
+EXPORT_FORMAT = "formation-stack/policy"
+EXPORT_FORMAT_VERSION = 2
+META_KEY = "formation.meta"          # ONNX metadata_props key holding the metadata JSON
+HASH_FIELD = "content_sha256"
+PLACEHOLDER = "0" * 64
 
 
 class RobotPolicyError(RuntimeError):
     """The policy file cannot be trusted on this robot; the message says why."""
+
+
+class Action(NamedTuple):
+    accel: np.ndarray   # (2,) [m/s^2]
+    valid: bool         # False: an input was not finite, accel is 0: brake
+
+
+def _hash_needle(digest: str) -> bytes:
+    return json.dumps({HASH_FIELD: digest})[1:-1].encode()
+
+
+def onnx_meta_json(meta: dict) -> str:
+    """The metadata as stored in an ONNX file: sorted keys, ``content_sha256`` as given."""
+    return json.dumps(meta, sort_keys=True)
+
+
+def onnx_content_ok(data: bytes, meta: dict) -> bool:
+    """True when ``sha256(data with the stored digest zeroed) == meta["content_sha256"]``: the
+    digest of an ONNX file covers every byte (weights, graph, metadata), written with the
+    placeholder of 64 zeros in its place (``deploy.export.formats``)."""
+    digest = meta.get(HASH_FIELD)
+    if not isinstance(digest, str) or len(digest) != 64:
+        return False
+    needle = _hash_needle(digest)
+    if data.count(needle) != 1:
+        return False
+    return hashlib.sha256(data.replace(needle, _hash_needle(PLACEHOLDER))).hexdigest() == digest
 
 
 def polygon_centroid(poly: np.ndarray) -> np.ndarray:
@@ -56,7 +92,8 @@ def nearest_boundary_point(point: np.ndarray, poly: np.ndarray) -> np.ndarray:
 def robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon,
                  arena) -> np.ndarray:
     """One robot's (2N+1, 4) float64 tokens; shapes (2,), (2,), (N, 2), (N-1, 2), (N-1, 2),
-    (M, 2), (2,) in metres and m/s (see the module docstring)."""
+    (M, 2), (2,) in metres and m/s (see the module docstring). Non-finite inputs pass through
+    (the exported module answers them with braking)."""
     p = np.asarray(own_pos, dtype=np.float64).reshape(2)
     v = np.asarray(own_vel, dtype=np.float64).reshape(2)
     g = np.asarray(targets, dtype=np.float64).reshape(-1, 2)
@@ -67,88 +104,113 @@ def robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon,
     if len(q) != n - 1 or len(u) != n - 1:
         raise ValueError(f"others_pos/others_vel need N-1 = {n - 1} rows for {n} targets, "
                          f"got {len(q)} and {len(u)}")
-    for name, arr in (("own_pos", p), ("own_vel", v), ("targets", g), ("others_pos", q),
-                      ("others_vel", u), ("polygon", poly)):
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} contains NaN or inf; refusing to act on it")
     w, h = float(arena[0]), float(arena[1])
     out = np.zeros((2 * n + 1, TOKEN_DIM))
     out[0] = (p[0] - w / 2, p[1] - h / 2, v[0], v[1])
     out[1:n + 1, :2] = g - p
     out[n + 1:2 * n, :2] = q - p
     out[n + 1:2 * n, 2:] = u - v
-    out[2 * n, :2] = polygon_centroid(poly) - p
-    out[2 * n, 2:] = nearest_boundary_point(p, poly) - p
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out[2 * n, :2] = polygon_centroid(poly) - p
+        out[2 * n, 2:] = nearest_boundary_point(p, poly) - p if np.isfinite(p).all() else np.nan
     return out
 
 
+def open_onnx(path: str | Path, threads: int = 1):
+    """``(onnxruntime.InferenceSession, meta)`` of an exported ONNX file, its digest and format
+    checked; raises RobotPolicyError naming what is wrong."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise RobotPolicyError(f"policy file {str(path)!r} does not exist")
+    data = path.read_bytes()
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    # the extended fusions regroup float32 sums: 1.3e-5 off the eager actor where basic keeps 9e-6
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    try:
+        session = ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
+        meta = json.loads(session.get_modelmeta().custom_metadata_map[META_KEY])
+    except Exception as err:
+        raise RobotPolicyError(f"{str(path)!r} is not an exported ONNX policy "
+                               f"({type(err).__name__}: {err}); export it with `formation export "
+                               "CKPT --format onnx`") from None
+    if not isinstance(meta, dict) or (meta.get("format"), meta.get("format_version")) != (
+            EXPORT_FORMAT, EXPORT_FORMAT_VERSION):
+        raise RobotPolicyError(f"{str(path)!r} is not a {EXPORT_FORMAT} v{EXPORT_FORMAT_VERSION} file")
+    if not onnx_content_ok(data, meta):
+        raise RobotPolicyError(f"{str(path)!r}: its bytes do not match its content_sha256: the "
+                               "file was changed after export (weights or metadata); export it again")
+    if meta.get("layout_version") != LAYOUT_VERSION or meta.get("token_dim") != TOKEN_DIM:
+        raise RobotPolicyError(f"{str(path)!r}: observation layout {meta.get('layout_version')} with "
+                               f"{meta.get('token_dim')} features, but this runtime builds layout "
+                               f"{LAYOUT_VERSION} with {TOKEN_DIM}; update robot.py or re-export")
+    return session, meta
+
+
 class RobotPolicy:
-    """An exported policy on one robot (see the module docstring).
+    """An exported ONNX policy on one robot (see the module docstring).
 
     Args:
-        path: the TorchScript file; its golden file (``meta.json: golden_file``) must lie beside.
-        threads: torch intra-op threads (1 on the control path).
+        path: the ``.onnx`` file; its golden file (``meta.golden_file``) must lie beside.
+        threads: onnxruntime intra-op threads (1 on the control path).
         warmup: forward passes at start-up (the first calls after loading are slow).
     """
 
     def __init__(self, path: str | Path, threads: int = 1, warmup: int = 20):
-        torch.set_num_threads(threads)
         self.path = Path(path)
-        extra = {"meta.json": ""}
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            self.module = torch.jit.load(str(self.path), map_location="cpu",
-                                         _extra_files=extra).eval()
-        self.meta = json.loads(extra["meta.json"])
-        if self.meta.get("layout_version") != LAYOUT_VERSION:
-            raise RobotPolicyError(f"{self.path}: observation layout "
-                                   f"{self.meta.get('layout_version')} but this runtime builds "
-                                   f"layout {LAYOUT_VERSION}; update robot.py or re-export")
+        self.session, self.meta = open_onnx(self.path, threads)
         self.accel_limit = float(self.meta["accel_limit"])
         self.golden_diff = self._check_golden()
         for _ in range(warmup):
-            self._forward(np.zeros((2 * 5 + 1, TOKEN_DIM)))
+            self._forward(np.zeros((1, 2 * 5 + 1, TOKEN_DIM)))
 
     def _check_golden(self) -> float:
         """Replay the golden file through this runtime's token builder and the model."""
-        golden = self.path.with_name(self.meta["golden_file"])
+        golden = self.path.with_name(str(self.meta.get("golden_file")))
         if not golden.is_file():
             raise RobotPolicyError(f"golden file {golden} is missing; copy it beside {self.path}")
-        if hashlib.sha256(golden.read_bytes()).hexdigest() != self.meta["golden_sha256"]:
+        if hashlib.sha256(golden.read_bytes()).hexdigest() != self.meta.get("golden_sha256"):
             raise RobotPolicyError(f"golden file {golden} does not belong to {self.path}")
         worst = 0.0
         with np.load(golden) as data:
             poly, arena = data["polygon"], data["arena"]
             for n in data["counts"]:
                 pos, vel, tgt = (data[f"n{n}_{k}"][0] for k in ("pos", "vel", "targets"))
+                rows = []
                 for i in range(n):
                     others = [j for j in range(n) if j != i]
-                    toks = robot_tokens(pos[i], vel[i], tgt, pos[others], vel[others], poly, arena)
-                    token_diff = np.abs(toks - data[f"n{n}_tokens"][0, i]).max()
-                    if not token_diff <= 1e-9:
-                        raise RobotPolicyError(f"tokens of robot {i} of {n} differ from the golden "
-                                               f"file by {token_diff:.3g}: layout mismatch")
-                    diff = np.abs(self._forward(toks) - data[f"n{n}_actions"][0, i]).max()
-                    worst = max(worst, float(diff) if np.isfinite(diff) else float("inf"))
+                    rows.append(robot_tokens(pos[i], vel[i], tgt, pos[others], vel[others], poly, arena))
+                toks = np.stack(rows)
+                token_diff = np.abs(toks - data[f"n{n}_tokens"][0]).max()
+                if not token_diff <= 1e-9:
+                    raise RobotPolicyError(f"tokens of {n} robots differ from the golden file by "
+                                           f"{token_diff:.3g}: layout mismatch")
+                accel, valid = self._forward(toks)
+                diff = np.abs(accel - data[f"n{n}_actions"][0]).max()
+                if not valid.all():
+                    diff = np.inf
+                worst = max(worst, float(diff) if np.isfinite(diff) else float("inf"))
         if not worst <= TOLERANCE:
             raise RobotPolicyError(f"{self.path} gives actions {worst:.3g} away from its golden "
                                    f"file (> {TOLERANCE}); do not run it")
         return worst
 
-    @torch.no_grad()
-    def _forward(self, toks: np.ndarray) -> np.ndarray:
-        x = torch.from_numpy(toks).float().unsqueeze(0)
-        mask = torch.ones(x.shape[:2], dtype=torch.bool)
-        return self.module.act(x, mask)[0].double().numpy()
+    def _forward(self, toks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, T, 4) tokens, all valid -> accel (B, 2) float64, valid (B,) bool."""
+        x = np.ascontiguousarray(toks, dtype=np.float32)
+        accel, valid = self.session.run(None, {"tokens": x, "mask": np.ones(x.shape[:2], dtype=bool)})
+        return accel.astype(np.float64), valid
 
-    def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon,
-            arena) -> np.ndarray:
-        """The robot's mean acceleration (2,) [m/s^2] (arguments as :func:`robot_tokens`)."""
-        a = self._forward(robot_tokens(own_pos, own_vel, targets, others_pos, others_vel,
-                                       polygon, arena))
-        if not np.all(np.isfinite(a)):
-            raise RobotPolicyError("the policy produced a non-finite acceleration; brake")
-        return a
+    def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena) -> Action:
+        """The robot's mean acceleration [m/s^2] and whether it is valid (arguments as
+        :func:`robot_tokens`); never NaN."""
+        toks = robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena)
+        accel, valid = self._forward(toks[None])
+        return Action(accel[0], bool(valid[0]))
 
 
-__all__ = ["LAYOUT_VERSION", "RobotPolicy", "RobotPolicyError", "robot_tokens"]
+__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "onnx_content_ok", "open_onnx", "robot_tokens"]

@@ -15,7 +15,9 @@ every per-robot estimate is keyed by robot id)::
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
-                   run under torch.inference_mode; or a plain callable FleetState -> (N, 2)
+                   run under torch.inference_mode; an exported file of any format
+                   (:class:`deploy.export.ExportedPolicy`, its rows ``(N, 2N+1, 4)``, rows it
+                   flags not valid count as non-finite); or a plain callable FleetState -> (N, 2)
                    => a_nom (N, 2) [m/s^2]
                    (the tick writes the tokens into a float32 buffer kept per N and, every token
                    being valid, passes ``mask=None`` to a network whose forward accepts it, else
@@ -70,13 +72,15 @@ from controllers.safety import (
 )
 from controllers.safety.latency import LatencyConfig, LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
+from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
 from sim.observations import flat, fleet_tokens_np
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.policy_io import StackError, _mask_is_optional, load_policy
 
-PolicyLike = nn.Module | torch.jit.ScriptModule | str | Path | Callable[[FleetState], np.ndarray]
+PolicyLike = (nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path
+              | Callable[[FleetState], np.ndarray])
 
 
 class PolicyStatus(StrEnum):
@@ -238,7 +242,8 @@ class ControlStack:
     Args:
         scenario: the task (arena, object polygon, dynamics); its robot count is not binding.
         policy: an ``nn.Module`` / TorchScript module with ``forward(obs, mask) -> (E, N, 2)``,
-            a TorchScript or checkpoint file path, or a callable ``FleetState -> (N, 2)``.
+            an exported policy (:func:`deploy.export.load_exported`), the path of an exported
+            file (TorchScript, .pt2, ONNX) or checkpoint, or a callable ``FleetState -> (N, 2)``.
         config: which stages run (:class:`StackConfig`).
     """
 
@@ -248,7 +253,10 @@ class ControlStack:
         self.dynamics: Dynamics = scenario.dynamics
         if isinstance(policy, str | Path):
             policy = load_policy(policy)
-        if isinstance(policy, nn.Module | torch.jit.ScriptModule):
+        self._exported: ExportedPolicy | None = policy if isinstance(policy, ExportedPolicy) else None
+        if self._exported is not None:
+            self.network, self.callable, self.obs_kind = None, None, "tokens"
+        elif isinstance(policy, nn.Module | torch.jit.ScriptModule):
             policy.eval()
             self.network: nn.Module | None = policy
             self.callable: Callable[[FleetState], np.ndarray] | None = None
@@ -266,6 +274,7 @@ class ControlStack:
         # and the mask to pass (None when the network accepts it: every token is valid).
         self._buffers: dict[int, tuple[np.ndarray, torch.Tensor, torch.Tensor | None]] = {}
         self._forward: Callable[..., torch.Tensor] | None = None
+        self._row_masks: dict[int, np.ndarray] = {}
         self._mask_optional = False
         if self.network is not None:
             scripted = isinstance(self.network, torch.jit.ScriptModule)
@@ -405,6 +414,14 @@ class ControlStack:
         if self.callable is not None:
             t_obs = t0
             raw = np.asarray(self.callable(state), dtype=np.float64)
+        elif self._exported is not None:    # numpy in, numpy out; rows it flags count as NaN
+            self._network_input(state)
+            array, mask = self._buffers[n][0], self._row_masks.get(n)
+            if mask is None:
+                mask = self._row_masks[n] = np.ones(array.shape[:2], dtype=bool)
+            t_obs = time.perf_counter_ns()
+            accel, valid = self._exported.run(array, mask)
+            raw = np.where(np.asarray(valid)[:, None], accel, np.nan).astype(np.float64)
         else:
             obs, mask = self._network_input(state)
             t_obs = time.perf_counter_ns()

@@ -16,8 +16,6 @@ A checkpoint is a dict of tensors and plain Python values only::
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +32,7 @@ from controllers.policy import (
     grow_slot_actor,
 )
 from sim.batched_env import BatchedFormationEnv
+from sim.files import atomic_path
 from sim.observations import LAYOUT_VERSION
 
 CHECKPOINT_FORMAT = "formation-stack/mappo"
@@ -48,18 +47,10 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
-    """Write ``payload`` with ``torch.save`` to a temporary file, then ``os.replace`` it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    """Write ``payload`` with ``torch.save`` atomically (:func:`sim.files.atomic_path`)."""
+    with atomic_path(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION,
                     "layout_version": LAYOUT_VERSION, **payload}, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -68,7 +59,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist; give the path of a "
                               "checkpoint.pt written by training")
-    data = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch's message advises weights_only=False: never for a file we did not write
+        raise CheckpointError(f"{str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint: torch cannot "
+                              f"read it as plain tensors ({type(err).__name__}). A policy exported "
+                              "with `formation export` is not a checkpoint; give checkpoint.pt "
+                              "of a training run") from None
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint")
     if data.get("format_version") != CHECKPOINT_VERSION:

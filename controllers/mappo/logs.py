@@ -12,10 +12,10 @@ import csv
 import io
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
+
+from sim.files import atomic_write_text
 
 
 def _clean(value: Any) -> Any:
@@ -63,21 +63,10 @@ class MetricsLog:
             self.columns = None
             return
         self.columns = list(rows[0])
-        _write_atomic(self.jsonl, "".join(json.dumps(r, allow_nan=False) + "\n" for r in rows))
+        atomic_write_text(self.jsonl, "".join(json.dumps(r, allow_nan=False) + "\n" for r in rows))
         buffer = io.StringIO()
         writer = csv.writer(buffer)
         writer.writerow(self.columns)
         for r in rows:
             writer.writerow(["" if r[k] is None else r[k] for k in self.columns])
-        _write_atomic(self.csv, buffer.getvalue())
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        atomic_write_text(self.csv, buffer.getvalue())

@@ -79,6 +79,16 @@ class TypedSDPAActor(nn.Module):
         out = self.head(x[:, 0], x, m).view(obs.shape[0], obs.shape[1], self.action_dim)
         return bounded_acceleration(out, obs[:, :, 0, 2:4], self.velocity_damping, self.accel_limit)
 
+    def rows(self, tokens: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` for robots as independent rows: tokens (B, T = 2N+1, F), mask (B, T)
+        bool -> (B, 2). N follows from T; the graph has no shape guard on it (the export path,
+        :meth:`TypedEmbedding.by_kind`)."""
+        m = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:].to(torch.bool)), 1)
+        x = self.embedding.by_kind(torch.where(m.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
+                                   * self.input_scale)
+        out = self.head(x[:, 0], x, m)
+        return bounded_acceleration(out, tokens[:, 0, 2:4], self.velocity_damping, self.accel_limit)
+
     @torch.jit.export
     def attention(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """(E, N, H, T) attention weights of each robot's query over its tokens."""
@@ -140,6 +150,12 @@ class SlotSDPAActor(nn.Module):
         x, m = self._encode(obs, mask)
         out = self.head(x[:, 0] + x[:, 1], x, m).view(obs.shape[0], obs.shape[1], self.action_dim)
         return bounded_acceleration(out, obs[:, :, 0, 2:4], self.velocity_damping, self.accel_limit)
+
+    def rows(self, tokens: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` for robots as independent rows: tokens (B, 2N+1, F), mask (B, 2N+1)
+        bool -> (B, 2), N fixed by the slots."""
+        return self.forward(tokens.unsqueeze(1).expand(-1, self.num_robots, -1, -1),
+                            mask.unsqueeze(1).expand(-1, self.num_robots, -1))[:, 0]
 
     @torch.jit.export
     def attention(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

@@ -86,6 +86,48 @@ class TypedEmbedding(nn.Module):
                           self.embed_robot(tokens[:, n + 1:2 * n]),
                           self.embed_object(tokens[:, 2 * n:])), 1)
 
+    def by_kind(self, tokens: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` without slicing by n (the same numbers): token t goes through the
+        layers of its type, gathered per token from the four stacked embeddings. Its graph has
+        no shape guard on n = (T - 1) / 2, so ``torch.export`` and ONNX keep T dynamic (slices
+        at ``n + 1`` and ``2n`` pin T to the example's value). Only while exporting: eager and
+        TorchScript code (which keeps T free either way) run :meth:`forward`, the same kernels
+        as training, so an exported file differs from the eager actor by its runtime alone."""
+        if torch.jit.is_scripting():
+            return self.forward(tokens, (tokens.shape[1] - 1) // 2)
+        if not self._exporting():
+            return self.forward(tokens, (tokens.shape[1] - 1) // 2)
+        return self._gathered(tokens)
+
+    @torch.jit.unused
+    def _exporting(self) -> bool:
+        return bool(torch.compiler.is_exporting())
+
+    @torch.jit.unused
+    def _gathered(self, tokens: torch.Tensor) -> torch.Tensor:
+        t = tokens.shape[1]
+        index = torch.arange(t, device=tokens.device)
+        kind = (index >= 1).long() + (index >= (t + 1) // 2).long() + (index >= t - 1).long()
+        x = tokens.unsqueeze(-2)                                               # (B, T, 1, F)
+        for weight, bias, relu in self._stacked():
+            x = torch.matmul(x, weight[kind]) + bias[kind].unsqueeze(-2)       # (T, in, out)
+            if relu:
+                x = torch.relu(x)
+        return x.squeeze(-2)
+
+    @torch.jit.unused
+    def _stacked(self) -> list[tuple[torch.Tensor, torch.Tensor, bool]]:
+        """Per layer: weights (4, in, out) and biases (4, out) of the self, target, robot and
+        object embeddings (type order of :mod:`sim.observations`), and whether a ReLU follows."""
+        embeds = [self.embed_self, self.embed_target, self.embed_robot, self.embed_object]
+        layers = [[e] if isinstance(e, nn.Linear) else [e[0], e[2]] for e in embeds]
+        out = []
+        for k in range(len(layers[0])):
+            weight = torch.stack([layer[k].weight.t() for layer in layers])
+            bias = torch.stack([layer[k].bias for layer in layers])
+            out.append((weight, bias, k + 1 < len(layers[0])))
+        return out
+
 
 def check_tokens(obs: torch.Tensor, mask: torch.Tensor | None, feature_dim: int) -> None:
     """Raise ValueError unless ``obs`` is (E, N, 2N+1, F) and ``mask`` None or (E, N, 2N+1)."""

@@ -1,9 +1,13 @@
-"""`formation export`: a checkpoint -> a verified TorchScript policy file (+ golden file).
+"""`formation export`: a checkpoint -> verified policy files (+ one golden file).
 
-    formation export CKPT --out policy.pt     # write, reload, compare with eager (N = 1..16)
-    formation export --check policy.pt        # re-verify a file against its golden file
+    formation export CKPT --out policy                  # policy.pt, .pt2, .onnx + policy.golden.npz
+    formation export CKPT --out policy --format onnx    # only policy.onnx (+ golden file)
+    formation export --check policy.onnx                # re-verify a file against its golden file
 
-Exit code 0 when the file is verified, 1 when it is not (an export then leaves no file).
+Formats: torchscript (.pt), pt2 (torch.export), onnx (runs with numpy + onnxruntime only,
+`deploy/robot.py`). Each file is reloaded and compared with the eager actor for 1..16 robots
+before anything is published. Exit code 0 when every file is verified, 1 when one is not (an
+export then leaves no file), 2 for bad arguments.
 """
 
 from __future__ import annotations
@@ -11,16 +15,29 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from deploy.export import ExportError, check_export, export_checkpoint
+from deploy.export import DEFAULT_FORMATS, ExportError, check_export, export_checkpoint
+from deploy.export.formats import FORMATS
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    names = tuple(dict.fromkeys(part.strip() for part in text.split(",") if part.strip()))
+    unknown = [n for n in names if n not in FORMATS]
+    if unknown or not names:
+        raise ValueError(f"--format: unknown format(s) {', '.join(unknown) or repr(text)}; "
+                         f"choose from {', '.join(FORMATS)} (comma-separated)")
+    return names
 
 
 def register(sub) -> None:
-    p = sub.add_parser("export", help="export a trained actor as verified TorchScript",
+    p = sub.add_parser("export", help="export a trained actor as verified policy files",
                        description=__doc__)
     p.add_argument("checkpoint", type=Path, nargs="?", help="training checkpoint (checkpoint.pt)")
-    p.add_argument("--out", type=Path, default=None, help="output file (e.g. policy.pt)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output stem: 'policy' (or 'policy.pt') writes policy.<suffix> per format")
+    p.add_argument("--format", default=",".join(DEFAULT_FORMATS), metavar="LIST",
+                   help=f"comma-separated formats from {', '.join(FORMATS)} (default: all)")
     p.add_argument("--check", type=Path, default=None, metavar="POLICY",
-                   help="re-verify an exported file against its golden file instead")
+                   help="re-verify an exported file (any format) against its golden file instead")
     p.set_defaults(func=run)
 
 
@@ -31,17 +48,25 @@ def run(args) -> int:
                 print("error: --check takes only the policy file", file=sys.stderr)
                 return 2
             report = check_export(args.check)
-            print(f"OK {report.path}: golden file {report.golden.name} reproduced "
-                  f"({report.cases} comparisons, max abs diff {report.max_abs_diff:.3g})")
+            print(f"OK {report.path} ({report.meta['file_format']}): golden file {report.golden.name} "
+                  f"reproduced ({report.cases} comparisons, max abs diff {report.max_abs_diff:.3g})")
             return 0
         if args.checkpoint is None or args.out is None:
-            print("error: give CKPT and --out policy.pt (or --check policy.pt)", file=sys.stderr)
+            print("error: give CKPT and --out policy (or --check policy.onnx)", file=sys.stderr)
             return 2
-        report = export_checkpoint(args.checkpoint, args.out)
+        try:
+            formats = _formats(args.format)
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        reports = export_checkpoint(args.checkpoint, args.out, formats)
     except (ExportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    counts = report.meta["robot_counts"]
-    print(f"wrote {report.path} and {report.golden.name}: verified against the eager actor "
-          f"({report.cases} comparisons, max abs diff {report.max_abs_diff:.3g}, robots {counts})")
+    for report in reports:
+        counts = report.meta["robot_counts"]
+        span = f"{counts[0]}..{counts[-1]}" if len(counts) > 1 else str(counts[0])
+        print(f"wrote {report.path} ({report.meta['file_format']}): verified against the eager actor "
+              f"({report.cases} comparisons, max abs diff {report.max_abs_diff:.3g}, robots {span})")
+    print(f"golden file: {reports[0].golden}")
     return 0

@@ -25,11 +25,12 @@ import math
 import os
 import signal
 import subprocess
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from sim.files import atomic_write_bytes
 
 BOOK_FORMAT = "formation-stack/demo"
 BOOK_VERSION = 1
@@ -108,18 +109,8 @@ def jsonable(value: Any) -> Any:
 
 
 def write_atomic(path: Path, text: str | bytes) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder + os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(text.encode() if isinstance(text, str) else text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``text`` to ``path`` atomically (:func:`sim.files.atomic_path`)."""
+    atomic_write_bytes(path, text.encode() if isinstance(text, str) else text)
 
 
 def write_json(path: Path, data: Any) -> None:

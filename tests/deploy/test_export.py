@@ -1,10 +1,13 @@
-"""TorchScript export: matches the eager actor for N = 1..16, verifies itself, --check catches tampering."""
+"""Export to TorchScript, torch.export and ONNX: parity with the eager actor for N = 1..16, the
+contract inside every file (norm bound, NaN -> brake flag, frozen weights), metadata and digest
+checked on every load, clear refusals."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -15,35 +18,39 @@ from controllers.mappo.checkpoint import save_checkpoint
 from controllers.mappo.config import MAPPOConfig
 from controllers.policy import ActorConfig, build_actor
 from deploy.export import (
+    DEFAULT_FORMATS,
     ExportError,
     check_export,
     export_policy,
     golden_path,
-    load_policy,
-    weights_sha256,
+    load_exported,
 )
+from deploy.export.contract import PolicyContract
+from deploy.export.formats import FORMATS
 from sim.observations import LAYOUT_VERSION
+from stack.policy_io import StackError, load_policy
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning")
+SUFFIX = {name: fmt.suffix for name, fmt in FORMATS.items()}
 
 
 def make_actor(seed: int = 0, variant: str = "typed", n: int = 5):
     torch.manual_seed(seed)
     actor = build_actor(ActorConfig(variant=variant, embed_dim=32, velocity_damping=2.0), n)
-    with torch.no_grad():  # larger outputs than the tiny initial gain, so differences show
-        for p in actor.parameters():
-            p.mul_(3.0)
+    with torch.no_grad():  # outputs up to the limit, as a trained actor gives (the initial gain is
+        for p in actor.parameters():        # tiny); x3 grows embeddings to 65, where float32
+            p.mul_(1.5)                     # rounding alone is 1e-5
+
     return actor.eval()
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("export") / "policy.pt"
+    stem = tmp_path_factory.mktemp("export") / "policy"
     actor = make_actor()
-    report = export_policy(actor, out, dt=0.05, trained_robots=5, config={"note": "test"})
-    return actor, out, report
+    reports = export_policy(actor, stem, dt=0.05, trained_robots=5, config={"note": "test"})
+    return actor, {r.meta["file_format"]: r.path for r in reports}, reports
 
 
 def formation(*args: str) -> subprocess.CompletedProcess:
@@ -51,84 +58,203 @@ def formation(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-def test_reloaded_file_matches_eager_for_every_n_and_batch(exported):
-    actor, out, report = exported
-    module = torch.jit.load(str(out))
+def eager_reference(actor, obs, mask):
+    """The eager actor's forward (slicing by N), bounded in norm as the contract promises."""
+    with torch.no_grad():
+        a = actor(obs, mask)
+    norm = torch.linalg.vector_norm(a, dim=-1, keepdim=True)
+    return a * torch.clamp(actor.accel_limit / norm, max=1.0)
+
+
+def copy_export(path: Path, dest: Path) -> Path:
+    dest.mkdir(exist_ok=True)
+    (dest / path.name).write_bytes(path.read_bytes())
+    golden = golden_path(path)
+    (dest / golden.name).write_bytes(golden.read_bytes())
+    return dest / path.name
+
+
+@pytest.mark.parametrize("name", DEFAULT_FORMATS)
+def test_every_format_matches_the_eager_actor_for_1_to_16_robots(exported, name):
+    actor, files, _ = exported
+    policy = load_exported(files[name])
     generator = torch.Generator().manual_seed(123)
-    worst = 0.0
+    worst, corners = 0.0, 0
     for n in range(1, 17):
         for batch in (1, 16):
             obs = torch.randn(batch, n, 2 * n + 1, 4, generator=generator)
-            mask = torch.ones(batch, n, 2 * n + 1, dtype=torch.bool)
+            mask = torch.rand(batch, n, 2 * n + 1, generator=generator) > 0.2
+            want = eager_reference(actor, obs, mask)
+            got, valid = policy.run(obs.reshape(-1, 2 * n + 1, 4).numpy(), mask.reshape(-1, 2 * n + 1).numpy())
+            assert got.shape == (batch * n, 2) and valid.all()
+            assert float(want.abs().max()) > 1e-2
+            worst = max(worst, float(np.abs(got - want.reshape(-1, 2).numpy()).max()))
             with torch.no_grad():
-                want = actor(obs, mask)
-                got = module(obs, mask)
-                one = module.act(obs[:, n - 1], mask[:, n - 1])
-            assert got.shape == (batch, n, 2)
-            assert float(want.abs().max()) > 1e-3  # the outputs are not trivially zero
-            worst = max(worst, float((got - want).abs().max()),
-                        float((one - want[:, n - 1]).abs().max()))
+                corners += int((torch.linalg.vector_norm(actor(obs, mask), dim=-1) > 1.0 + 1e-3).sum())
     assert worst <= 1e-5
-    assert report.max_abs_diff <= 1e-5 and report.cases >= 16 * 2 * 2 * 2
+    assert corners > 0            # the bound in norm was exercised: the eager actor exceeds it
 
 
-def test_metadata_travels_inside_the_file(exported):
-    actor, out, _ = exported
-    _, meta = load_policy(out)
-    assert meta["layout_version"] == LAYOUT_VERSION
-    assert meta["dt"] == 0.05 and meta["accel_limit"] == 1.0
-    assert meta["trained_robots"] == 5 and meta["robot_counts"] == "any"
-    assert meta["torch_version"] == torch.__version__
-    assert meta["weights_sha256"] == weights_sha256(torch.jit.load(str(out)))
-    assert meta["golden_file"] == golden_path(out).name == "policy.golden.npz"
-    with np.load(golden_path(out)) as golden:
+def test_actions_are_bounded_in_norm_inside_the_file(exported):
+    actor, files, _ = exported
+    obs = torch.randn(64, 5, 11, 4) * 2.0
+    mask = torch.ones(64, 5, 11, dtype=torch.bool)
+    with torch.no_grad():
+        raw = torch.linalg.vector_norm(actor(obs, mask), dim=-1)
+    assert float(raw.max()) > 1.1                      # per-component bound alone: corners > 1
+    for name, path in files.items():
+        accel, _ = load_exported(path).run(obs.reshape(-1, 11, 4).numpy(), mask.reshape(-1, 11).numpy())
+        assert np.linalg.norm(accel, axis=1).max() <= 1.0 + 1e-6, name
+
+
+@pytest.mark.parametrize("name", DEFAULT_FORMATS)
+def test_non_finite_rows_are_flagged_with_zero_acceleration(exported, name):
+    _, files, _ = exported
+    policy = load_exported(files[name])
+    rng = np.random.default_rng(0)
+    toks = rng.normal(0, 0.3, (4, 11, 4)).astype(np.float32)
+    mask = np.ones((4, 11), dtype=bool)
+    clean, _ = policy.run(toks, mask)
+    toks[1, 0, 2] = np.nan          # own velocity
+    toks[2, 4, 0] = np.inf          # a read target token
+    toks[3, 7, 1] = np.nan          # a masked robot token: ignored
+    mask[3, 7] = False
+    accel, valid = policy.run(toks, mask)
+    assert valid.tolist() == [True, False, False, True]
+    assert np.isfinite(accel).all()
+    assert (accel[1:3] == 0).all()
+    assert np.abs(accel[0] - clean[0]).max() == 0 and np.abs(accel[0]).max() > 1e-3
+    masked_zero = toks[3:4].copy()
+    masked_zero[0, 7] = 0.0
+    want, _ = policy.run(masked_zero, mask[3:4])
+    assert np.abs(accel[3] - want[0]).max() <= 1e-6
+
+
+def test_torch_files_run_in_any_grad_mode(exported):
+    """The stack calls under inference_mode; a user may call with gradients on first."""
+    _, files, _ = exported
+    toks, mask = torch.randn(5, 11, 4), torch.ones(5, 11, dtype=torch.bool)
+    module = torch.jit.load(str(files["torchscript"]))
+    assert all(not p.requires_grad for p in module.parameters())
+    first, _ = module(toks, mask)
+    with torch.inference_mode():
+        second, _ = module(toks, mask)
+    program = torch.export.load(str(files["pt2"])).module()
+    third, _ = program(toks, mask)
+    with torch.inference_mode():
+        fourth, _ = program(toks, mask)
+    assert torch.equal(first, second) and torch.allclose(third, fourth)
+
+
+def test_metadata_travels_inside_every_file(exported):
+    _, files, reports = exported
+    for name, path in files.items():
+        meta = load_exported(path).meta
+        assert meta["file_format"] == name and meta["format_version"] == 2
+        assert meta["layout_version"] == LAYOUT_VERSION and meta["token_dim"] == 4
+        assert meta["dt"] == 0.05 and meta["accel_limit"] == 1.0
+        assert meta["trained_robots"] == 5 and meta["robot_counts"] == list(range(1, 17))
+        assert meta["scenario"]["name"] == "paper-5"
+        assert meta["io"]["inputs"]["tokens"]["dtype"] == "float32"
+        assert meta["io"]["inputs"]["mask"]["required"] is True
+        assert [k["kind"] for k in meta["token_features"]["kinds"]] == [
+            "self", "target k", "other robot j", "object"]
+        assert all("[m" in f for f in meta["token_features"]["kinds"][0]["features"])
+        assert len(meta["content_sha256"]) == 64
+        assert meta["golden_file"] == golden_path(path).name == "policy.golden.npz"
+    with np.load(golden_path(files["onnx"])) as golden:
         assert list(golden["counts"]) == [1, 2, 3, 5, 8, 16]
         assert golden["n5_tokens"].shape == (1, 5, 11, 4)
+    assert reports[0].cases >= 16 * 2 * 2
 
 
-def test_check_passes_on_the_exported_file(exported):
-    _, out, _ = exported
-    assert check_export(out).max_abs_diff <= 1e-5
-    result = formation("export", "--check", str(out))
+@pytest.mark.parametrize("name", DEFAULT_FORMATS)
+def test_check_passes_on_each_exported_file(exported, name):
+    _, files, _ = exported
+    assert check_export(files[name]).max_abs_diff <= 1e-5
+    result = formation("export", "--check", str(files[name]))
     assert result.returncode == 0, result.stderr
-    assert "OK" in result.stdout
+    assert "OK" in result.stdout and name in result.stdout
 
 
-def _copy_export(out: Path, dest: Path) -> Path:
-    dest.mkdir()
-    (dest / out.name).write_bytes(out.read_bytes())
-    golden = golden_path(out)
-    (dest / golden.name).write_bytes(golden.read_bytes())
-    return dest / out.name
+@pytest.mark.parametrize("name", DEFAULT_FORMATS)
+def test_a_flipped_byte_is_refused_by_every_loader(exported, tmp_path, name):
+    _, files, _ = exported
+    copy = copy_export(files[name], tmp_path)
+    data = bytearray(copy.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    copy.write_bytes(bytes(data))
+    with pytest.raises(ExportError):
+        load_exported(copy)
+    with pytest.raises(StackError):                 # eval and bridge load through here
+        load_policy(copy)
+    result = formation("eval", str(copy), "--world", "pymunk", "--episodes", "1")
+    assert result.returncode != 0 and "Traceback" not in result.stderr
 
 
-def test_check_catches_a_changed_weight(exported, tmp_path):
-    _, out, _ = exported
-    copy = _copy_export(out, tmp_path / "tampered")
+def _rewrite_torchscript_meta(path: Path, dest: Path, **changes) -> Path:
     extra = {"meta.json": ""}
-    module = torch.jit.load(str(copy), _extra_files=extra)
+    module = torch.jit.load(str(path), _extra_files=extra)
+    meta = json.loads(extra["meta.json"]) | changes
+    torch.jit.save(module, str(dest), _extra_files={"meta.json": json.dumps(meta)})
+    return dest
+
+
+def test_changed_metadata_or_weights_are_refused(exported, tmp_path):
+    _, files, _ = exported
+    raised = _rewrite_torchscript_meta(files["torchscript"], tmp_path / "limit.pt", accel_limit=5.0)
+    with pytest.raises(ExportError, match="content_sha256"):
+        load_exported(raised)
+    module = torch.jit.load(str(files["torchscript"]))
     with torch.no_grad():
         next(module.parameters()).add_(1e-3)
-    torch.jit.save(module, str(copy), _extra_files=extra)
-    with pytest.raises(ExportError, match="checksum"):
-        check_export(copy)
-    result = formation("export", "--check", str(copy))
-    assert result.returncode == 1 and "checksum" in result.stderr
+    extra = {"meta.json": ""}
+    torch.jit.load(str(files["torchscript"]), _extra_files=extra)
+    torch.jit.save(module, str(tmp_path / "w.pt"), _extra_files=extra)
+    with pytest.raises(ExportError, match="content_sha256"):
+        load_exported(tmp_path / "w.pt")
+    bare = tmp_path / "bare.pt"                            # metadata removed
+    torch.jit.save(torch.jit.load(str(files["torchscript"])), str(bare))
+    with pytest.raises(StackError, match="meta.json"):
+        load_policy(bare)
 
 
-def test_check_catches_corrupt_bytes_and_a_foreign_golden_file(exported, tmp_path):
-    _, out, _ = exported
-    corrupt = _copy_export(out, tmp_path / "corrupt")
-    data = bytearray(corrupt.read_bytes())
-    data[len(data) // 2: len(data) // 2 + 64] = b"\x00" * 64
-    corrupt.write_bytes(bytes(data))
-    with pytest.raises(ExportError):
-        check_export(corrupt)
-    foreign = _copy_export(out, tmp_path / "foreign")
-    other = make_actor(seed=1)
-    other_out = tmp_path / "other" / "policy.pt"
-    export_policy(other, other_out, dt=0.05, trained_robots=5)
-    golden_path(foreign).write_bytes(golden_path(other_out).read_bytes())
+def test_onnx_metadata_edit_is_refused(exported, tmp_path):
+    import onnx
+
+    _, files, _ = exported
+    proto = onnx.load(str(files["onnx"]))
+    entry = proto.metadata_props[0]
+    entry.value = entry.value.replace('"accel_limit": 1.0', '"accel_limit": 5.0')
+    onnx.save(proto, str(tmp_path / "edited.onnx"))
+    with pytest.raises(ExportError, match="content_sha256"):
+        load_exported(tmp_path / "edited.onnx")
+
+
+def test_unknown_layout_and_format_are_refused(exported, tmp_path):
+    actor, files, reports = exported
+    meta = dict(reports[0].meta) | {"layout_version": 99}
+    meta.pop("content_sha256")
+    FORMATS["onnx"].write(PolicyContract(actor), tmp_path / "old.onnx", meta | {"file_format": "onnx"}, None)
+    with pytest.raises(ExportError, match="layout"):
+        load_exported(tmp_path / "old.onnx")
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(StackError) as err:
+        load_policy(junk)
+    assert "weights_only" not in str(err.value)        # never advise unpickling a foreign file
+    with zipfile.ZipFile(tmp_path / "other.zip", "w") as archive:
+        archive.writestr("x/data.txt", "hello")
+    with pytest.raises(ExportError, match="not an exported policy"):
+        load_exported(tmp_path / "other.zip")
+
+
+def test_check_catches_a_foreign_golden_file(exported, tmp_path):
+    _, files, _ = exported
+    foreign = copy_export(files["onnx"], tmp_path / "foreign")
+    other = export_policy(make_actor(seed=1), tmp_path / "other" / "policy", dt=0.05, trained_robots=5,
+                          formats=("onnx",))
+    golden_path(foreign).write_bytes(golden_path(other[0].path).read_bytes())
     with pytest.raises(ExportError, match="golden"):
         check_export(foreign)
 
@@ -136,35 +262,42 @@ def test_check_catches_corrupt_bytes_and_a_foreign_golden_file(exported, tmp_pat
 def test_failed_export_leaves_no_file(tmp_path):
     actor = make_actor()
     with torch.no_grad():
-        next(actor.embedding.embed_self.parameters()).view(-1)[0] = float("nan")
-    out = tmp_path / "bad.pt"
-    with pytest.raises(ExportError, match="differs"):
-        export_policy(actor, out, dt=0.05, trained_robots=5)
+        actor.embedding.embed_self[0].weight.view(-1)[0] = float("nan")
+    with pytest.raises(ExportError, match="non-finite"):
+        export_policy(actor, tmp_path / "bad", dt=0.05, trained_robots=5)
     assert list(tmp_path.iterdir()) == []
 
 
 def test_mlp_actor_is_refused_with_a_clear_error(tmp_path):
     with pytest.raises(ExportError, match="typed"):
-        export_policy(make_actor(variant="mlp"), tmp_path / "m.pt", dt=0.05, trained_robots=5)
+        export_policy(make_actor(variant="mlp"), tmp_path / "m", dt=0.05, trained_robots=5)
 
 
 def test_slot_actor_exports_for_its_own_n(tmp_path):
-    report = export_policy(make_actor(variant="slot", n=3), tmp_path / "s.pt", dt=0.05,
-                           trained_robots=3)
-    assert report.meta["robot_counts"] == [3]
-    assert check_export(tmp_path / "s.pt").max_abs_diff <= 1e-5
+    reports = export_policy(make_actor(variant="slot", n=3), tmp_path / "s", dt=0.05, trained_robots=3)
+    for report in reports:
+        assert report.meta["robot_counts"] == [3]
+        assert check_export(report.path).max_abs_diff <= 1e-5
 
 
-def test_cli_exports_a_checkpoint(tmp_path):
+def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path):
     config = MAPPOConfig()
     actor = build_actor(config.actor, 3)
     save_checkpoint(tmp_path / "ck.pt", {"num_robots": 3, "scenario": config.scenario_name,
                                          "accel_limit": 1.0, "config": config.to_dict(),
                                          "actor": actor.state_dict()})
-    result = formation("export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "p.pt"))
+    result = formation("export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "p"), "--format", "onnx,pt2")
     assert result.returncode == 0, result.stderr
-    _, meta = load_policy(tmp_path / "p.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ck.pt", "p.golden.npz", "p.onnx", "p.pt2"]
+    meta = load_exported(tmp_path / "p.onnx").meta
     assert meta["trained_robots"] == 3 and meta["source"].endswith("ck.pt")
-    assert json.dumps(meta["config"])  # the training config travels too
-    missing = formation("export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q.pt"))
+    assert meta["scenario"]["name"] == config.scenario_name
+    assert meta["config"]["scenario"] == config.scenario_name
+    bad = formation("export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "q"), "--format", "tflite")
+    assert bad.returncode == 2 and "tflite" in bad.stderr
+    missing = formation("export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q"))
     assert missing.returncode == 1 and "does not exist" in missing.stderr
+    for wrong in (tmp_path / "p.pt2", tmp_path / "p.golden.npz"):   # not a checkpoint: no traceback
+        result = formation("export", str(wrong), "--out", str(tmp_path / "r"))
+        assert result.returncode == 1 and "Traceback" not in result.stderr
+        assert "checkpoint" in result.stderr and "weights_only" not in result.stderr

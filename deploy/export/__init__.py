@@ -1,0 +1,280 @@
+"""Export a trained actor as self-verifying policy files for robots, and load them back.
+
+    export_checkpoint("checkpoint.pt", "out/policy", formats=("torchscript", "pt2", "onnx"))
+      -> out/policy.pt, out/policy.pt2, out/policy.onnx and out/policy.golden.npz
+    policy = load_exported("out/policy.onnx")      # digest checked; policy.run(tokens, mask)
+
+Every file holds :class:`~deploy.export.contract.PolicyContract` (the interface, its mask,
+NaN and bound rules are in :mod:`deploy.export.contract`) and its metadata::
+
+    format, format_version     "formation-stack/policy", 2
+    file_format                "torchscript" | "pt2" | "onnx"
+    layout_version, token_dim  sim.observations.LAYOUT_VERSION, 4
+    token_features, io         each token feature with units; dtypes, shapes and mask rules
+    dt, accel_limit            control period [s], acceleration bound (in norm) [m/s^2]
+    trained_robots, scenario   N and the scenario (its dict) of the training task
+    robot_counts               N the file runs: [1..16] (typed actor) or [N] (slot actor)
+    variant, config            the actor class and the training config
+    torch_version, source      torch at export, the checkpoint exported
+    golden_file, golden_sha256 the golden file beside it and its checksum
+    content_sha256             digest of weights and metadata (checked on every load)
+
+The golden file (``policy.golden.npz``, :func:`golden_path`, shared by the formats of one
+export): for a few N, raw robot states (``n{N}_pos``, ``n{N}_vel``, ``n{N}_targets`` (1, N, 2))
+on the training scenario's ``polygon`` (M, 2) and ``arena`` (2,), the tokens ``n{N}_tokens``
+(1, N, 2N+1, 4) of :func:`sim.observations.tokens` and the eager contract's actions
+``n{N}_actions`` (1, N, 2). The robot runtime (:mod:`deploy.robot`) replays it at start-up.
+
+The export verifies itself before anything is published: each file is reloaded (digest
+checked) and compared with the eager contract for N = 1..16 at batch 1 and 16, with and
+without masked tokens, max abs diff <= 1e-5; on failure no file is left. Files are written to
+temporary names and moved into place (:func:`sim.files.atomic_path`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from deploy.export.contract import (
+    EXPORT_FORMAT,
+    EXPORT_FORMAT_VERSION,
+    IO_SPEC,
+    MAX_ROBOTS,
+    TOKEN_FEATURES,
+    PolicyContract,
+)
+from deploy.export.formats import FORMATS, META_FILE, ExportError, Runner, quiet, sniff_format
+from sim.files import atomic_path, sha256_file
+from sim.observations import LAYOUT_VERSION, TOKEN_DIM, tokens
+from sim.scenario import Scenario, make_scenario
+
+TOLERANCE = 1e-5
+VERIFY_COUNTS = tuple(range(1, MAX_ROBOTS + 1))
+VERIFY_BATCHES = (1, 16)
+GOLDEN_COUNTS = (1, 2, 3, 5, 8, 16)
+DEFAULT_FORMATS = ("torchscript", "pt2", "onnx")
+
+
+@dataclass(frozen=True)
+class ExportReport:
+    """Result of :func:`export_policy` (one per file) or :func:`check_export`."""
+
+    path: Path
+    golden: Path
+    meta: dict[str, Any]
+    max_abs_diff: float
+    cases: int  # comparisons made
+
+
+class ExportedPolicy:
+    """A loaded policy file: ``run(tokens (B, T, 4), mask (B, T)) -> (accel (B, 2), valid (B,))``
+    (numpy, the contract), and ``__call__(obs (E, N, T, 4), mask (E, N, T) or None) -> (E, N, 2)``
+    (torch, the actors' interface; rows not valid get 0). ``obs_kind`` is ``"tokens"``."""
+
+    obs_kind = "tokens"
+    training = False            # a file is deployed: eval mode for good (train() is a no-op)
+
+    def __init__(self, path: Path, runner: Runner, meta: dict[str, Any]):
+        self.path, self.run, self.meta = path, runner, meta
+        self.file_format = str(meta["file_format"])
+        self.accel_limit = float(meta["accel_limit"])
+        counts = meta["robot_counts"]
+        self.num_robots = counts[0] if len(counts) == 1 and meta["variant"] != "TypedSDPAActor" else -1
+
+    def eval(self) -> ExportedPolicy:
+        return self
+
+    def train(self, mode: bool = True) -> ExportedPolicy:
+        return self
+
+    def __call__(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        e, n, t, f = obs.shape
+        m = np.ones((e * n, t), dtype=bool) if mask is None else mask.reshape(e * n, t).numpy()
+        accel, _ = self.run(obs.reshape(e * n, t, f).numpy(), m)
+        return torch.from_numpy(np.asarray(accel)).view(e, n, 2)
+
+
+def golden_path(policy: str | Path) -> Path:
+    """``policy.pt`` (or ``.pt2``, ``.onnx``) -> ``policy.golden.npz`` (same folder)."""
+    policy = Path(policy)
+    return policy.with_name(policy.stem + ".golden.npz")
+
+
+def load_exported(path: str | Path) -> ExportedPolicy:
+    """Load an exported file of any format, its digest and metadata checked (not the golden
+    file: :func:`check_export`); raises ExportError naming what is wrong."""
+    path = Path(path)
+    name = sniff_format(path)
+    runner, meta = FORMATS[name].load(path)
+    if meta.get("file_format") != name:
+        raise ExportError(f"{str(path)!r} says it is {meta.get('file_format')!r} but holds {name}")
+    return ExportedPolicy(path, runner, meta)
+
+
+def _random_rows(n: int, batch: int, generator: torch.Generator, masked: bool):
+    obs = torch.randn(batch, n, 2 * n + 1, TOKEN_DIM, generator=generator) * 0.5
+    mask = torch.ones(batch, n, 2 * n + 1, dtype=torch.bool)
+    if masked and n > 1:
+        mask = torch.rand(batch, n, 2 * n + 1, generator=generator) > 0.3
+    return obs.reshape(batch * n, 2 * n + 1, TOKEN_DIM), mask.reshape(batch * n, 2 * n + 1)
+
+
+@torch.no_grad()
+def compare(runner: Runner, contract: PolicyContract, counts: Iterable[int],
+            batches: Iterable[int] = VERIFY_BATCHES, seed: int = 0) -> tuple[float, int]:
+    """Max |file - eager contract| over N and batch, with and without masked tokens."""
+    generator = torch.Generator().manual_seed(seed)
+    worst, cases = 0.0, 0
+    for n in counts:
+        for batch in batches:
+            for masked in (False, True):
+                rows, mask = _random_rows(n, batch, generator, masked)
+                want, want_ok = contract(rows, mask)
+                got, ok = runner(rows.numpy(), mask.numpy())
+                if not (np.isfinite(got).all() and (np.asarray(ok) == want_ok.numpy()).all()):
+                    return float("inf"), cases + 1
+                worst = max(worst, float(np.abs(got - want.numpy()).max()))
+                cases += 1
+    return worst, cases
+
+
+@torch.no_grad()
+def golden_cases(contract: PolicyContract, counts: Iterable[int], scenario: Scenario,
+                 seed: int = 0) -> dict[str, np.ndarray]:
+    """Raw states, tokens and eager contract actions for each N (module docstring)."""
+    polygon = torch.as_tensor(scenario.polygon, dtype=torch.float64)
+    arena = scenario.arena
+    rng = np.random.default_rng(seed)
+    data: dict[str, np.ndarray] = {"polygon": polygon.numpy(), "arena": np.asarray(arena),
+                                   "counts": np.asarray(list(counts), dtype=np.int64)}
+    lo, hi = 0.05 * np.asarray(arena), 0.95 * np.asarray(arena)
+    for n in data["counts"]:
+        pos = torch.as_tensor(rng.uniform(lo, hi, (1, n, 2)))
+        vel = torch.as_tensor(rng.uniform(-0.4, 0.4, (1, n, 2)))
+        targets = torch.as_tensor(rng.uniform(lo, hi, (1, n, 2)))
+        toks, mask = tokens(pos, vel, targets, polygon, arena)
+        actions, valid = contract(toks.float().reshape(n, 2 * n + 1, TOKEN_DIM), mask.reshape(n, -1))
+        if not bool(valid.all()):
+            raise ExportError(f"the actor gives non-finite actions for {n} robots on finite states "
+                              "(non-finite weights?); nothing was written")
+        for key, value in (("pos", pos), ("vel", vel), ("targets", targets), ("tokens", toks),
+                           ("actions", actions.view(1, n, 2))):
+            data[f"n{n}_{key}"] = value.numpy()
+    return data
+
+
+def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robots: int,
+                  scenario: Scenario | None = None, formats: Sequence[str] = DEFAULT_FORMATS,
+                  config: dict[str, Any] | None = None, source: str | None = None,
+                  seed: int = 0) -> list[ExportReport]:
+    """Write ``actor`` in each of ``formats`` beside one golden file, verify, publish atomically.
+
+    ``out`` names the files: ``out/policy`` or ``out/policy.pt`` give ``out/policy.pt``,
+    ``.pt2``, ``.onnx`` and ``out/policy.golden.npz``. Raises ExportError (and publishes
+    nothing) if any reloaded file differs from the eager contract by more than TOLERANCE.
+    """
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise ExportError(f"unknown export format(s) {unknown or list(formats)}; choose from "
+                          f"{', '.join(FORMATS)}")
+    if getattr(actor, "obs_kind", "tokens") != "tokens" or not hasattr(actor, "rows"):
+        raise ExportError("only token actors (variant 'typed' or 'slot') can be exported: the "
+                          "robot runtime builds entity tokens; retrain with actor.variant='typed'")
+    scenario = scenario or make_scenario("paper-5")
+    out = Path(out)
+    stem = out.with_suffix("") if out.suffix in {f.suffix for f in FORMATS.values()} else out
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    contract = PolicyContract(actor).eval()
+    fixed_n = int(getattr(actor, "num_robots", -1))
+    counts = VERIFY_COUNTS if fixed_n < 0 else (fixed_n,)
+    golden = golden_path(stem.with_suffix(".pt"))
+    buffer = io.BytesIO()
+    np.savez(buffer, **golden_cases(contract, GOLDEN_COUNTS if fixed_n < 0 else counts, scenario, seed))
+    base = {
+        "format": EXPORT_FORMAT, "format_version": EXPORT_FORMAT_VERSION,
+        "layout_version": LAYOUT_VERSION, "token_dim": TOKEN_DIM, "token_features": TOKEN_FEATURES,
+        "io": IO_SPEC, "dt": float(dt), "accel_limit": contract.accel_limit,
+        "trained_robots": int(trained_robots), "scenario": scenario.to_dict(),
+        "robot_counts": list(counts), "variant": type(actor).__name__, "config": config or {},
+        "torch_version": torch.__version__, "source": source, "created_unix": time.time(),
+        "golden_file": golden.name,
+    }
+    reports: list[ExportReport] = []
+    with contextlib.ExitStack() as publish:    # every file verified, or none published
+        tmp_golden = publish.enter_context(atomic_path(golden))
+        tmp_golden.write_bytes(buffer.getvalue())
+        base["golden_sha256"] = sha256_file(tmp_golden)
+        for name in formats:
+            fmt, path = FORMATS[name], stem.with_suffix(FORMATS[name].suffix)
+            tmp = publish.enter_context(atomic_path(path))
+            fmt.write(contract, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)
+            with quiet():
+                runner, meta = fmt.load(tmp)
+            worst, cases = compare(runner, contract, counts, seed=seed + 1)
+            if not worst <= TOLERANCE:
+                raise ExportError(f"the {name} file differs from the eager actor by {worst:.3g} "
+                                  f"(> {TOLERANCE}); nothing was written to {str(path)!r}")
+            reports.append(ExportReport(path, golden, meta, worst, cases))
+    return reports
+
+
+def export_checkpoint(checkpoint: str | Path, out: str | Path, formats: Sequence[str] = DEFAULT_FORMATS,
+                      seed: int = 0) -> list[ExportReport]:
+    """Export the actor of a training checkpoint (``controllers.mappo`` format)."""
+    from controllers.mappo.checkpoint import (
+        CheckpointError,
+        checkpoint_config,
+        load_actor,
+        load_checkpoint,
+    )
+
+    try:
+        data = load_checkpoint(checkpoint)
+        config = checkpoint_config(data)
+        actor = load_actor(checkpoint)
+    except CheckpointError as err:
+        raise ExportError(str(err)) from None
+    scenario = config.build_scenario()
+    return export_policy(actor, out, dt=scenario.dynamics.dt, trained_robots=int(data["num_robots"]),
+                         scenario=scenario, formats=formats, config=config.to_dict(),
+                         source=str(checkpoint), seed=seed)
+
+
+def check_export(path: str | Path) -> ExportReport:
+    """Re-verify a file: format, digest, golden checksum and golden actions (every N of the
+    golden file, all robots of an environment as one batch). Raises ExportError on a mismatch."""
+    policy = load_exported(path)
+    meta, path = policy.meta, Path(path)
+    golden = path.with_name(str(meta.get("golden_file") or golden_path(path).name))
+    if not golden.is_file():
+        raise ExportError(f"golden file {str(golden)!r} is missing; keep it beside the policy")
+    if sha256_file(golden) != meta.get("golden_sha256"):
+        raise ExportError(f"golden file {str(golden)!r} does not match the checksum in "
+                          f"{str(path)!r}; it belongs to another export")
+    worst, cases = 0.0, 0
+    with np.load(golden) as data:
+        for n in data["counts"]:
+            toks = data[f"n{n}_tokens"][0].astype(np.float32)
+            accel, valid = policy.run(toks, np.ones(toks.shape[:2], dtype=bool))
+            diff = float(np.abs(accel - data[f"n{n}_actions"][0]).max()) if np.all(valid) else np.inf
+            worst = max(worst, diff if np.isfinite(diff) else float("inf"))
+            cases += 1
+    if not worst <= TOLERANCE:
+        raise ExportError(f"{str(path)!r} gives actions {worst:.3g} away from its golden file "
+                          f"(> {TOLERANCE}); do not deploy it")
+    return ExportReport(path, golden, meta, worst, cases)
+
+
+__all__ = ["DEFAULT_FORMATS", "ExportError", "ExportReport", "ExportedPolicy", "META_FILE",
+           "TOLERANCE", "check_export", "compare", "export_checkpoint", "export_policy",
+           "golden_path", "load_exported"]

@@ -1,0 +1,144 @@
+"""The exported contract: one tensor-only wrapper and the metadata every format carries.
+
+Every format (:mod:`deploy.export.formats`) holds the same module, :class:`PolicyContract`::
+
+    forward(tokens (B, T, 4) float32, mask (B, T) bool) -> (accel (B, 2) float32, valid (B,) bool)
+
+one row per robot, ``T = 2N + 1`` tokens of robot i of N in the layout of
+:mod:`sim.observations` (:data:`TOKEN_FEATURES`); ``B`` and ``T`` are free (1..16 robots from one
+file; a slot actor's file has one N). The module enforces the contract inside the file, so a
+robot that calls it directly gets the same guarantees as the ControlStack:
+
+* ``mask[b, t]`` True: token t of row b is valid; False: it is ignored (its features may hold
+  anything, NaN included). Token 0 (the robot itself) is always read.
+* a row whose read features are not all finite is answered with ``accel = 0`` and
+  ``valid = False``: brake (the robot's own braking law), never act on it;
+* ``accel = a * min(1, limit / |a|)``: bounded in norm by ``accel_limit`` (the actor bounds each
+  component; the norm of a corner reached 1.31 m/s^2 at a 1.0 limit);
+* parameters are frozen (``requires_grad=False``): any grad mode runs it.
+
+Integrity: ``content_sha256`` in the metadata covers every other metadata field and all the
+file holds besides (:func:`archive_digest` for the zip formats; every byte of an ONNX file,
+:func:`deploy.robot.onnx_content_ok`). Every loader checks it.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from sim.observations import LAYOUT_VERSION, TOKEN_DIM
+
+EXPORT_FORMAT = "formation-stack/policy"
+EXPORT_FORMAT_VERSION = 2
+HASH_FIELD = "content_sha256"
+UNHASHED_MEMBERS = ("extra/meta.json", ".data/serialization_id")
+MAX_ROBOTS = 16
+
+TOKEN_FEATURES: dict[str, Any] = {
+    "tokens_per_robot": "T = 2N + 1 for robot i of N, in this order",
+    "frame": "metres and m/s; the arena (W, H) is centred at (W/2, H/2)",
+    "kinds": [
+        {"token": "0", "kind": "self", "features": ["p_x - W/2 [m]", "p_y - H/2 [m]", "v_x [m/s]", "v_y [m/s]"]},
+        {"token": "1..N", "kind": "target k", "features": ["g_kx - p_x [m]", "g_ky - p_y [m]", "0", "0"],
+         "order": "the fleet's target order"},
+        {"token": "N+1..2N-1", "kind": "other robot j", "features": [
+            "q_jx - p_x [m]", "q_jy - p_y [m]", "u_jx - v_x [m/s]", "u_jy - v_y [m/s]"],
+         "order": "ascending robot index, j != i"},
+        {"token": "2N", "kind": "object", "features": [
+            "c_x - p_x [m]", "c_y - p_y [m]", "s_x - p_x [m]", "s_y - p_y [m]"],
+         "note": "c: polygon area centroid, s: nearest point of its boundary"},
+    ],
+}
+
+IO_SPEC: dict[str, Any] = {
+    "inputs": {
+        "tokens": {"dtype": "float32", "shape": ["B", "T", TOKEN_DIM],
+                   "note": "one row per robot; float64 must be cast"},
+        "mask": {"dtype": "bool", "shape": ["B", "T"], "required": True,
+                 "true_means": "the token is valid; False tokens are ignored (token 0 always read)"},
+    },
+    "outputs": {
+        "accel": {"dtype": "float32", "shape": ["B", 2], "unit": "m/s^2",
+                  "note": "bounded in norm by accel_limit"},
+        "valid": {"dtype": "bool", "shape": ["B"],
+                  "false_means": "a read feature was not finite: accel is 0, brake"},
+    },
+}
+
+
+class PolicyContract(nn.Module):
+    """The deterministic actor (a frozen copy) behind the contract of the module docstring."""
+
+    def __init__(self, actor: nn.Module):
+        super().__init__()
+        if not hasattr(actor, "rows"):
+            raise TypeError(f"{type(actor).__name__} has no rows(tokens, mask); only token actors "
+                            "(variant 'typed' or 'slot') can be exported")
+        self.actor = copy.deepcopy(actor).eval()
+        for p in self.actor.parameters():
+            p.requires_grad_(False)
+        self.accel_limit = float(getattr(actor, "accel_limit", 1.0))
+
+    def forward(self, tokens: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # rows are independent (attention runs within a row), so a non-finite row spoils only
+        # its own output; s - s == 0 holds for finite s only (NaN - NaN and inf - inf are NaN)
+        read = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:]), 1)
+        total = torch.where(read.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype)).sum((1, 2))
+        a = self.actor.rows(tokens, read)
+        total = total + a.sum(-1)
+        valid = (total - total) == 0
+        a = torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype))
+        norm = torch.linalg.vector_norm(a, dim=-1, keepdim=True)
+        scale = torch.clamp(self.accel_limit / torch.clamp(norm, min=1e-12), max=1.0)
+        return a * scale, valid
+
+
+def canonical_json(meta: dict[str, Any]) -> bytes:
+    """The metadata as the hash sees it: sorted keys, no whitespace, the hash field left out."""
+    return json.dumps({k: v for k, v in meta.items() if k != HASH_FIELD}, sort_keys=True,
+                      separators=(",", ":")).encode()
+
+
+def archive_digest(path: Path, meta: dict[str, Any]) -> str:
+    """``content_sha256`` of a zip-archive format (TorchScript, .pt2): sha256 over the canonical
+    metadata and every member but the metadata itself and torch's random serialization id, in
+    name order (name and sha256 of the content; names without the archive's top folder). The
+    members are the code, the constants and the weights: any change to what runs shows."""
+    digest = hashlib.sha256(canonical_json(meta))
+    with zipfile.ZipFile(path) as archive:
+        members = {info.filename.split("/", 1)[-1]: info for info in archive.infolist()}
+        for name in sorted(members):
+            if name in UNHASHED_MEMBERS:
+                continue
+            digest.update(f"|{name}|".encode())
+            digest.update(hashlib.sha256(archive.read(members[name])).digest())
+    return digest.hexdigest()
+
+
+def check_meta(meta: Any, where: str, error: type[Exception]) -> dict[str, Any]:
+    """Raise ``error`` unless ``meta`` is this code's format and observation layout."""
+    if not isinstance(meta, dict):
+        raise error(f"{where}: its metadata is not a JSON object; export the policy again")
+    fmt = (meta.get("format"), meta.get("format_version"))
+    if fmt != (EXPORT_FORMAT, EXPORT_FORMAT_VERSION):
+        raise error(f"{where} is a {fmt[0]} v{fmt[1]} file, not {EXPORT_FORMAT} "
+                    f"v{EXPORT_FORMAT_VERSION}; export it again with `formation export`")
+    if meta.get("layout_version") != LAYOUT_VERSION:
+        raise error(f"{where} was exported for observation layout {meta.get('layout_version')!r} "
+                    f"but this code builds layout {LAYOUT_VERSION}; export a policy trained on it")
+    if meta.get("token_dim") != TOKEN_DIM:
+        raise error(f"{where} expects {meta.get('token_dim')} features per token but this code "
+                    f"builds {TOKEN_DIM}; export a policy trained on this layout")
+    return meta
+
+
+__all__ = ["EXPORT_FORMAT", "EXPORT_FORMAT_VERSION", "HASH_FIELD", "IO_SPEC", "MAX_ROBOTS",
+           "PolicyContract", "TOKEN_FEATURES", "archive_digest", "canonical_json", "check_meta"]
