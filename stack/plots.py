@@ -259,7 +259,7 @@ def record_trajectories(actor, scenario, *, episodes: int = 4, seed: int = 0,
     """Roll out ``actor``'s mean action for ``episodes`` episodes of ``scenario`` and record them.
 
     ``actor(obs, mask) -> (E, N, 2)`` [m/s^2] with ``obs_kind`` ``"tokens"`` or ``"flat"`` (eager
-    or TorchScript). The starts are the scenario's start slots jittered with ``seed``; ``steps``
+    or an exported file). The starts are the scenario's start slots jittered with ``seed``; ``steps``
     defaults to the scenario's episode length. The world is :class:`sim.batched_env.BatchedFormationEnv`
     (nominal dynamics, no safety filter, no contact forces: overlaps are only recorded as
     contacts); success and final distance follow :mod:`sim.metrics`.

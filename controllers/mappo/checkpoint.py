@@ -16,6 +16,7 @@ A checkpoint is a dict of tensors and plain Python values only::
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -60,12 +61,14 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"checkpoint {str(path)!r} does not exist; give the path of a "
                               "checkpoint.pt written by training")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():   # torch's own hint on TorchScript files says the same
+            warnings.simplefilter("ignore")
+            data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch's message advises weights_only=False: never for a file we did not write
-        raise CheckpointError(f"{str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint: torch cannot "
-                              f"read it as plain tensors ({type(err).__name__}). A policy exported "
-                              "with `formation export` is not a checkpoint; give checkpoint.pt "
-                              "of a training run") from None
+        raise CheckpointError(f"{str(path)!r} is neither a training checkpoint nor a policy file of "
+                              f"`formation export`: torch cannot read it as plain tensors "
+                              f"({type(err).__name__}); give the checkpoint.pt of a training run "
+                              "or an exported .pt/.pt2/.onnx") from None
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{str(path)!r} is not a {CHECKPOINT_FORMAT} checkpoint")
     if data.get("format_version") != CHECKPOINT_VERSION:

@@ -72,7 +72,7 @@ def register(sub) -> None:
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="scenario preset (default paper-5)")
     p.add_argument("--policy", required=True,
-                   help="TorchScript file, training checkpoint, or 'scripted'")
+                   help="exported policy (.pt, .pt2, .onnx), training checkpoint, or 'scripted'")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",

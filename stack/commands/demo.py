@@ -3,8 +3,8 @@
     1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged (budget --budget-3)
     2 train-5   zero-shot success of that policy on 5 robots, then transfer training on
                 paper-5 from the 3-robot checkpoint until converged (budget --budget-5)
-    3 export    the 5-robot policy as TorchScript (policy.pt), verified against the eager actor
-    4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy -> safety filter ->
+    3 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
+    4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
                 MEC) as separate processes on loopback Zenoh for --episodes episodes
     5 report    report.md, report.html (figures embedded), metrics.json
 
@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+from stack.commands import argtypes
 from stack.demo.state import (
     FULL,
     QUICK,
@@ -49,7 +50,7 @@ def register(sub) -> None:
                    help=f"episode cap of the 5-robot transfer (default {FULL.budget_5}; quick {QUICK.budget_5})")
     p.add_argument("--episodes", type=int, default=None,
                    help=f"fleet episodes over Zenoh (default {FULL.fleet_episodes}; quick {QUICK.fleet_episodes})")
-    p.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
+    p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
     p.set_defaults(func=run)
 
 

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
+from stack.commands import argtypes
 from stack.commands.latency_args import (
     MODEL_ERROR_HELP,
     LinkArgumentError,
@@ -42,17 +43,17 @@ def on_off(text: str) -> bool:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a checkpoint, TorchScript policy or the scripted controller",
+    p = sub.add_parser("eval", help="evaluate a checkpoint, an exported policy or the scripted controller",
                        description=__doc__)
-    p.add_argument("policy_path", nargs="?", metavar="CKPT_OR_TORCHSCRIPT",
-                   help="a training checkpoint or a TorchScript policy file")
+    p.add_argument("policy_path", nargs="?", metavar="POLICY_FILE",
+                   help="a training checkpoint or an exported policy (.pt, .pt2, .onnx)")
     p.add_argument("--policy", choices=["scripted"], default=None,
                    help="evaluate a built-in controller instead of a file")
     p.add_argument("--scenario", default="paper-3", help="scenario preset or transport-N (default paper-3)")
     p.add_argument("--world", choices=["batched", "pymunk"], default="batched",
                    help="batched: training world, no safety/MEC; pymunk: ControlStack with model error")
     p.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
+    p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the first episode (default 0)")
     p.add_argument("--steps", type=int, default=None, help="ticks per episode (default: the scenario's)")
     p.add_argument("--safety", type=on_off, default=None, metavar="on|off",
                    help="safety filter in the pymunk world (default on)")
@@ -85,7 +86,7 @@ def run(args) -> int:
 def evaluate_from_args(args) -> dict:
     """The result document of ``formation eval`` for parsed ``args`` (raises on bad input)."""
     if (args.policy_path is None) == (args.policy is None):
-        raise EvalArgumentError("give either a policy file (CKPT_OR_TORCHSCRIPT) or --policy scripted, "
+        raise EvalArgumentError("give either a policy file (POLICY_FILE) or --policy scripted, "
                                 "not both and not neither")
     if args.episodes < 1:
         raise EvalArgumentError(f"--episodes must be a positive integer, got {args.episodes}")
@@ -94,7 +95,7 @@ def evaluate_from_args(args) -> dict:
     scenario = make_scenario(args.scenario)
     if args.policy_path is not None and not Path(args.policy_path).is_file():
         raise EvalArgumentError(f"policy file {args.policy_path!r} does not exist; give a checkpoint "
-                                "or TorchScript file, or --policy scripted")
+                                "or exported policy file, or --policy scripted")
     notes = []
     if args.world == "batched":
         ignored = [flag for flag, value in (("--safety", args.safety), ("--mec", args.mec),

@@ -27,6 +27,7 @@ from pathlib import Path
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
 from deploy.transport import TransportConfig
 from sim.scenario import make_scenario
+from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
 
 
@@ -52,7 +53,7 @@ def register(sub) -> None:
     p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     p.add_argument("--model-error", default=None, metavar="K=V,...", help=MODEL_ERROR_HELP)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=argtypes.seed, default=0)
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
     p.add_argument("--episodes", type=int, default=None,
                    help="run this many episodes (world reset each), then stop")

@@ -2,7 +2,7 @@
 
     fleet-sim  pymunk world of paper-5 with model error (MODEL_ERROR), lock-step, --episodes K,
                listening on tcp/127.0.0.1:<free port>, multicast scouting off
-    bridge     ControlStack(policy.pt -> barrier-QP safety filter -> Kalman MEC), connecting
+    bridge     ControlStack(policy.onnx -> barrier-QP safety filter -> Kalman MEC), connecting
                to it, --episode-ticks T (the stack is reset at each episode)
 
 The fleet-sim ends by itself after K episodes (one JSON line per finished episode feeds the
@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from stack.demo.stages import POLICY
 from stack.demo.state import Children, DemoError, DemoSettings
 
 SCENARIO = "paper-5"
@@ -88,7 +89,6 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[s
     """Run ``settings.fleet_episodes`` episodes over Zenoh; return the merged result."""
     from deploy.transport import free_tcp_port
     from sim.scenario import make_scenario
-    from stack.demo.stages import POLICY
 
     folder = out / "fleet"
     folder.mkdir(parents=True, exist_ok=True)
@@ -197,7 +197,7 @@ def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int,
     tracking = [r["tracking_error_m"] for r in rows if r["tracking_error_m"] is not None]
     return {
         "episodes": len(rows), "scenario": SCENARIO, "world": "pymunk", "model_error": model_error,
-        "policy": "policy.pt", "safety": True, "mec": True, "episode_ticks": ticks,
+        "policy": POLICY, "safety": True, "mec": True, "episode_ticks": ticks,
         "success_rate": float(np.mean([r["success"] for r in rows])),
         "final_distance": float(np.mean([r["final_distance"] for r in rows])),
         "collisions": int(sum(r["collisions"] for r in rows)),

@@ -7,7 +7,7 @@ so a stopped run keeps what it measured. Its keys (numbers as in ``stages.json``
                       evaluation's success rate), final_distance [m], episodes, budget, ...
     zero_shot_3to5    success rate of the 3-robot policy on paper-5 without training
     zero_shot         its details (episodes, final distance, seed)
-    export            verified, max_abs_diff (max |TorchScript - eager|), tolerance, ...
+    export            verified, files by format, max_abs_diff (max |file - eager|, and by format), ...
     fleet             episodes, success_rate, final_distance [m], collisions (onsets),
                       interventions (ticks the safety filter changed a command),
                       tracking_error_m, tick_ms / round_trip_ms {p50, p99}, per_episode [...]
@@ -152,6 +152,10 @@ def _rate(x) -> str:
     return "—" if x is None else f"{x:.2f}"
 
 
+def _counts(counts: list[int]) -> str:
+    return f"{counts[0]}..{counts[-1]}" if len(counts) > 1 else str(counts[0])
+
+
 def _mm(x) -> str:
     return "—" if x is None else f"{1000 * x:.2f} mm"
 
@@ -224,7 +228,7 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
         ["paper-5 transfer: final distance (last evaluation)", _mm(t5["final_distance"]), "—"],
         ["zero-shot: 3-robot policy on paper-5, success rate",
          f"{_rate(shot['success'])} ({shot['episodes']} episodes)", "— (not reported)"],
-        ["export: max abs diff TorchScript vs eager", f"{ex['max_abs_diff']:.2g} "
+        ["export: max abs diff file vs eager (torchscript, pt2, onnx)", f"{ex['max_abs_diff']:.2g} "
          f"({'verified' if ex['verified'] else 'NOT verified'}, tolerance {ex['tolerance']:g})", "—"],
         ["fleet: success rate (pymunk, model error, Zenoh)", f"{_rate(fl['success_rate'])} "
          f"({fl['episodes']} episodes)", paper_fleet],
@@ -252,14 +256,17 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
               f"success rate of {_rate(shot['success'])} over {shot['episodes']} deterministic "
               f"episodes (final distance {_mm(shot['final_distance'])})."),
         ("h2", "Export"),
-        ("p", f"{ex['policy']} (TorchScript, robots: {ex['robot_counts']}) with its golden file "
-              f"{ex['golden']}: reloaded and compared with the eager actor for N = 1..16 "
-              f"({ex['comparisons']} comparisons), then re-checked against the golden file as a robot "
-              f"does at start-up. Max abs diff {ex['max_abs_diff']:.2g} "
-              f"(tolerance {ex['tolerance']:g}): {'verified' if ex['verified'] else 'NOT verified'}."),
+        ("p", f"{', '.join(ex['files'].values())} (TorchScript, torch.export, ONNX; robots "
+              f"{_counts(ex['robot_counts'])}) with one golden file {ex['golden']}: each reloaded, its "
+              f"digest checked, and compared with the eager actor for N = 1..16 "
+              f"({ex['comparisons']} comparisons in all), then re-checked against the golden file as a "
+              "robot does at start-up. Max abs diff by format: "
+              + ", ".join(f"{k} {v:.2g}" for k, v in ex["max_abs_diff_by_format"].items())
+              + f" (tolerance {ex['tolerance']:g}): {'verified' if ex['verified'] else 'NOT verified'}. "
+              f"The fleet runs {ex['policy']}, which needs only numpy and onnxruntime on a robot."),
         ("h2", "Fleet over Zenoh"),
         ("p", f"`fleet-sim` (pymunk, {fl['scenario']}, lock-step) and `bridge` (ControlStack: "
-              "policy.pt -> barrier-QP safety filter -> Kalman MEC) ran as two processes on loopback "
+              f"{fl['policy']} -> barrier-QP safety filter -> Kalman MEC) ran as two processes on loopback "
               f"Zenoh (multicast scouting off) for {fl['episodes']} episodes of {fl['episode_ticks']} "
               f"ticks. Model error: {_model_error_text(fl['model_error'])}. Collisions are judged on "
               "the true state; the MEC tracking error compares each measured position with the "
@@ -280,7 +287,7 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
         ("h2", "Files"),
         ("ul", ["metrics.json: every number above", "stages.json: finished stages (--resume skips them)",
                 "train-3/, train-5/: run folders (config.json, train/eval logs, checkpoint.pt)",
-                f"{ex['policy']}, {ex['golden']}: the exported policy and its golden file",
+                f"{', '.join(ex['files'].values())}, {ex['golden']}: the exported policy and its golden file",
                 "fleet/: sim.json, bridge.json (per-episode reports), sim.log, bridge.log",
                 ", ".join(FIGURES.values()) + ": the figures"]),
         ("h2", "Stage times"),

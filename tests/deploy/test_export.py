@@ -297,7 +297,10 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path):
     assert bad.returncode == 2 and "tflite" in bad.stderr
     missing = formation("export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q"))
     assert missing.returncode == 1 and "does not exist" in missing.stderr
-    for wrong in (tmp_path / "p.pt2", tmp_path / "p.golden.npz"):   # not a checkpoint: no traceback
+    (tmp_path / "random.pt").write_bytes(np.random.default_rng(1).bytes(3000))
+    torch.jit.save(torch.jit.script(actor.eval()), str(tmp_path / "script.pt"))
+    for wrong in (tmp_path / "p.pt2", tmp_path / "p.golden.npz", tmp_path / "random.pt",
+                  tmp_path / "script.pt"):                         # not a checkpoint: no traceback
         result = formation("export", str(wrong), "--out", str(tmp_path / "r"))
         assert result.returncode == 1 and "Traceback" not in result.stderr
         assert "checkpoint" in result.stderr and "weights_only" not in result.stderr

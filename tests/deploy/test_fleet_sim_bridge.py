@@ -249,7 +249,8 @@ def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_
 
 
 @pytest.mark.slow
-def test_bridge_runs_an_exported_torchscript_policy_through_the_control_stack(tmp_path):
+@pytest.mark.parametrize("fmt", ["torchscript", "onnx"])
+def test_bridge_runs_an_exported_policy_through_the_control_stack(tmp_path, fmt):
     import torch
 
     from controllers.policy import ActorConfig, build_actor
@@ -257,9 +258,8 @@ def test_bridge_runs_an_exported_torchscript_policy_through_the_control_stack(tm
 
     torch.manual_seed(0)
     actor = build_actor(ActorConfig(embed_dim=32, velocity_damping=2.0), 5)
-    export_policy(actor, tmp_path / "policy.pt", dt=0.05, trained_robots=5)
-    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "30"],
-                              ["--policy", str(tmp_path / "policy.pt")])
+    path = export_policy(actor, tmp_path / "policy", dt=0.05, trained_robots=5, formats=(fmt,))[0].path
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "30"], ["--policy", str(path)])
     assert bridge["controller_faults"] == 0 and bridge["ticks"] >= 29
     assert sum(t["modes"] == ["run"] * 5 for t in sim["trace"]) >= 25
     assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
