@@ -186,95 +186,88 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
 
 # -------------------------------------------------------------------- (c) latency
 def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
-            geometry: str = "fused") -> dict:
-    """Tick latency per N with the policy as a TorchScript module in memory (the peer row of
-    :func:`latency_by_format`)."""
-    out = {}
-    for n in robot_counts:
-        if policy is not None:
-            network = load_policy(policy, n)
-            if isinstance(network, nn.Module) and not isinstance(network, torch.jit.ScriptModule):
-                network = torch.jit.script(network)
-        else:
-            network = torch.jit.script(_random_actor(n, seed))
-        out[str(n)] = _tick_latency(transport_scenario(n), network, ticks, warmup, seed, geometry)
-    return out
-
-
-def _random_actor(n: int, seed: int) -> nn.Module:
-    from controllers.policy import ActorConfig, build_actor
-
-    torch.manual_seed(seed)
-    return build_actor(ActorConfig(), n).eval()
-
-
-def latency_by_format(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
-                      geometry: str = "fused") -> dict:
-    """Tick latency per exported file format (``formation export``: the same actor as
-    TorchScript, torch.export and ONNX, each loaded as the ControlStack loads a file), N as given.
-    The actor: ``policy`` if it is a training checkpoint, else a fresh typed actor (``seed``)."""
+            geometry: str = "fused") -> tuple[dict, dict]:
+    """Tick latency per N: the policy as a TorchScript module in memory (``latency_ms``), and the
+    same actor exported (``formation export``) as TorchScript, torch.export and ONNX, each file
+    loaded as the ControlStack loads one (``latency_ms_by_format``). All stacks run the same
+    episodes in turn (:func:`_tick_latency`), so machine noise hits them alike. The actor:
+    ``policy`` (a checkpoint; an exported file is measured alone), else a fresh typed actor."""
     from deploy.export import DEFAULT_FORMATS, ExportedPolicy, export_policy, load_exported
 
-    loaded = load_policy(policy) if policy is not None else _random_actor(3, seed)
-    out: dict = {}
+    loaded = load_policy(policy) if policy is not None else _random_actor(seed)
+    in_memory, by_format = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        if isinstance(loaded, ExportedPolicy):        # an exported file: measure it alone
+        if isinstance(loaded, ExportedPolicy):
             files = {loaded.file_format: Path(policy)}
         else:
             reports = export_policy(loaded, Path(tmp) / "policy", dt=0.05, trained_robots=3)
             files = {r.meta["file_format"]: r.path for r in reports}
-        for name in DEFAULT_FORMATS:
-            if name in files:
-                network = load_exported(files[name])
-                out[name] = {str(n): _tick_latency(transport_scenario(n), network, ticks, warmup, seed,
-                                                   geometry) for n in robot_counts}
-    return out
+        networks = {name: load_exported(files[name]) for name in DEFAULT_FORMATS if name in files}
+        if not isinstance(loaded, ExportedPolicy):
+            networks["in_memory"] = torch.jit.script(loaded)
+        for n in robot_counts:
+            rows = _tick_latency(transport_scenario(n), networks, ticks, warmup, seed, geometry)
+            if "in_memory" in rows:
+                in_memory[str(n)] = rows.pop("in_memory")
+            for name, row in rows.items():
+                by_format.setdefault(name, {})[str(n)] = row
+    return in_memory, by_format
 
 
-def _tick_latency(sc, network, ticks: int, warmup: int, seed: int, geometry: str) -> dict:
-    """p50/p99 [ms] of ControlStack.tick and its stages over ``ticks`` ticks after ``warmup``."""
-    stack = ControlStack(sc, network, StackConfig(safety_config=SafetyConfig(geometry=geometry)))
+def _random_actor(seed: int) -> nn.Module:
+    from controllers.policy import ActorConfig, build_actor
+
+    torch.manual_seed(seed)
+    return build_actor(ActorConfig(), 3).eval()
+
+
+def _tick_latency(sc, networks: dict, ticks: int, warmup: int, seed: int, geometry: str) -> dict:
+    """Per network: p50/p99 [ms] of ControlStack.tick and its stages over ``ticks`` ticks after
+    ``warmup``. The states come from scripted-controller episodes recorded first; every stack
+    then runs each episode in turn (the order rotating per episode), as a control loop would:
+    one stack at a time, on the same states."""
+    config = StackConfig(safety_config=SafetyConfig(geometry=geometry))
+    stacks = {name: ControlStack(sc, net, config) for name, net in networks.items()}
+    episodes, total = [], 0
     world = PymunkWorld(sc, MEC_ERROR)
-    samples: dict[str, list[int]] = {"total": [], "observe": [], "policy": [], "policy_stage": [],
-                                     "safety": [], "mec": []}
-    intervened = 0
-    episode = 0
-    bar = tqdm(total=warmup + ticks, desc=f"latency N={sc.num_robots}", unit="tick", file=sys.stderr,
-               leave=False)
-    count = 0
-    while count < warmup + ticks:
-        state = world.reset(seed=seed + episode)
-        stack.reset()
-        ctl = ScriptedController(sc)
-        episode += 1
-        for _ in range(sc.dynamics.episode_steps):
-            tick = stack.tick(state)
-            count += 1
-            bar.update()
-            if count > warmup:
-                t = tick.timings_ns
-                samples["total"].append(t["total"])
-                samples["observe"].append(t["observe"])
-                samples["policy"].append(t["observe"] + t["policy"])
-                samples["policy_stage"].append(t["policy"])
-                samples["safety"].append(t["safety"])
-                samples["mec"].append(t["mec"])
-                intervened += tick.intervened
-            if count >= warmup + ticks:
-                break
+    while total < warmup + ticks:
+        state, ctl, states = world.reset(seed=seed + len(episodes)), ScriptedController(sc), []
+        for _ in range(min(sc.dynamics.episode_steps, warmup + ticks - total)):
+            states.append(state)
             world.send_accelerations(ctl(state))
             state = world.step()
-    bar.close()
-    row = {}
-    for part, values in samples.items():
-        ms = np.asarray(values) / 1e6
-        prefix = "" if part == "total" else f"{part}_"
-        row[f"{prefix}p50"] = float(np.percentile(ms, 50))
-        row[f"{prefix}p99"] = float(np.percentile(ms, 99))
-    row["ticks"] = ticks
-    row["intervened_fraction"] = intervened / ticks
-    row["geometry"] = geometry
-    return row
+        episodes.append(states)
+        total += len(states)
+    parts = ("total", "observe", "policy", "policy_stage", "safety", "mec")
+    samples = {name: {part: [] for part in parts} for name in stacks}
+    intervened = dict.fromkeys(stacks, 0)
+    order = list(stacks)
+    seen = 0
+    for states in tqdm(episodes, desc=f"latency N={sc.num_robots}", unit="episode", file=sys.stderr, leave=False):
+        order = order[1:] + order[:1]
+        for name in order:
+            stacks[name].reset()
+            for k, state in enumerate(states):
+                tick = stacks[name].tick(state)
+                if seen + k >= warmup:
+                    t = tick.timings_ns
+                    for part, value in (("total", t["total"]), ("observe", t["observe"]),
+                                        ("policy", t["observe"] + t["policy"]), ("policy_stage", t["policy"]),
+                                        ("safety", t["safety"]), ("mec", t["mec"])):
+                        samples[name][part].append(value)
+                    intervened[name] += tick.intervened
+        seen += len(states)
+    out = {}
+    for name, by_part in samples.items():
+        row = {}
+        for part, values in by_part.items():
+            ms = np.asarray(values) / 1e6
+            prefix = "" if part == "total" else f"{part}_"
+            row[f"{prefix}p50"] = float(np.percentile(ms, 50))
+            row[f"{prefix}p99"] = float(np.percentile(ms, 99))
+        row.update(ticks=ticks, intervened_fraction=intervened[name] / ticks, geometry=geometry)
+        out[name] = row
+    return out
 
 
 def condition_list(text: str) -> list[str]:
@@ -321,10 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict = {}
     if args.only in (None, "latency"):
         progress(f"(c) latency, N = {args.robots}, {threads} torch thread(s)")
-        doc["latency_ms"] = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed,
-                                    args.geometry)
-        doc["latency_ms_by_format"] = latency_by_format(args.robots, args.ticks, args.warmup,
-                                                        args.policy, args.seed, args.geometry)
+        doc["latency_ms"], doc["latency_ms_by_format"] = latency(args.robots, args.ticks, args.warmup,
+                                                                 args.policy, args.seed, args.geometry)
     if args.only in (None, "mec"):
         progress("(b) MEC tracking")
         doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
@@ -373,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         print_table(["file format", "robots", "tick p50 [ms]", "p99", "policy stage p50", "p99",
                      "tick vs in-memory TorchScript"],
                     [[fmt, n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_stage_p50", "policy_stage_p99")),
-                      f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x"]
+                      f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x" if n in doc["latency_ms"] else "-"]
                      for fmt, rows in doc["latency_ms_by_format"].items() for n, r in rows.items()])
     return 0
 

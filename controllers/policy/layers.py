@@ -13,6 +13,13 @@ import torch.nn.functional as F
 from torch import nn
 
 
+def exporting() -> bool:
+    """True while ``torch.export`` (or the ONNX exporter on top of it) traces: the export paths
+    (:meth:`TypedEmbedding.by_kind`, :meth:`MultiHeadAttention.one_query`) compute the same
+    numbers as training's with a graph that keeps the token count dynamic and has fewer nodes."""
+    return bool(torch.compiler.is_exporting())
+
+
 def init_linear(layer: nn.Linear, gain: float) -> nn.Linear:
     """Orthogonal weights with ``gain`` and zero bias (the usual PPO initialisation)."""
     nn.init.orthogonal_(layer.weight, gain)
@@ -93,15 +100,10 @@ class TypedEmbedding(nn.Module):
         at ``n + 1`` and ``2n`` pin T to the example's value). Only while exporting: eager and
         TorchScript code (which keeps T free either way) run :meth:`forward`, the same kernels
         as training, so an exported file differs from the eager actor by its runtime alone."""
-        if torch.jit.is_scripting():
-            return self.forward(tokens, (tokens.shape[1] - 1) // 2)
-        if not self._exporting():
-            return self.forward(tokens, (tokens.shape[1] - 1) // 2)
-        return self._gathered(tokens)
-
-    @torch.jit.unused
-    def _exporting(self) -> bool:
-        return bool(torch.compiler.is_exporting())
+        if not torch.jit.is_scripting():    # TorchScript compiles none of this block
+            if exporting():
+                return self._gathered(tokens)
+        return self.forward(tokens, (tokens.shape[1] - 1) // 2)
 
     @torch.jit.unused
     def _gathered(self, tokens: torch.Tensor) -> torch.Tensor:
@@ -176,6 +178,9 @@ class MultiHeadAttention(nn.Module):
         self.query = init_linear(nn.Linear(dim, dim), 1.0)
         self.key = init_linear(nn.Linear(dim, dim), 1.0)
         self.value = init_linear(nn.Linear(dim, dim), 1.0)
+        head_of = torch.arange(dim) // self.head_dim      # (D, H): 1 where feature d is in head h
+        self.register_buffer("head_sum", (head_of[:, None] == torch.arange(num_heads)[None]).float(),
+                             persistent=False)
 
     def _heads(self, y: torch.Tensor) -> torch.Tensor:
         b, t, _ = y.shape                                     # (B, T, D) -> (B, H, T, D/H)
@@ -188,6 +193,16 @@ class MultiHeadAttention(nn.Module):
             attn_mask = mask.view(mask.shape[0], 1, 1, mask.shape[1])
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)   # (B, H, Q, D/H)
         return out.transpose(1, 2).reshape(s.shape[0], s.shape[1], self.num_heads * self.head_dim)
+
+    def one_query(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward` for one query a row, ``s`` (B, D), ``mask`` (B, T) -> (B, D), without
+        splitting heads: per-head sums by the 0/1 matrix ``head_sum`` (D, H), so the export graph
+        has no reshapes (each costs ONNX Runtime as much as a matrix product at this size)."""
+        q, k, v = self.query(s), self.key(x), self.value(x)
+        scores = torch.matmul(k * q.unsqueeze(1), self.head_sum) / math.sqrt(self.head_dim)  # (B, T, H)
+        scores = scores.masked_fill(~mask.unsqueeze(-1), float("-inf"))
+        weights = torch.softmax(scores, dim=1)
+        return (torch.matmul(weights, self.head_sum.t()) * v).sum(1)
 
     @torch.jit.export
     def weights(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -213,6 +228,9 @@ class AttentionHead(nn.Module):
         self.mlp = mlp(2 * dim, hidden_sizes, out_dim, out_gain)
 
     def forward(self, s: torch.Tensor, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        if not torch.jit.is_scripting():    # TorchScript compiles none of this block
+            if mask is not None and exporting():
+                return self.mlp(torch.cat((s, self.attention.one_query(s, x, mask)), -1))
         attended = self.attention(s.unsqueeze(1), x, mask).squeeze(1)
         return self.mlp(torch.cat((s, attended), -1))
 

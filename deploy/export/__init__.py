@@ -27,7 +27,8 @@ on the training scenario's ``polygon`` (M, 2) and ``arena`` (2,), the tokens ``n
 
 The export verifies itself before anything is published: each file is reloaded (digest
 checked) and compared with the eager contract for N = 1..16 at batch 1 and 16, with and
-without masked tokens, max abs diff <= 1e-5; on failure no file is left. Files are written to
+without masked tokens, on random fleets in the arena (:func:`random_fleet_rows`), max abs diff
+<= 1e-5; on failure no file is left. Files are written to
 temporary names and moved into place (:func:`sim.files.atomic_path`).
 """
 
@@ -35,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -121,24 +123,35 @@ def load_exported(path: str | Path) -> ExportedPolicy:
     return ExportedPolicy(path, runner, meta)
 
 
-def _random_rows(n: int, batch: int, generator: torch.Generator, masked: bool):
-    obs = torch.randn(batch, n, 2 * n + 1, TOKEN_DIM, generator=generator) * 0.5
-    mask = torch.ones(batch, n, 2 * n + 1, dtype=torch.bool)
+def random_fleet_rows(n: int, batch: int, generator: torch.Generator, scenario: Scenario,
+                      masked: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tokens (batch * n, 2n+1, 4) float32 and mask of ``batch`` random fleets of ``n`` robots on
+    ``scenario``'s object: positions and targets uniform in the arena, speeds up to the speed
+    limit (what a policy meets; unit-Gaussian features would be 1.5 m/s and 1.5 m off); with
+    ``masked``, 30 % of the tokens after the first masked out."""
+    arena = torch.as_tensor(scenario.arena, dtype=torch.float64)
+    pos = (0.05 + 0.9 * torch.rand(batch, n, 2, generator=generator, dtype=torch.float64)) * arena
+    targets = (0.05 + 0.9 * torch.rand(batch, n, 2, generator=generator, dtype=torch.float64)) * arena
+    angle = 2 * math.pi * torch.rand(batch, n, generator=generator, dtype=torch.float64)
+    speed = scenario.dynamics.speed_limit * torch.rand(batch, n, generator=generator, dtype=torch.float64)
+    vel = torch.stack((speed * torch.cos(angle), speed * torch.sin(angle)), -1)
+    toks, mask = tokens(pos, vel, targets, torch.as_tensor(scenario.polygon, dtype=torch.float64), scenario.arena)
     if masked and n > 1:
-        mask = torch.rand(batch, n, 2 * n + 1, generator=generator) > 0.3
-    return obs.reshape(batch * n, 2 * n + 1, TOKEN_DIM), mask.reshape(batch * n, 2 * n + 1)
+        mask = mask & (torch.rand(mask.shape, generator=generator) > 0.3)
+    return toks.float().reshape(batch * n, 2 * n + 1, TOKEN_DIM), mask.reshape(batch * n, 2 * n + 1)
 
 
 @torch.no_grad()
-def compare(runner: Runner, contract: PolicyContract, counts: Iterable[int],
+def compare(runner: Runner, contract: PolicyContract, counts: Iterable[int], scenario: Scenario,
             batches: Iterable[int] = VERIFY_BATCHES, seed: int = 0) -> tuple[float, int]:
-    """Max |file - eager contract| over N and batch, with and without masked tokens."""
+    """Max |file - eager contract| over N and batch, with and without masked tokens, on random
+    fleets (:func:`random_fleet_rows`)."""
     generator = torch.Generator().manual_seed(seed)
     worst, cases = 0.0, 0
     for n in counts:
         for batch in batches:
             for masked in (False, True):
-                rows, mask = _random_rows(n, batch, generator, masked)
+                rows, mask = random_fleet_rows(n, batch, generator, scenario, masked)
                 want, want_ok = contract(rows, mask)
                 got, ok = runner(rows.numpy(), mask.numpy())
                 if not (np.isfinite(got).all() and (np.asarray(ok) == want_ok.numpy()).all()):
@@ -217,10 +230,17 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
         for name in formats:
             fmt, path = FORMATS[name], stem.with_suffix(FORMATS[name].suffix)
             tmp = publish.enter_context(atomic_path(path))
-            fmt.write(contract, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)
+            try:
+                fmt.write(contract, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)
+            except ExportError:
+                raise
+            except Exception as err:        # the exporter's own failure: say which format
+                first = (str(err).strip().splitlines() or [""])[0]
+                raise ExportError(f"the {name} exporter failed ({type(err).__name__}: {first}); "
+                                  f"nothing was written; try --format without {name}") from err
             with quiet():
                 runner, meta = fmt.load(tmp)
-            worst, cases = compare(runner, contract, counts, seed=seed + 1)
+            worst, cases = compare(runner, contract, counts, scenario, seed=seed + 1)
             if not worst <= TOLERANCE:
                 raise ExportError(f"the {name} file differs from the eager actor by {worst:.3g} "
                                   f"(> {TOLERANCE}); nothing was written to {str(path)!r}")
@@ -276,5 +296,5 @@ def check_export(path: str | Path) -> ExportReport:
 
 
 __all__ = ["DEFAULT_FORMATS", "ExportError", "ExportReport", "ExportedPolicy", "META_FILE",
-           "TOLERANCE", "check_export", "compare", "export_checkpoint", "export_policy",
+           "TOLERANCE", "check_export", "compare", "random_fleet_rows", "export_checkpoint", "export_policy",
            "golden_path", "load_exported"]

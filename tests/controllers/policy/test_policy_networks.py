@@ -240,3 +240,28 @@ def test_embedding_hidden_layer_defaults_per_variant_and_is_checked():
     linear, hidden = build_actor(ActorConfig(embed_hidden=0), 4), build_actor(ActorConfig(embed_hidden=8), 4)
     assert linear(obs).shape == hidden(obs).shape == (2, 4, 2)
     assert count_parameters(hidden) != count_parameters(linear)
+
+
+@pytest.mark.parametrize("embed_hidden", [0, 32])
+def test_export_paths_compute_the_training_numbers(embed_hidden):
+    """The graphs torch.export traces (embedding by token kind, one-query attention without head
+    reshapes) give the actions of the training forward, for every N and with masked tokens."""
+    torch.manual_seed(0)
+    actor = build_actor(ActorConfig(embed_hidden=embed_hidden), 3).eval()
+    generator = torch.Generator().manual_seed(1)
+    for n in (1, 2, 5, 16):
+        obs = torch.randn(4, n, 2 * n + 1, 4, generator=generator) * 0.3
+        mask = torch.rand(4, n, 2 * n + 1, generator=generator) > 0.3
+        with torch.no_grad():
+            want = actor(obs, mask).reshape(-1, 2)
+            rows, row_mask = obs.reshape(-1, 2 * n + 1, 4), mask.reshape(-1, 2 * n + 1)
+            plain = actor.rows(rows, row_mask)
+            embed, head = actor.embedding, actor.head
+            x = embed._gathered(torch.where(torch.cat((torch.ones_like(row_mask[:, :1]), row_mask[:, 1:]), 1)
+                                            .unsqueeze(-1), rows, torch.zeros(())) * actor.input_scale)
+            m = torch.cat((torch.ones_like(row_mask[:, :1]), row_mask[:, 1:]), 1)
+            attended = head.attention.one_query(x[:, 0], x, m)
+            u = head.mlp(torch.cat((x[:, 0], attended), -1))
+            got = actor.accel_limit * torch.tanh((u - actor.velocity_damping * rows[:, 0, 2:4]) / actor.accel_limit)
+        assert float((plain - want).abs().max()) <= 1e-6
+        assert float((got - want).abs().max()) <= 1e-5 and float(want.abs().max()) > 1e-3
