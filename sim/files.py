@@ -1,4 +1,5 @@
-"""Files written so that a crash or Ctrl-C never leaves half of one: one helper for the project.
+"""Files: written so that a crash or Ctrl-C never leaves half of one, and configuration read from
+JSON or TOML (one helper each for the project).
 
 ``atomic_path(path)`` yields a temporary name in the same folder; when the block ends without an
 exception the temporary file replaces ``path`` (``os.replace``, atomic on POSIX), otherwise it
@@ -45,4 +46,41 @@ def sha256_file(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "sha256_file"]
+class ConfigFileError(ValueError):
+    """A configuration that cannot be read; the message names the source, the place and the fix."""
+
+
+def read_config(source: str | Path, what: str) -> dict:
+    """A mapping from a ``.json`` or ``.toml`` file, or from inline JSON text (``source`` that is
+    not an existing file and starts with ``{``). ``what`` names the source in errors (a flag)."""
+    import json
+    import tomllib
+
+    path = Path(source)
+    text = str(source).strip()
+    if not path.is_file():
+        if not text.startswith("{"):
+            raise ConfigFileError(f"{what}: {text!r} is neither a file nor inline JSON; give a "
+                                  ".json/.toml file or a JSON object such as '{{\"lr\": 5e-4}}'")
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ConfigFileError(f"{what}: inline JSON is not valid: {err}") from None
+    elif path.suffix.lower() == ".toml":
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as err:
+            raise ConfigFileError(f"{what}: {str(path)!r} is not valid TOML: {err}") from None
+    else:
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ConfigFileError(f"{what}: {str(path)!r} is not valid JSON: {err} (a .toml file "
+                                  "must end in .toml)") from None
+    if not isinstance(data, dict):
+        raise ConfigFileError(f"{what}: expected a mapping of fields, got {type(data).__name__}")
+    return data
+
+
+__all__ = ["ConfigFileError", "atomic_path", "atomic_write_bytes", "atomic_write_text", "read_config",
+           "sha256_file"]

@@ -14,8 +14,10 @@ One iteration::
               (x (1 - episodes / total) too with anneal_lr); with policy_ema the averaged
               actor is the one evaluated and saved as the policy
 
-Run directory: ``config.json``, ``train.jsonl/.csv`` (one row per iteration), ``eval.jsonl/.csv``
-(one row per evaluation), ``checkpoint.pt`` (latest), ``result.json`` (at the end).
+Run directory: ``config.json``, ``run.json`` (git commit, package versions, torch threads, host:
+:func:`sim.provenance.provenance`), ``train.jsonl/.csv`` (one row per iteration),
+``eval.jsonl/.csv`` (one row per evaluation), ``checkpoint.pt`` (latest), ``result.json`` (at the
+end, with the same provenance).
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ from controllers.mappo.losses import (
 )
 from controllers.policy import build_actor, build_critic, gaussian_entropy, gaussian_log_prob
 from sim.batched_env import BatchedFormationEnv
+from sim.provenance import provenance
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -130,6 +133,8 @@ class MAPPOTrainer:
             raise TrainConfigError(f"run_dir {str(self.run_dir)!r} already holds a run; resume it "
                                    "(resume=True) or choose an empty directory")
         write_json_atomic(self.run_dir / "config.json", cfg.to_dict())
+        self.provenance = provenance()
+        write_json_atomic(self.run_dir / "run.json", self.provenance)
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> TrainResult:
@@ -161,7 +166,7 @@ class MAPPOTrainer:
                              checkpoint=str(self.run_dir / CHECKPOINT_NAME))
         write_json_atomic(self.run_dir / "result.json",
                           {**result.to_dict(), "transferred_from": self.transferred_from,
-                           "evaluations": self.tracker.state_dict()})
+                           "evaluations": self.tracker.state_dict(), "provenance": self.provenance})
         return result
 
     def _stop(self) -> bool:

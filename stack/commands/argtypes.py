@@ -16,4 +16,15 @@ def seed(text: str) -> int:
     return value
 
 
-__all__ = ["seed"]
+def positive(text: str) -> int:
+    """A positive integer (a count)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+__all__ = ["positive", "seed"]

@@ -1,56 +1,88 @@
 """`formation train`: train an SDPA-MAPPO (or MLP-MAPPO) policy on a scenario.
 
-Every run writes, in its folder: ``config.json`` (the resolved configuration), ``train.csv`` /
+Every run writes, in its folder: ``config.json`` (the resolved configuration, itself a valid
+``--config`` file), ``run.json`` (git commit, package versions, threads, host), ``train.csv`` /
 ``train.jsonl`` (per iteration), ``eval.csv`` / ``eval.jsonl`` (the convergence evaluations),
 ``checkpoint.pt`` (atomic, resumable) and ``result.json``. Ctrl-C keeps the last checkpoint;
 ``--resume`` continues the same curve.
+
+The configuration is :class:`controllers.mappo.MAPPOConfig`: its defaults, then ``--config``
+(a .json or .toml file of any of its fields, nested ``actor``/``critic``/``reward_weights``
+tables included, or inline JSON), then the flags given on the command line. Unknown fields are
+refused with their name; ``reward_weights`` given change the training reward's
+(``TRAINING_REWARD``) weights they name and keep the others. ``--print-config`` prints the
+resolved configuration and exits.
+
+    formation train --config runs/p3/config.json --seed 1 --out runs/p3-seed1
+    formation train --config sweep.toml --print-config
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
 from controllers.mappo import MAPPOConfig, TrainConfigError, train
+from controllers.mappo.config import TRAINING_REWARD
 from controllers.policy import PolicyConfigError
+from sim.files import ConfigFileError, read_config
 from sim.scenario import ScenarioError
+from stack.commands import argtypes
 
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
                        description=__doc__)
-    p.add_argument("--scenario", default="paper-3", help="preset or transport-N (default paper-3)")
-    p.add_argument("--episodes", type=int, default=2000, help="episode budget (default 2000)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--variant", choices=("typed", "slot", "mlp"), default="typed",
-                   help="actor: typed SDPA (any N), the paper's slot SDPA, or the MLP baseline")
+    p.add_argument("--scenario", default=None, help="preset or transport-N (default paper-3)")
+    p.add_argument("--episodes", type=argtypes.positive, default=None,
+                   help="episode budget, total_episodes (default 2000)")
+    p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
+    p.add_argument("--variant", choices=("typed", "slot", "mlp"), default=None,
+                   help="actor: typed SDPA (any N, default), the paper's slot SDPA, or the MLP baseline")
     p.add_argument("--init-from", metavar="CKPT", help="start from an M-robot checkpoint (transfer)")
-    p.add_argument("--config", metavar="JSON", help="MAPPOConfig fields as JSON, e.g. '{\"lr\": 5e-4}'")
+    p.add_argument("--config", metavar="FILE_OR_JSON",
+                   help="MAPPOConfig fields: a .json/.toml file or inline JSON, e.g. '{\"lr\": 5e-4}'")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the resolved configuration (a valid --config file) and exit")
     p.add_argument("--out", type=Path, help="run folder (default runs/train-<scenario>-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-stop", action="store_true", help="keep training after convergence")
     p.set_defaults(func=run)
 
 
+def resolve_config(args) -> MAPPOConfig:
+    """Defaults < ``--config`` < flags given (module docstring); raises ValueError-like errors."""
+    fields = read_config(args.config, "--config") if args.config else {}
+    flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed,
+             "init_from": args.init_from}
+    fields |= {k: v for k, v in flags.items() if v is not None}
+    if args.no_stop:
+        fields["stop_at_convergence"] = False
+    if args.variant is not None:
+        fields["actor"] = {**fields.get("actor", {}), "variant": args.variant}
+    if fields.get("actor", {}).get("variant") == "mlp":
+        fields.setdefault("critic", {"variant": "mlp"})
+    fields.setdefault("total_episodes", 2000)
+    if isinstance(fields.get("reward_weights"), dict):   # a few weights change the training reward
+        fields["reward_weights"] = {**TRAINING_REWARD, **fields["reward_weights"]}
+    return MAPPOConfig.from_dict(fields)
+
+
 def run(args) -> int:
     if args.resume and args.out is None:
-        print("error: --resume needs --out, the folder of the run to continue")
+        print("error: --resume needs --out, the folder of the run to continue", file=sys.stderr)
         return 2
-    out = args.out or Path("runs") / time.strftime(f"train-{args.scenario}-%Y%m%d-%H%M%S")
     try:
-        fields = json.loads(args.config) if args.config else {}
-        if not isinstance(fields, dict):
-            raise ValueError("--config must be a JSON object")
-        fields["actor"] = {"variant": args.variant, **fields.get("actor", {})}
-        if args.variant == "mlp":
-            fields.setdefault("critic", {"variant": "mlp"})
-        config = MAPPOConfig.from_dict({"scenario": args.scenario, "total_episodes": args.episodes,
-                                        "seed": args.seed, "init_from": args.init_from,
-                                        "stop_at_convergence": not args.no_stop, **fields})
-    except (ValueError, TrainConfigError, PolicyConfigError, ScenarioError) as exc:
-        print(f"error: {exc}")
+        config = resolve_config(args)
+    except (ConfigFileError, TrainConfigError, PolicyConfigError, ScenarioError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.print_config:
+        print(json.dumps(config.to_dict(), indent=2))
+        return 0
+    out = args.out or Path("runs") / time.strftime(f"train-{config.scenario_name}-%Y%m%d-%H%M%S")
     result = train(config, out, resume=args.resume)
     conv = result.converged_episode
     print(f"run folder: {out}")

@@ -29,6 +29,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from sim.provenance import provenance
 from stack.demo.state import STAGES, StageBook, write_atomic, write_json
 
 METRICS_FORMAT = "formation-stack/demo-metrics"
@@ -62,6 +63,7 @@ def build_metrics(book: StageBook, *, complete: bool = False) -> dict[str, Any]:
         "train": {}, "paper": PAPER,
         "environment": {"python": platform.python_version(), "torch": torch.__version__,
                         "cpus": os.cpu_count(), "machine": platform.machine()},
+        "provenance": provenance(),
     }
     for robots in ("3", "5"):
         if book.done(f"train-{robots}"):

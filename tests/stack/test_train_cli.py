@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from stack.cli import main
 
 TINY = '{"num_envs": 4, "rollout_steps": 16, "eval_episodes": 4, "eval_interval": 8, "progress": false}'
@@ -21,9 +23,10 @@ def test_train_writes_a_resumable_run(tmp_path):
 
 def test_train_rejects_unknown_fields_and_resume_without_out(tmp_path, capsys):
     assert main(["train", "--config", '{"lrr": 1}', "--out", str(tmp_path / "x")]) == 2
-    assert "unknown config field(s) ['lrr']" in capsys.readouterr().out
+    assert "unknown config field(s) ['lrr']" in capsys.readouterr().err
     assert main(["train", "--resume"]) == 2
-    assert "--resume needs --out" in capsys.readouterr().out
+    assert "--resume needs --out" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_train_mlp_baseline(tmp_path):
@@ -31,3 +34,39 @@ def test_train_mlp_baseline(tmp_path):
     assert main(["train", "--scenario", "paper-3", "--variant", "mlp", "--episodes", "4",
                  "--out", str(out), "--config", TINY]) == 0
     assert json.loads((out / "config.json").read_text())["actor"]["variant"] == "mlp"
+
+
+def test_a_toml_file_flags_and_print_config_resolve_in_order(tmp_path, capsys):
+    """Defaults < --config file < flags given; the printed configuration is itself a config file."""
+    config = tmp_path / "run.toml"
+    config.write_text('scenario = "paper-4"\nseed = 7\nlr = 5e-4\n[actor]\nembed_dim = 32\n'
+                      "[reward_weights]\nw_arrive = 2.0\n")
+    assert main(["train", "--config", str(config), "--seed", "3", "--print-config"]) == 0
+    printed = capsys.readouterr().out
+    resolved = json.loads(printed)
+    assert (resolved["scenario"], resolved["seed"], resolved["lr"]) == ("paper-4", 3, 5e-4)
+    assert resolved["actor"]["embed_dim"] == 32 and resolved["actor"]["num_heads"] == 4
+    assert resolved["reward_weights"]["w_arrive"] == 2.0
+    assert resolved["reward_weights"]["assignment_power"] == 2.0   # the training reward's, kept
+    again = tmp_path / "resolved.json"
+    again.write_text(printed)
+    assert main(["train", "--config", str(again), "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out) == resolved
+
+
+@pytest.mark.parametrize("text, message", [
+    ("lr = [", "not valid TOML"),
+    ("[actor]\nembed_dimm = 3\n", "embed_dimm"),
+    ("[reward_weights]\nw_team = 1.0\n", "w_team"),
+])
+def test_a_bad_config_file_names_the_problem(tmp_path, capsys, text, message):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    assert main(["train", "--config", str(config), "--print-config"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.startswith("error:")
+
+
+def test_config_that_is_neither_file_nor_json_is_refused(capsys):
+    assert main(["train", "--config", "no/such/file.toml", "--print-config"]) == 2
+    assert "neither a file nor inline JSON" in capsys.readouterr().err

@@ -1,4 +1,6 @@
 import json
+import subprocess
+from pathlib import Path
 
 import pytest
 import torch
@@ -48,10 +50,15 @@ def test_a_run_writes_config_logs_checkpoint_and_result(tmp_path):
     assert len((tmp_path / "train.csv").read_text().splitlines()) == 9
     evals = rows(tmp_path / "eval.jsonl")
     assert [e["episodes"] for e in evals] == [0, 4, 8]              # at start, then every batch
-    assert all(0.0 <= e["success_rate"] <= 1.0 for e in evals)
     saved = json.loads((tmp_path / "result.json").read_text())
     assert saved["episodes"] == 8 and saved["evaluations"]["episodes"] == [0, 4, 8]
-    assert not list(tmp_path.glob(".*tmp"))                          # atomic writes left nothing behind
+    assert not list(tmp_path.glob(".*.tmp*"))                        # atomic writes left nothing behind
+    run = json.loads((tmp_path / "run.json").read_text())             # where the result came from
+    head = subprocess.run(["git", "-C", str(Path(__file__).parent), "rev-parse", "HEAD"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    assert run["git"]["commit"] == head
+    assert run["packages"]["torch"] == torch.__version__ and run["torch_threads"] == torch.get_num_threads()
+    assert saved["provenance"] == run
 
     data = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert data["layout_version"] == LAYOUT_VERSION and data["num_robots"] == 3
