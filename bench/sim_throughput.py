@@ -1,8 +1,10 @@
 """Env-steps per second of the batched formation env against VMAS, measured in one run on the CPU.
 
 One call of ``step`` on E environments counts as E env-steps. For every robot count N and env count
-E the script times ``sim.batched_env.BatchedFormationEnv`` (scenario ``transport-N``) and the VMAS
-1.5.2 scenarios ``transport`` and ``navigation`` with ``n_agents = N`` and ``num_envs = E``.
+E the script times ``sim.batched_env.BatchedFormationEnv`` (scenario ``transport-N``; its default
+reward, ``formation``, and the trainer's, ``formation-training-reward``, which solves the
+robot-target assignment every step: enumeration for N <= 4, scipy above) and the VMAS 1.5.2
+scenarios ``transport`` and ``navigation`` with ``n_agents = N`` and ``num_envs = E``.
 
 Fairness (the same for every simulator):
 
@@ -55,6 +57,7 @@ from sim.batched_env import BatchedFormationEnv  # noqa: E402
 from sim.scenario import MAX_ROBOTS, transport_scenario  # noqa: E402
 
 FORMATION = "formation"
+FORMATION_TRAINING = "formation-training-reward"
 VMAS_SCENARIOS = {"vmas-transport": "transport", "vmas-navigation": "navigation"}
 REFERENCE = "vmas-transport"
 VMAS_VERSION = "1.5.2"
@@ -76,9 +79,15 @@ def import_vmas() -> Any:
     return vmas
 
 
-def formation_stepper(robots: int, envs: int, seed: int) -> Callable[[int], Any]:
-    """``step(k)``: one step of ``envs`` formation envs with the k-th (cycled) random action set."""
-    env = BatchedFormationEnv(transport_scenario(robots), envs, seed=seed)
+def formation_stepper(robots: int, envs: int, seed: int, training_reward: bool = False) -> Callable[[int], Any]:
+    """``step(k)``: one step of ``envs`` formation envs with the k-th (cycled) random action set;
+    ``training_reward``: the trainer's reward (``MAPPOConfig`` default), which solves the
+    robot-target assignment every step."""
+    from controllers.mappo.config import MAPPOConfig
+    from sim.reward import RewardWeights
+
+    weights = MAPPOConfig().build_reward_weights() if training_reward else RewardWeights()
+    env = BatchedFormationEnv(transport_scenario(robots), envs, seed=seed, reward_weights=weights)
     env.reset()
     gen = torch.Generator().manual_seed(seed)
     bank = [torch.rand(envs, robots, 2, generator=gen) * 2 - 1 for _ in range(ACTION_BANK)]
@@ -115,13 +124,14 @@ def run_benchmark(envs: Sequence[int], robots: Sequence[int], *, steps: int, rep
         if not 1 <= n <= MAX_ROBOTS:
             raise ValueError(f"--robots values must be in 1..{MAX_ROBOTS}, got {n}")
     vmas = import_vmas() if peer else None
-    sims = [FORMATION] + (list(VMAS_SCENARIOS) if peer else [])
+    sims = [FORMATION, FORMATION_TRAINING] + (list(VMAS_SCENARIOS) if peer else [])
     rows: list[dict[str, Any]] = []
     for n in robots:
         for e in envs:
             progress(f"  robots={n:<3} envs={e:<6} {', '.join(sims)} ...")
-            steppers = {FORMATION: formation_stepper(n, e, seed)}
-            for sim in sims[1:]:
+            steppers = {FORMATION: formation_stepper(n, e, seed),
+                        FORMATION_TRAINING: formation_stepper(n, e, seed, training_reward=True)}
+            for sim in sims[2:]:
                 steppers[sim] = vmas_stepper(vmas, VMAS_SCENARIOS[sim], n, e, seed)
             rates = median_rates(steppers, steps=steps, repeats=repeats, warmup=warmup,
                                  items_per_call=e)

@@ -6,8 +6,10 @@
   disc crosses a wall (centre closer than ``r`` to it). A tolerance ``eps`` (1e-6 m) keeps
   resting contact from counting.
 * Assignment (:func:`optimal_assignment`): the one-to-one matching of robots to targets that
-  minimises the sum of distances (Hungarian; solved exactly by enumeration for N <= 6,
-  batched in torch, and with scipy's ``linear_sum_assignment`` above).
+  minimises the sum of distances, solved exactly: by enumeration of the N! matchings, batched in
+  torch, for N <= 4, and with scipy's ``linear_sum_assignment`` (Jonker-Volgenant, O(N^3)) per
+  environment above, where it is the faster (1024 environments, one thread: N = 4 0.7 against
+  1.6 ms, N = 5 4.0 against 1.8 ms, N = 6 29 against 2.2 ms, N = 8 2.8 ms by scipy).
 * Success (:func:`episode_outcome`): under that assignment every robot is within
   ``target_tolerance`` of its target at the end *and* no collision happened in the episode.
 * Final distance: the mean assigned distance at the end (the paper's Figures 11-13).
@@ -25,7 +27,7 @@ import torch
 from sim.geometry import Frame, Polygon
 
 CONTACT_EPS = 1e-6
-_ENUMERATE_MAX_N = 6
+_ENUMERATE_MAX_N = 4
 
 
 @dataclass
@@ -71,28 +73,24 @@ def distance_matrix(pos: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return (dx * dx + dy * dy).sqrt()
 
 
-def optimal_assignment(cost: torch.Tensor) -> torch.Tensor:
+def optimal_assignment(cost: torch.Tensor, method: str = "auto") -> torch.Tensor:
     """Min-sum one-to-one assignment for a batch of square cost matrices.
 
     Args:
         cost: (B, N, N) cost[b, i, k] of giving robot i target k.
+        method: ``"enumerate"`` (all N! matchings, batched), ``"scipy"`` (per environment) or
+            ``"auto"``: enumeration for N <= 4, scipy above (module docstring).
 
     Returns:
         (B, N) long tensor: the target index of each robot.
     """
     if cost.dim() != 3 or cost.shape[-1] != cost.shape[-2]:
         raise ValueError(f"cost must have shape (B, N, N), got {tuple(cost.shape)}")
+    if method not in ("auto", "enumerate", "scipy"):
+        raise ValueError(f"method must be 'auto', 'enumerate' or 'scipy', got {method!r}")
     b, n, _ = cost.shape
-    if n <= _ENUMERATE_MAX_N:
-        perms = _permutations(n, str(cost.device))          # (P, N)
-        rows = torch.arange(n, device=cost.device)
-        chunk = max(1, 2_000_000 // (perms.shape[0] * n))
-        best = []
-        for start in range(0, b, chunk):
-            c = cost[start:start + chunk]                   # (b', N, N)
-            totals = c[:, rows, perms].sum(-1)              # (b', P)
-            best.append(perms[totals.argmin(-1)])
-        return torch.cat(best, 0) if best else torch.empty(0, n, dtype=torch.long, device=cost.device)
+    if method == "enumerate" or (method == "auto" and n <= _ENUMERATE_MAX_N):
+        return _enumerated(cost)
     from scipy.optimize import linear_sum_assignment
 
     out = np.empty((b, n), dtype=np.int64)
@@ -101,6 +99,19 @@ def optimal_assignment(cost: torch.Tensor) -> torch.Tensor:
         r, c = linear_sum_assignment(cost_np[i])
         out[i, r] = c
     return torch.from_numpy(out).to(cost.device)
+
+
+def _enumerated(cost: torch.Tensor) -> torch.Tensor:
+    b, n, _ = cost.shape
+    perms = _permutations(n, str(cost.device))          # (P, N)
+    rows = torch.arange(n, device=cost.device)
+    chunk = max(1, 2_000_000 // (perms.shape[0] * n))
+    best = []
+    for start in range(0, b, chunk):
+        c = cost[start:start + chunk]                   # (b', N, N)
+        totals = c[:, rows, perms].sum(-1)              # (b', P)
+        best.append(perms[totals.argmin(-1)])
+    return torch.cat(best, 0) if best else torch.empty(0, n, dtype=torch.long, device=cost.device)
 
 
 @dataclass

@@ -43,7 +43,8 @@ alike for what any of them did); ``near`` is a soft barrier that costs proximity
 so a learner is pushed off a collision course while the push is still a gradient, not a cliff.
 Nearest-target terms (``cover``, ``own``) have a local optimum where two robots share a target
 and a third waits between slots; the assignment term pulls every robot to a distinct target
-(exact enumeration of the N! assignments for N <= 6, :func:`sim.metrics.optimal_assignment`).
+(the exact min-sum assignment of :func:`sim.metrics.optimal_assignment`, by enumeration for N <= 4
+and scipy above).
 
 The detour distance keeps the gradient of ``cover`` pointing around the object instead of into
 it (with straight distances the shortest way to a target runs through the object, a local

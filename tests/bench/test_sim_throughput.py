@@ -41,7 +41,7 @@ def test_json_without_peer_has_exact_row_keys_and_clean_stdout(capsys):
     assert bench.main(TINY + ["--no-peer", "--json"]) == 0
     out, err = capsys.readouterr()
     doc = json.loads(out)           # stdout is one JSON document and nothing else
-    _check_rows(doc["rows"], ["formation"])
+    _check_rows(doc["rows"], ["formation", "formation-training-reward"])
     assert doc["torch_threads"] == 1
     assert doc["vmas"] is None
     assert "formation" in err       # progress went to stderr
@@ -51,7 +51,7 @@ def test_json_with_vmas_measures_both_scenarios(capsys):
     pytest.importorskip("vmas")
     assert bench.main(TINY + ["--json", "--threads", "1"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    _check_rows(doc["rows"], ["formation", "vmas-transport", "vmas-navigation"])
+    _check_rows(doc["rows"], ["formation", "formation-training-reward", "vmas-transport", "vmas-navigation"])
     assert doc["vmas"] == "1.5.2"
 
 

@@ -43,13 +43,14 @@ def test_assignment_picks_the_optimum_not_the_greedy_choice():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(1, 6), st.integers(0, 2**31 - 1))
-def test_enumeration_matches_brute_force_and_scipy(n, seed):
+@given(st.integers(1, 6), st.integers(0, 2**31 - 1), st.sampled_from(["auto", "enumerate", "scipy"]))
+def test_every_solver_matches_brute_force_and_scipy(n, seed, method):
     from scipy.optimize import linear_sum_assignment
 
     cost = torch.rand(3, n, n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
-    got = optimal_assignment(cost)
+    got = optimal_assignment(cost, method)
     for b in range(3):
+        assert sorted(got[b].tolist()) == list(range(n))
         best = min(itertools.permutations(range(n)), key=lambda p: sum(cost[b, i, p[i]] for i in range(n)))
         got_cost = cost[b, torch.arange(n), got[b]].sum()
         assert got_cost == pytest.approx(sum(cost[b, i, best[i]] for i in range(n)))
@@ -66,6 +67,8 @@ def test_large_n_uses_scipy_and_is_a_permutation():
 def test_assignment_shape_error():
     with pytest.raises(ValueError, match=r"shape \(B, N, N\)"):
         optimal_assignment(torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="method"):
+        optimal_assignment(torch.zeros(1, 2, 2), "greedy")
 
 
 def test_success_and_final_distance_by_hand():
