@@ -38,6 +38,7 @@ from deploy.transport import TransportConfig
 from deploy.wire import RobotRegistry
 from sim.fleet import FleetState
 from sim.scenario import Scenario, make_scenario
+from stack.commands import argtypes
 from stack.commands.latency_args import add_command_delay_arg, latency_config
 
 
@@ -77,8 +78,7 @@ def register(sub) -> None:
                    help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--no-safety", action="store_true", help="skip the safety filter")
-    p.add_argument("--no-mec", action="store_true", help="skip the model error compensator")
+    argtypes.add_stage_flags(p, True)
     add_command_delay_arg(p)
     p.add_argument("--ttl-ms", type=int, default=d.ttl_ms, metavar="MS",
                    help="command validity [ms] (default %(default)s)")
@@ -206,7 +206,7 @@ def run(args) -> int:
     torch.set_num_threads(1)
     try:
         scenario = make_scenario(args.scenario)
-        stack = build_stack(scenario, args.policy, not args.no_safety, not args.no_mec,
+        stack = build_stack(scenario, args.policy, args.safety, args.mec,
                             latency_config(args))
         recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)

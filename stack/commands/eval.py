@@ -34,14 +34,6 @@ class EvalArgumentError(ValueError):
     """A bad command-line value; the message names the flag and the fix."""
 
 
-def on_off(text: str) -> bool:
-    if text not in ("on", "off"):
-        import argparse
-
-        raise argparse.ArgumentTypeError(f"expected 'on' or 'off', got {text!r}")
-    return text == "on"
-
-
 def register(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a checkpoint, an exported policy or the scripted controller",
                        description=__doc__)
@@ -55,10 +47,7 @@ def register(sub) -> None:
     p.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the first episode (default 0)")
     p.add_argument("--steps", type=int, default=None, help="ticks per episode (default: the scenario's)")
-    p.add_argument("--safety", type=on_off, default=None, metavar="on|off",
-                   help="safety filter in the pymunk world (default on)")
-    p.add_argument("--mec", type=on_off, default=None, metavar="on|off",
-                   help="model error compensator in the pymunk world (default on)")
+    argtypes.add_stage_flags(p, None, " in the pymunk world")
     p.add_argument("--model-error", default=None, metavar="K=V,...",
                    help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)

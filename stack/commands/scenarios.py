@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 from sim.scenario import PRESETS, ScenarioError, make_scenario
 
@@ -20,7 +21,7 @@ def run(args) -> int:
         try:
             print(json.dumps(make_scenario(args.show).to_dict(), indent=2))
         except ScenarioError as exc:
-            print(f"error: {exc}")
+            print(f"error: {exc}", file=sys.stderr)
             return 2
         return 0
     width = max(map(len, PRESETS))

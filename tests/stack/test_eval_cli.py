@@ -57,13 +57,13 @@ def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
     actor = build_actor(ActorConfig(embed_dim=16, num_heads=2), 3).eval()
     path = export_policy(actor, tmp_path / "policy", dt=0.05, trained_robots=3, formats=("onnx",))[0].path
     out = tmp_path / "b.json"
-    rc = main(["eval", str(path), "--episodes", "3", "--mec", "off", "--json", str(out)])
+    rc = main(["eval", str(path), "--episodes", "3", "--no-mec", "--json", str(out)])
     assert rc == 0
     data = json.loads(out.read_text())
     assert data["world"] == "batched" and data["episodes"] == 3 and not data["safety"]
     assert data["notes"] and "--mec ignored" in data["notes"][0]
     assert "--mec ignored" in capsys.readouterr().err
-    rc = main(["eval", str(path), "--world", "pymunk", "--episodes", "1", "--steps", "5", "--safety", "off"])
+    rc = main(["eval", str(path), "--world", "pymunk", "--episodes", "1", "--steps", "5", "--no-safety"])
     assert rc == 0
     bare = tmp_path / "bare.pt"                 # TorchScript without the export's metadata: refused
     torch.jit.save(torch.jit.script(actor), str(bare))

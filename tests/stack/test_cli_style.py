@@ -1,0 +1,24 @@
+"""One flag style across commands: the same spelling for the same switch, errors on stderr."""
+
+from __future__ import annotations
+
+import pytest
+
+from stack.cli import main
+
+
+@pytest.mark.parametrize("command", ["eval", "bridge"])
+def test_stage_switches_are_spelled_alike(command, capsys):
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    assert "--safety, --no-safety" in text and "--mec, --no-mec" in text
+    assert "on|off" not in text
+
+
+@pytest.mark.parametrize("argv", [["scenarios", "--show", "paper-99"], ["train", "--config", "{bad"]])
+def test_errors_go_to_stderr(argv, capsys):
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("error:")
