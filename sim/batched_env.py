@@ -56,6 +56,9 @@ class StepResult:
     reward: (E, N) reward of this step.
     done: (E,) bool, the episode ended with this step (the env has already been reset).
     finished: outcomes of the finished environments (empty when none finished).
+    final_obs, final_mask: when some environment finished, the observation of the state this
+        step ended in, before the reset (rows of the ``done`` environments are the ones that
+        differ from ``obs``): what a time-limit bootstrap needs; None otherwise.
     """
 
     obs: torch.Tensor
@@ -63,6 +66,8 @@ class StepResult:
     reward: torch.Tensor
     done: torch.Tensor
     finished: EpisodeStats
+    final_obs: torch.Tensor | None = None
+    final_mask: torch.Tensor | None = None
 
 
 class BatchedFormationEnv:
@@ -221,15 +226,21 @@ class BatchedFormationEnv:
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1
+        final_obs = final_mask = None
         if self._t_max >= self.episode_steps:   # some env may be done: look (one host sync)
             done = self.t >= self.episode_steps
+            self._frame = frame
+            final_obs, final_mask = self.observe()
             finished = self._finish(done)
             self._t_max = int(self.t.max())
         else:
             done, finished = self._not_done, self._none_finished
         self._frame = frame if len(finished) == 0 else None
         obs, mask = self.observe()
-        return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished)
+        if len(finished) == 0:
+            final_obs = final_mask = None
+        return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished,
+                          final_obs=final_obs, final_mask=final_mask)
 
     def _sticky_assignment(self, path: torch.Tensor) -> torch.Tensor:
         """(E, N) assignment kept from the last step unless the optimal one for the (E, N, N)

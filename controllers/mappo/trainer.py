@@ -187,6 +187,7 @@ class MAPPOTrainer:
         actions = self.obs.new_empty((s, e, n, 2))
         log_probs, values, rewards = (self.obs.new_empty((s, e, n)) for _ in range(3))
         dones = torch.zeros(s, e, dtype=torch.bool, device=self.device)
+        final_values = torch.zeros_like(values) if cfg.bootstrap_from == "final" else values
         finished = []
         with torch.no_grad():
             log_std = self.actor.log_std
@@ -205,11 +206,13 @@ class MAPPOTrainer:
                 self.obs, self.mask = step.obs, step.mask
                 if len(step.finished):
                     finished.append(step.finished)
+                    if step.final_obs is not None and cfg.bootstrap_from == "final":
+                        final_values[t] = self.value_norm.denormalize(self.critic(step.final_obs, step.final_mask))
             next_values = self.value_norm.denormalize(self.critic(self.obs, self.mask))
         # Episodes end only by the time limit, which the observation does not show: bootstrap
-        # the final step from the value of its own observation (one step before the end).
+        # the final step from V of its own observation ("last") or of the state it ended in ("final")
         advantages, returns = compute_gae(rewards, values, dones, next_values, cfg.gamma, cfg.gae_lambda,
-                                          truncation_values=values if cfg.bootstrap_time_limit else None)
+                                          truncation_values=final_values if cfg.bootstrap_time_limit else None)
         self.value_norm.update(returns)
         stats = self._update(obs_buf, mask_buf, actions, log_probs, advantages,
                              self.value_norm.normalize(returns), self.value_norm.normalize(values))

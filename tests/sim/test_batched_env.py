@@ -89,6 +89,27 @@ def test_episode_end_reports_success_and_resets():
     assert (env.pos - torch.as_tensor(SC.starts)).abs().max() <= SC.start_jitter + 1e-12
 
 
+def test_the_final_observation_is_the_state_the_episode_ended_in():
+    """A time-limit bootstrap needs V(o_{t+1}) of the ended episode: the step reports those
+    tokens before the reset (a robot sitting on its target: its own target token is zero)."""
+    env = _env(e=2)
+    _place(env, env.targets[0])
+    env.t[:] = SC.dynamics.episode_steps - 2
+    env._t_max = int(env.t.max())
+    early = env.step(torch.zeros(2, 3, 2))
+    assert early.final_obs is None and early.final_mask is None      # nobody finished
+    ended_at = env.pos.clone()
+    last = env.step(torch.zeros(2, 3, 2))
+    assert last.done.tolist() == [True, True]
+    from sim.observations import tokens
+
+    want, want_mask = tokens(ended_at, torch.zeros_like(ended_at), env.targets, env.polygon, env.arena)
+    torch.testing.assert_close(last.final_obs, want.to(last.final_obs.dtype))
+    assert torch.equal(last.final_mask, want_mask)
+    assert float(last.final_obs[:, :, 1:4, :2].abs().min()) == 0.0   # on a target at the end
+    assert float((last.obs - last.final_obs).abs().max()) > 0.05      # obs: the new episode
+
+
 def test_collision_during_the_episode_fails_it():
     env = _env()
     tg = env.targets[0]
