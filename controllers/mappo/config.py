@@ -112,6 +112,8 @@ class MAPPOConfig:
         device: torch device.
         torch_threads: ``torch.set_num_threads`` for the run (0 leaves it alone; 1 is fastest
             for these small networks and robust on a busy machine).
+        tensorboard: also write the train and eval rows as TensorBoard scalars to
+            ``<run_dir>/tensorboard`` (``torch.utils.tensorboard``; needs the tensorboard package).
         progress: show a tqdm progress bar.
     """
 
@@ -152,6 +154,7 @@ class MAPPOConfig:
     init_keep: float = 0.5
     device: str = "cpu"
     torch_threads: int = 1
+    tensorboard: bool = False
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -278,4 +281,4 @@ def _jsonable(value: Any) -> Any:
 # Fields that may differ when a run is resumed: they change how long or how visibly it runs,
 # never what it computes.
 RESUMABLE_CHANGES = ("total_episodes", "progress", "checkpoint_interval", "stop_at_convergence",
-                     "torch_threads")
+                     "torch_threads", "tensorboard")

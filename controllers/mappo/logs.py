@@ -70,3 +70,28 @@ class MetricsLog:
         for r in rows:
             writer.writerow(["" if r[k] is None else r[k] for k in self.columns])
         atomic_write_text(self.csv, buffer.getvalue())
+
+
+class TensorBoardLog:
+    """The numeric fields of train and eval rows as TensorBoard scalars (``tag = "<group>/<key>"``,
+    step = training episodes), in ``<run_dir>/tensorboard``; closed by :meth:`close`."""
+
+    def __init__(self, run_dir: str | Path):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError as exc:      # torch imports tensorboard lazily
+            raise RuntimeError("tensorboard=True needs the tensorboard package: "
+                               "`pip install tensorboard`") from exc
+        self.writer = SummaryWriter(log_dir=str(Path(run_dir) / "tensorboard"))
+
+    def add(self, group: str, row: dict[str, Any]) -> None:
+        step = int(row["episodes"])
+        for key, value in row.items():
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                continue
+            self.writer.add_scalar(f"{group}/{key}", value, step)
+
+    def close(self) -> None:
+        self.writer.flush()
+        self.writer.close()
+

@@ -50,7 +50,7 @@ from controllers.mappo.evaluate import (
     evaluation_due,
     write_json_atomic,
 )
-from controllers.mappo.logs import MetricsLog
+from controllers.mappo.logs import MetricsLog, TensorBoardLog
 from controllers.mappo.losses import (
     ValueNormalizer,
     clipped_surrogate_loss,
@@ -127,6 +127,7 @@ class MAPPOTrainer:
         self.last_eval: dict | None = None
         self.train_log = MetricsLog(self.run_dir, "train")
         self.eval_log = MetricsLog(self.run_dir, "eval")
+        self.scalars = TensorBoardLog(self.run_dir) if cfg.tensorboard else None
         if resume:
             self._resume()
         elif self.train_log.read() or (self.run_dir / CHECKPOINT_NAME).exists():
@@ -159,6 +160,8 @@ class MAPPOTrainer:
                                 refresh=False)
         finally:
             bar.close()
+            if self.scalars is not None:
+                self.scalars.close()
         self.save()
         result = TrainResult(run_dir=str(self.run_dir), converged_episode=self.tracker.converged_episode,
                              episodes=self.episodes, iterations=self.iteration, env_steps=self.env_steps,
@@ -235,6 +238,8 @@ class MAPPOTrainer:
                "lr": self.actor_optimizer.param_groups[0]["lr"], "penalty_scale": self.env.penalty_scale,
                **stats}
         self.train_log.append(row)
+        if self.scalars is not None:
+            self.scalars.add("train", row)
         return row
 
     def _update(self, obs, mask, actions, old_log_probs, advantages, returns_n, old_values_n) -> dict:
@@ -322,6 +327,8 @@ class MAPPOTrainer:
                           "wall_collisions": result.wall_collisions, "collision_rate": result.collision_rate,
                           "eval_seed": result.seed, "converged_episode": converged}
         self.eval_log.append(self.last_eval)
+        if self.scalars is not None:
+            self.scalars.add("eval", self.last_eval)
 
     # ------------------------------------------------------------ checkpoints
     def save(self, path: str | Path | None = None) -> Path:

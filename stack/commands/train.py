@@ -44,6 +44,8 @@ def register(sub) -> None:
     p.add_argument("--init-from", metavar="CKPT", help="start from an M-robot checkpoint (transfer)")
     p.add_argument("--config", metavar="FILE_OR_JSON",
                    help="MAPPOConfig fields: a .json/.toml file or inline JSON, e.g. '{\"lr\": 5e-4}'")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also write TensorBoard scalars to <out>/tensorboard (tensorboard --logdir <out>)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration (a valid --config file) and exit")
     p.add_argument("--out", type=Path, help="run folder (default runs/train-<scenario>-<timestamp>)")
@@ -60,6 +62,8 @@ def resolve_config(args) -> MAPPOConfig:
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
         fields["stop_at_convergence"] = False
+    if args.tensorboard:
+        fields["tensorboard"] = True
     if args.variant is not None:
         fields["actor"] = {**fields.get("actor", {}), "variant": args.variant}
     if fields.get("actor", {}).get("variant") == "mlp":

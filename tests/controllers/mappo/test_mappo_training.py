@@ -273,3 +273,18 @@ def test_reward_weight_overrides_reach_the_training_world(tmp_path):
     assert silent._iteration()["reward_mean"] == 0.0         # every term weighted by zero
     plain = MAPPOTrainer(tiny(), tmp_path / "plain")
     assert plain._iteration()["reward_mean"] < -0.1           # the robots start ~0.34 m from the targets
+
+
+def test_tensorboard_scalars_hold_the_logged_rows(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    train(tiny(tensorboard=True), tmp_path)
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    evals = rows(tmp_path / "eval.jsonl")
+    logged = [(e.step, e.value) for e in events.Scalars("eval/success_rate")]
+    assert logged == [(e["episodes"], pytest.approx(e["success_rate"])) for e in evals]
+    train_rows = rows(tmp_path / "train.jsonl")
+    rewards = [e.value for e in events.Scalars("train/reward_mean")]
+    assert rewards == pytest.approx([r["reward_mean"] for r in train_rows], rel=1e-6)
+    assert "train/return_mean" in events.Tags()["scalars"]       # None rows are skipped, others kept
