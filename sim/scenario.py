@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -316,8 +317,29 @@ PRESETS: dict[str, str] = {
 }
 
 
+def load_scenario_file(path: str | Path) -> Scenario:
+    """A scenario from a .json or .toml file holding :meth:`Scenario.to_dict` (what
+    ``formation scenarios --show NAME`` prints); errors name the file and the field."""
+    from sim.files import ConfigFileError, read_config
+
+    try:
+        data = read_config(path, f"scenario file {str(path)!r}")
+    except ConfigFileError as exc:
+        raise ScenarioError(str(exc)) from None
+    try:
+        return Scenario.from_dict(data)
+    except TypeError as exc:        # a required field missing: the dataclass names it
+        raise ScenarioError(f"scenario file {str(path)!r}: {exc}; start from "
+                            "`formation scenarios --show paper-3`") from None
+    except ScenarioError as exc:
+        raise ScenarioError(f"scenario file {str(path)!r}: {exc}") from None
+
+
 def make_scenario(name: str) -> Scenario:
-    """Build a preset by name (see :data:`PRESETS`), or ``transport-N`` for any N."""
+    """Build a preset by name (see :data:`PRESETS`), ``transport-N`` for any N, or the scenario of
+    a .json/.toml file (:func:`load_scenario_file`)."""
+    if name.endswith((".json", ".toml")) or Path(name).is_file():
+        return load_scenario_file(name)
     if name.startswith("paper-") and name[6:].isdigit() and name in PRESETS:
         return transport_scenario(int(name[6:]), name=name)
     if name == "line-1":
@@ -326,4 +348,5 @@ def make_scenario(name: str) -> Scenario:
         return transport_scenario(16, name=name)
     if name.startswith("transport-") and name[10:].isdigit():
         return transport_scenario(int(name[10:]))
-    raise ScenarioError(f"unknown scenario {name!r}; choose one of {sorted(PRESETS)} or transport-N (N = 1..{MAX_ROBOTS})")
+    raise ScenarioError(f"unknown scenario {name!r}; choose one of {sorted(PRESETS)}, transport-N "
+                        f"(N = 1..{MAX_ROBOTS}) or a .json/.toml scenario file")

@@ -162,6 +162,8 @@ class MAPPOConfig:
             object.__setattr__(self, "actor", ActorConfig.from_dict(self.actor))
         if isinstance(self.critic, dict):
             object.__setattr__(self, "critic", CriticConfig.from_dict(self.critic))
+        if isinstance(self.scenario, str) and self.scenario.endswith((".json", ".toml")):
+            object.__setattr__(self, "scenario", self.build_scenario().to_dict())   # the file's content
         if isinstance(self.scenario, dict):   # stored in its JSON form, so resumes compare equal
             object.__setattr__(self, "scenario", _jsonable(self.build_scenario().to_dict()))
         self.validate()

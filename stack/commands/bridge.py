@@ -71,7 +71,7 @@ def register(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     d = BridgeConfig()
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
-    p.add_argument("--scenario", default="paper-5", help="scenario preset (default paper-5)")
+    p.add_argument("--scenario", default="paper-5", help="preset, transport-N or a .json/.toml scenario file (default paper-5)")
     p.add_argument("--policy", required=True,
                    help="exported policy (.pt, .pt2, .onnx), training checkpoint, or 'scripted'")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",

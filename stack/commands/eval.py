@@ -41,7 +41,7 @@ def register(sub) -> None:
                    help="a training checkpoint or an exported policy (.pt, .pt2, .onnx)")
     p.add_argument("--policy", choices=["scripted"], default=None,
                    help="evaluate a built-in controller instead of a file")
-    p.add_argument("--scenario", default="paper-3", help="scenario preset or transport-N (default paper-3)")
+    p.add_argument("--scenario", default="paper-3", help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
     p.add_argument("--world", choices=["batched", "pymunk"], default="batched",
                    help="batched: training world, no safety/MEC; pymunk: ControlStack with model error")
     p.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")

@@ -32,7 +32,7 @@ def register(sub) -> None:
                    help="legend label per RUN_DIR (default: the folder names)")
     p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/plots of the first run)")
     p.add_argument("--episodes", type=int, default=4, help="episodes in trajectories.png (default 4, at most 16)")
-    p.add_argument("--scenario", help="scenario for trajectories and attention (default: the run's own)")
+    p.add_argument("--scenario", help="preset, transport-N or scenario file for trajectories and attention (default: the run's own)")
     p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the start jitter (default 0)")
     p.add_argument("--step", type=int, default=0, help="episode step of the attention snapshot (default 0)")
     p.add_argument("--curves-only", action="store_true",

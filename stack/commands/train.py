@@ -35,7 +35,7 @@ from stack.commands import argtypes
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
                        description=__doc__)
-    p.add_argument("--scenario", default=None, help="preset or transport-N (default paper-3)")
+    p.add_argument("--scenario", default=None, help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
     p.add_argument("--episodes", type=argtypes.positive, default=None,
                    help="episode budget, total_episodes (default 2000)")
     p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")

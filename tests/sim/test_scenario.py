@@ -128,3 +128,35 @@ def test_numpy_step_matches_the_batched_world():
     p1, v1 = sc.dynamics.step_np(pos, vel, acc)
     assert np.allclose(p1, env.pos[0].numpy()) and np.allclose(v1, env.vel[0].numpy())
     assert np.allclose(clip_norm(np.array([[3.0, 4.0], [0.3, 0.4]]), 1.0), [[0.6, 0.8], [0.3, 0.4]])
+
+
+def test_a_scenario_file_round_trips_what_scenarios_show_prints(tmp_path):
+    import json
+
+    from sim.scenario import Scenario
+
+    preset = make_scenario("paper-4")
+    path = tmp_path / "layout.json"
+    path.write_text(json.dumps(preset.to_dict(), indent=2))
+    assert make_scenario(str(path)) == preset
+    toml = tmp_path / "layout.toml"
+    d = preset.to_dict() | {"name": "from-toml"}
+    lines = [f"{k} = {json.dumps(v)}" for k, v in d.items() if not isinstance(v, dict)]
+    lines += ["[dynamics]"] + [f"{k} = {json.dumps(v)}" for k, v in d["dynamics"].items()]
+    toml.write_text("\n".join(lines) + "\n")
+    from_toml = make_scenario(str(toml))
+    assert from_toml == Scenario.from_dict(d | {"name": "from-toml"})
+
+
+@pytest.mark.parametrize("content, message", [
+    ('{"name": "x"}', "missing"),
+    ('{"name": "x", "colour": 1}', "colour"),
+    ("[1, 2]", "mapping"),
+    ("{not json", "not valid JSON"),
+])
+def test_a_bad_scenario_file_names_the_file_and_field(tmp_path, content, message):
+    path = tmp_path / "bad.json"
+    path.write_text(content)
+    with pytest.raises(ScenarioError) as err:
+        make_scenario(str(path))
+    assert message in str(err.value) and "bad.json" in str(err.value)

@@ -117,3 +117,18 @@ def test_trained_checkpoint_runs_in_both_worlds(tmp_path):
         assert main(["eval", str(checkpoints[-1]), "--world", world, "--episodes", "2",
                      *(["--steps", "10"] if world == "pymunk" else []), "--json", str(out)]) == 0
         assert json.loads(out.read_text())["episodes"] == 2
+
+
+def test_a_scenario_file_runs_where_a_preset_does(tmp_path, capsys):
+    """What `formation scenarios --show` prints is a scenario file for eval and train."""
+    assert main(["scenarios", "--show", "paper-4"]) == 0
+    layout = json.loads(capsys.readouterr().out) | {"name": "my-layout"}
+    path = tmp_path / "layout.json"
+    path.write_text(json.dumps(layout))
+    out = tmp_path / "e.json"
+    assert main(["eval", "--policy", "scripted", "--scenario", str(path), "--episodes", "2", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["scenario"] == "my-layout" and doc["num_robots"] == 4
+    capsys.readouterr()
+    assert main(["train", "--scenario", str(path), "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out)["scenario"]["name"] == "my-layout"   # content, not path
