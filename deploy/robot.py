@@ -49,7 +49,8 @@ class Action(NamedTuple):
     valid: bool         # False: an input was not finite, accel is 0: brake
 
 
-def _hash_needle(digest: str) -> bytes:
+def hash_needle(digest: str) -> bytes:
+    """The bytes ``"content_sha256": "<digest>"`` as they stand in an ONNX file's metadata JSON."""
     return json.dumps({HASH_FIELD: digest})[1:-1].encode()
 
 
@@ -65,10 +66,10 @@ def onnx_content_ok(data: bytes, meta: dict) -> bool:
     digest = meta.get(HASH_FIELD)
     if not isinstance(digest, str) or len(digest) != 64:
         return False
-    needle = _hash_needle(digest)
+    needle = hash_needle(digest)
     if data.count(needle) != 1:
         return False
-    return hashlib.sha256(data.replace(needle, _hash_needle(PLACEHOLDER))).hexdigest() == digest
+    return hashlib.sha256(data.replace(needle, hash_needle(PLACEHOLDER))).hexdigest() == digest
 
 
 def polygon_centroid(poly: np.ndarray) -> np.ndarray:
@@ -213,4 +214,4 @@ class RobotPolicy:
         return Action(accel[0], bool(valid[0]))
 
 
-__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "onnx_content_ok", "open_onnx", "robot_tokens"]
+__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "onnx_content_ok", "open_onnx", "robot_tokens"]

@@ -39,7 +39,14 @@ from deploy.export.contract import (
     archive_digest,
     check_meta,
 )
-from deploy.robot import META_KEY, PLACEHOLDER, RobotPolicyError, onnx_meta_json, open_onnx
+from deploy.robot import (
+    META_KEY,
+    PLACEHOLDER,
+    RobotPolicyError,
+    hash_needle,
+    onnx_meta_json,
+    open_onnx,
+)
 
 META_FILE = "meta.json"
 Runner = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -91,6 +98,18 @@ def _torch_runner(module) -> Runner:
     return run
 
 
+def _load_archive(path: Path, what: str, load: Callable[[dict[str, str]], Any]) -> tuple[Any, dict[str, Any]]:
+    """``load(extra_files)`` of a zip-archive format, then its metadata and digest checked."""
+    extra = {META_FILE: ""}
+    try:
+        with quiet():
+            loaded = load(extra)
+    except Exception as err:
+        raise ExportError(f"{str(path)!r} is not a loadable {what} ({type(err).__name__}); "
+                          "export it again") from None
+    return loaded, _checked_torch_meta(path, extra[META_FILE])
+
+
 def _checked_torch_meta(path: Path, raw: str) -> dict[str, Any]:
     try:
         meta = json.loads(raw)
@@ -124,14 +143,8 @@ class TorchScriptFormat:
 
     @staticmethod
     def load(path: Path) -> tuple[Runner, dict[str, Any]]:
-        extra = {META_FILE: ""}
-        try:
-            with quiet():
-                module = torch.jit.load(str(path), map_location="cpu", _extra_files=extra)
-        except Exception as err:
-            raise ExportError(f"{str(path)!r} is not a loadable TorchScript file ({type(err).__name__}); "
-                              "export it again") from None
-        meta = _checked_torch_meta(path, extra[META_FILE])
+        module, meta = _load_archive(path, "TorchScript file", lambda extra: torch.jit.load(
+            str(path), map_location="cpu", _extra_files=extra))
         return _torch_runner(module.eval()), meta
 
 
@@ -149,14 +162,8 @@ class Pt2Format:
 
     @staticmethod
     def load(path: Path) -> tuple[Runner, dict[str, Any]]:
-        extra = {META_FILE: ""}
-        try:
-            with quiet():
-                program = torch.export.load(str(path), extra_files=extra)
-        except Exception as err:
-            raise ExportError(f"{str(path)!r} is not a loadable torch.export archive "
-                              f"({type(err).__name__}); export it again") from None
-        meta = _checked_torch_meta(path, extra[META_FILE])
+        program, meta = _load_archive(path, "torch.export archive", lambda extra: torch.export.load(
+            str(path), extra_files=extra))
         return _torch_runner(program.module()), meta
 
 
@@ -177,10 +184,10 @@ class OnnxFormat:
         entry.key, entry.value = META_KEY, onnx_meta_json(meta | {HASH_FIELD: PLACEHOLDER})
         data = onnx._serialize(proto) if hasattr(onnx, "_serialize") else proto.SerializeToString()
         digest = hashlib.sha256(data).hexdigest()
-        needle = json.dumps({HASH_FIELD: PLACEHOLDER})[1:-1].encode()
+        needle = hash_needle(PLACEHOLDER)
         if data.count(needle) != 1:
             raise ExportError("the ONNX file holds its digest placeholder more than once; cannot sign it")
-        path.write_bytes(data.replace(needle, json.dumps({HASH_FIELD: digest})[1:-1].encode()))
+        path.write_bytes(data.replace(needle, hash_needle(digest)))
 
     @staticmethod
     def load(path: Path) -> tuple[Runner, dict[str, Any]]:
