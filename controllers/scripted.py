@@ -11,7 +11,20 @@ Plan (made once, at the first call of an episode):
     ``clearance + j * gap`` beyond the object's edge, where ``gap`` is ``lane_spacing`` or less
     if the lanes must squeeze between the object and the wall;
   * waypoints: out to the lane beside the start, along the lane to above/below the target,
-    then onto the target. A robot advances to the next waypoint within ``switch_radius``.
+    then onto the target. A robot advances to the next waypoint within ``switch_radius``, or
+    within twice that once it is nearer the waypoint after (it has rounded the corner: a
+    neighbour parked by the corner can keep it from the waypoint itself).
+
+Swap rule (the formation is judged up to an assignment): the robots of one side leave their
+lanes for the targets' column in lane order, each passing the targets nearer its lane. A robot
+delayed on its way (a neighbour that went silent in its lane) would find one that came down
+before it parked on a target in its path, and neither could move. So robot i, once past its
+lane's start, swaps targets with a robot j on its final leg when j and j's target both lie on
+i's leg down the column (within ``2 r + swap_margin`` of the segment from i's column waypoint
+-- or i itself, on its final leg -- to i's target, strictly inside): j takes the farther target
+and moves on, i the nearer one behind it. After a swap neither lies on the other's leg, and
+without a late robot nobody does, so the planned assignment stands; robots not present (off
+the link) are never swapped.
 
 Control law per robot (m/s^2): ``a = kp * (w - p) - kd * v``, clipped to the acceleration limit,
 with the speed along the path capped by shrinking the position term.
@@ -29,10 +42,13 @@ class ScriptedController:
     """``controller(state) -> (N, 2)`` accelerations for one episode; ``reset()`` between episodes."""
 
     def __init__(self, scenario: Scenario, kp: float = 6.0, kd: float = 4.0, cruise_speed: float = 0.3,
-                 clearance: float = 0.07, lane_spacing: float = 0.125, switch_radius: float = 0.03):
+                 clearance: float = 0.07, lane_spacing: float = 0.125, switch_radius: float = 0.03,
+                 swap_margin: float = 0.02):
         self.scenario = scenario
         self.kp, self.kd, self.cruise = kp, kd, cruise_speed
         self.clearance, self.lane_spacing, self.switch_radius = clearance, lane_spacing, switch_radius
+        self.swap_margin = swap_margin
+        self.swaps = 0  # targets swapped by the swap rule over the controller's life
         self.reset()
 
     def reset(self) -> None:
@@ -65,15 +81,46 @@ class ScriptedController:
         self._waypoints = plans
         self._index = np.zeros(n, dtype=int)
 
-    def __call__(self, state: FleetState) -> np.ndarray:
+    def _reached(self, path: np.ndarray, k: int, p: np.ndarray) -> bool:
+        """Whether a robot at ``p`` is done with waypoint k of ``path`` (module docstring)."""
+        gap = np.linalg.norm(path[k] - p)
+        rounded = np.linalg.norm(path[k + 1] - p) < np.linalg.norm(path[k + 1] - path[k])
+        return gap < self.switch_radius or (rounded and gap < 2 * self.switch_radius)
+
+    def _on_leg(self, start: np.ndarray, end: np.ndarray, point: np.ndarray) -> bool:
+        """Whether ``point`` lies strictly inside segment start->end, within 2 r + margin of it."""
+        seg = end - start
+        length2 = float(seg @ seg)
+        if length2 <= 0.0:
+            return False
+        s = float((point - start) @ seg) / length2
+        lateral = float(np.linalg.norm(start + s * seg - point))
+        return 0.0 < s < 1.0 and lateral < 2 * self.scenario.robot_radius + self.swap_margin
+
+    def _swap_targets(self, pos: np.ndarray, present: np.ndarray) -> None:
+        """The swap rule of the module docstring."""
+        paths, last = self._waypoints, [len(p) - 1 for p in self._waypoints]
+        for i in np.flatnonzero(present & (self._index >= 1)):
+            leg_start = pos[i] if self._index[i] == last[i] else paths[i][last[i] - 1]
+            for j in np.flatnonzero(present & (self._index == last)):
+                t_i, t_j = paths[i][-1], paths[j][-1]
+                if j != i and self._on_leg(leg_start, t_i, pos[j]) and self._on_leg(leg_start, t_i, t_j):
+                    paths[i][-1], paths[j][-1] = t_j.copy(), t_i.copy()
+                    self.swaps += 1
+                    break
+
+    def __call__(self, state: FleetState, present: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) accelerations [m/s^2]; ``present`` (N,) bool: rows of robots on the link, the
+        others stand in for absent ones (default: all present)."""
         pos, vel = state.positions, state.velocities
         if self._waypoints is None or len(self._waypoints) != len(pos):
             self._plan(pos, state.targets)
+        self._swap_targets(pos, np.ones(len(pos), bool) if present is None else np.asarray(present, bool))
         acc = np.zeros_like(pos)
         limit = self.scenario.dynamics.accel_limit
         for i in range(len(pos)):
             path = self._waypoints[i]
-            while self._index[i] < len(path) - 1 and np.linalg.norm(path[self._index[i]] - pos[i]) < self.switch_radius:
+            while self._index[i] < len(path) - 1 and self._reached(path, self._index[i], pos[i]):
                 self._index[i] += 1
             err = path[self._index[i]] - pos[i]
             dist = np.linalg.norm(err)

@@ -60,6 +60,14 @@ without closing its links (:mod:`deploy.fleet_sim` with ``episodes``) publishes 
 t + 1 at its tick t, so the burst answered belongs to episode ``(max seq - 1) // T``. When that
 index changes, ``on_episode(k)`` runs before the controller (e.g. to reset its estimators);
 the count is in-band, so it stays right when a burst goes unanswered.
+
+Lock-step (``BridgeConfig.lockstep``, paired with ``fleet-sim --lockstep``): the simulated
+fleet waits for every answer, so wall time says nothing about the fleet's time; the bridge then
+runs on :class:`TickClock`, sim time that advances one ``period_s`` per answered burst (ROS's
+``use_sim_time``). Ages, silences, round trips and ``FleetState.time`` are counted in fleet
+ticks, the uplink takes no time, and a tick waits up to ``LOCKSTEP_GATHER_S`` for the whole
+burst. A lock-stepped run is then the same run however loaded the machine is; commands go out
+lossless (Zenoh congestion control BLOCK).
 """
 
 from __future__ import annotations
@@ -86,6 +94,27 @@ ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's sta
 DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
 MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
 NO_FLAGS = CmdFlags(0)
+LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
+
+
+class TickClock:
+    """Sim time of a lock-stepped fleet [ns]: ``period_s`` per :meth:`advance` (one answered
+    burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``."""
+
+    def __init__(self, period_s: float):
+        if not (math.isfinite(period_s) and period_s > 0):
+            raise ValueError(f"period_s must be a positive number of seconds, got {period_s!r}")
+        self.period_ns = round(period_s * 1e9)
+        self._ticks = 1
+        self._lock = threading.Lock()
+
+    def __call__(self) -> int:
+        with self._lock:
+            return self._ticks * self.period_ns
+
+    def advance(self) -> None:
+        with self._lock:
+            self._ticks += 1
 
 
 @dataclass(frozen=True)
@@ -94,9 +123,10 @@ class BridgeConfig:
     estop_after_s: silence [s] of one live robot that raises the fleet e-stop, and the gap that
     counts as a stall of the bridge itself; gather_s: how long a tick waits for the rest of a
     burst of states [s]; episode_ticks: ticks per fleet episode (module docstring), or None;
-    lossless: publish commands with congestion control BLOCK, for a lock-stepped fleet that
-    waits for every answer (``fleet-sim --lockstep``); the default DROP is for real time
-    (:mod:`deploy.transport`, Delivery); delay_percentile, delay_window: the command delay
+    lossless: publish commands with congestion control BLOCK, for a fleet that waits for every
+    answer; the default DROP is for real time (:mod:`deploy.transport`, Delivery); lockstep:
+    the fleet is lock-stepped (``fleet-sim --lockstep``): sim time of ``period_s`` per tick
+    (module docstring) and lossless; delay_percentile, delay_window: the command delay
     bound is this percentile of the last delay_window round trips."""
 
     ttl_ms: int = 150
@@ -105,6 +135,8 @@ class BridgeConfig:
     gather_s: float = 0.01
     episode_ticks: int | None = None
     lossless: bool = False
+    lockstep: bool = False
+    period_s: float = 0.05
     delay_percentile: float = 99.0
     delay_window: int = 256
 
@@ -112,6 +144,8 @@ class BridgeConfig:
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
                 self.episode_ticks, int) or self.episode_ticks < 1):
             raise ValueError(f"episode_ticks must be a positive integer or None, got {self.episode_ticks!r}")
+        if not (math.isfinite(self.period_s) and self.period_s > 0):
+            raise ValueError(f"period_s must be a positive number of seconds, got {self.period_s!r}")
         if not self.gather_s >= 0:
             raise ValueError(f"gather_s must be >= 0 seconds, got {self.gather_s!r}")
         if isinstance(self.ttl_ms, bool) or not isinstance(self.ttl_ms, int) \
@@ -285,7 +319,9 @@ class Bridge:
         self.targets = {r: np.asarray(targets[r], dtype=np.float64) for r in registry.names}
         self.object_pose = np.asarray(object_pose, dtype=np.float64)
         self.config = config
-        self.link = FleetLink(fleet, registry, transport, lossless=config.lossless)
+        self.clock = TickClock(config.period_s) if config.lockstep else None
+        self.link = FleetLink(fleet, registry, transport, clock_ns=self.clock or time.monotonic_ns,
+                              lossless=config.lossless or config.lockstep)
         self.stats = BridgeStats()
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
@@ -295,7 +331,7 @@ class Bridge:
         self._resume_ns = 0  # end of the last stall [ns]
         self._last_look_ns: int | None = None
         self._stop = threading.Event()
-        self._start = time.monotonic()
+        self._start_ns = self.link.clock_ns()
         self.on_episode = on_episode
         self.on_stall = on_stall
         self.episode: int | None = None  # fleet episode of the last burst answered
@@ -311,12 +347,14 @@ class Bridge:
         if not link.wait_for(lambda: any(self._unanswered(link.latest_states(), r)
                                          for r in link.alive_robots), timeout_s):
             return False
+        gather_s = LOCKSTEP_GATHER_S if self.clock else self.config.gather_s
         link.wait_for(lambda: all(self._unanswered(link.latest_states(), r)
-                                  for r in link.alive_robots), self.config.gather_s)
+                                  for r in link.alive_robots), gather_s)
         return True
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:
-        return max(0.0, now - rs.receive_time_ns + self.uplink.excess_ns(rs)) / 1e9
+        uplink_ns = 0 if self.clock else self.uplink.excess_ns(rs)
+        return max(0.0, now - rs.receive_time_ns + uplink_ns) / 1e9
 
     def stop(self) -> None:
         self._stop.set()
@@ -387,7 +425,7 @@ class Bridge:
                                   np.array([rs.msg.velocity for rs, _ in view.silent]),
                                   np.array([age for _, age in view.silent]))
         return FleetState(
-            time=time.monotonic() - self._start, step=self.stats.ticks,
+            time=(self.link.clock_ns() - self._start_ns) / 1e9, step=self.stats.ticks,
             positions=np.array([m.position for m in rows]),
             velocities=np.array([m.velocity for m in rows]),
             targets=np.array([self.targets[rs.robot] for rs in view.rows]),
@@ -448,6 +486,8 @@ class Bridge:
         state = self._fleet_state(view)
         controller_flags, commands, controller_s = self._run_controller(state)
         late_s = (self.link.clock_ns() - now) / 1e9  # the picture aged while the controller ran
+        if self.clock:
+            self.clock.advance()  # before the answers go out: the next burst is one tick later
         finite = np.isfinite(state.positions).all(1) & np.isfinite(state.velocities).all(1)
         sent_flags = []
         for i, rs in enumerate(view.rows):
@@ -485,6 +525,7 @@ class Bridge:
                 "controller_faults": s.controller_faults, "rearms": s.rearms, "estops": s.estops,
                 "robot_counts": s.robot_counts, "rejects": self.link.rejects.snapshot(),
                 "estop_engaged": self.link.estop_engaged, "lossless": self.link.lossless,
+                "lockstep": self.config.lockstep,
                 "silent_marks": s.silent_marks, "silent_counts": s.silent_counts,
                 "nonfinite_brakes": s.nonfinite_brakes, "unknown_brakes": s.unknown_brakes,
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,
@@ -502,5 +543,5 @@ class Bridge:
         self.close()
 
 
-__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "RoundTrips", "TickRecord",
-           "UplinkExcess", "row_flags"]
+__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "RoundTrips", "TickClock",
+           "TickRecord", "UplinkExcess", "row_flags"]

@@ -11,7 +11,7 @@ Pacing:
       holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
       then advance. Deterministic when the controller is. States are published lossless
       (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none;
-      run the controller lossless too (``bridge --lossless``).
+      run the controller lock-stepped too (``bridge --lockstep``: sim time, lossless).
 
 Episodes (``episodes=K``): the world is reset with seed ``seed + k`` at the start of episode
 k and runs the scenario's ``episode_steps`` ticks T; the run ends after K episodes. Global

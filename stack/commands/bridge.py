@@ -63,7 +63,9 @@ class ScriptedFleetController:
         self.velocities[[i for i in range(len(self.names)) if i not in rows]] = 0.0
         full = FleetState(state.time, state.step, self.positions, self.velocities,
                           self.targets, state.object_pose, self.names)
-        return self.inner(full)[rows]
+        present = np.zeros(len(self.names), bool)
+        present[rows] = True
+        return self.inner(full, present)[rows]
 
 
 def register(sub) -> None:
@@ -100,10 +102,13 @@ def register(sub) -> None:
     p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
                    help="the fleet resets every T ticks: reset the stack, report per episode")
     p.add_argument("--lossless", action="store_true",
-                   help="the fleet is lock-stepped (fleet-sim --lockstep) and waits for every "
-                        "command: send them with Zenoh congestion control BLOCK, never dropped "
-                        "(default DROP: right for real robots, where the next tick replaces a "
-                        "lost command)")
+                   help="the fleet waits for every command: send them with Zenoh congestion "
+                        "control BLOCK, never dropped (default DROP: right for real robots, "
+                        "where the next tick replaces a lost command)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="the fleet is lock-stepped (fleet-sim --lockstep): run on sim time, one "
+                        "scenario dt per answered burst, so ages, silences and delays count "
+                        "fleet ticks and a run repeats however busy the machine; implies --lossless")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.add_argument("--trace", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...], '
@@ -215,6 +220,7 @@ def run(args) -> int:
         config = BridgeConfig(ttl_ms=args.ttl_ms, stale_after_s=args.stale_after,
                               estop_after_s=args.estop_after, gather_s=args.gather,
                               episode_ticks=args.episode_ticks, lossless=args.lossless,
+                              lockstep=args.lockstep, period_s=scenario.dynamics.dt,
                               delay_percentile=args.delay_percentile,
                               delay_window=args.delay_window)
         c = scenario.object_center

@@ -10,7 +10,7 @@ ends after K episodes; each finished episode prints one JSON line on stdout
 holds every episode's record (positions, contacts, round trips).
 
 With --lockstep the robots' states are sent lossless (Zenoh congestion control BLOCK) and the
-world waits for every answer: start the bridge with --lossless too, or a command lost on a busy
+world waits for every answer: start the bridge with --lockstep too, or a command lost on a busy
 machine stalls the tick for --lockstep-timeout.
 
 See deploy/fleet_sim.py for the watchdog (brake, latch, re-arm) and lock-step rules.
@@ -49,7 +49,7 @@ def register(sub) -> None:
     pace.add_argument("--rate-hz", type=float, default=20.0, help="real-time tick rate")
     pace.add_argument("--lockstep", action="store_true",
                       help="advance when every command for the current states arrived "
-                           "(pair with bridge --lossless)")
+                           "(pair with bridge --lockstep)")
     p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
     p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     p.add_argument("--model-error", default=None, metavar="K=V,...", help=MODEL_ERROR_HELP)

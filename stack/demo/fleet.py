@@ -114,7 +114,7 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[s
     with (folder / "bridge.log").open("w") as bridge_log:
         bridge = children.spawn(
             cli + ["bridge", "--fleet", fleet, "--scenario", SCENARIO, "--policy", str(out / POLICY),
-                   "--connect", endpoint, "--episode-ticks", str(ticks), "--gather", "0.05", "--lossless",
+                   "--connect", endpoint, "--episode-ticks", str(ticks), "--lockstep",
                    "--report", str(folder / "bridge.json")],
             stdout=bridge_log, stderr=subprocess.STDOUT)
     finished: list[dict] = []

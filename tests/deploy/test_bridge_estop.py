@@ -3,6 +3,7 @@ per-robot e-stop, the stall rule, measured command delay, bad controllers."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -23,8 +24,9 @@ REGISTRY = RobotRegistry(ROBOTS)
 TARGETS = {"r0": np.array([0.2, 0.2]), "r1": np.array([0.8, 0.8])}
 
 
-@pytest.fixture
-def fleet():
+@contextlib.contextmanager
+def _fleet(config: BridgeConfig):
+    """A bridge on ``config`` and a RobotLink for each of ROBOTS, all linked."""
     port = free_tcp_port()
     seen: list = []
 
@@ -32,7 +34,6 @@ def fleet():
         seen.append(state)
         return np.tile([0.1, -0.2], (state.num_robots, 1))
 
-    config = BridgeConfig(ttl_ms=100, stale_after_s=0.2, estop_after_s=0.6)
     bridge = Bridge("bf", REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), controller,
                     targets=TARGETS, object_pose=np.zeros(3), config=config)
     robot_cfg = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
@@ -47,6 +48,12 @@ def fleet():
         for link in links:
             link.close()
         bridge.close()
+
+
+@pytest.fixture
+def fleet():
+    with _fleet(BridgeConfig(ttl_ms=100, stale_after_s=0.2, estop_after_s=0.6)) as parts:
+        yield parts
 
 
 def _tick(bridge, links, publishing):
@@ -301,3 +308,25 @@ def test_fleet_sim_reports_the_command_its_world_acted_on_not_the_latest_accepte
         acted = sim._acted_seqs(sim.world.step())
         if k > 2:
             assert acted.tolist() == [10 + k - 2] * 3
+
+
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_a_lockstep_bridge_counts_ages_in_fleet_ticks_not_wall_time(lockstep):
+    """Lock-step: a silent robot's age is the fleet ticks answered since its state (0.05 s
+    each), however long the machine took between them; on the wall clock it is the wait."""
+    config = BridgeConfig(stale_after_s=0.2, estop_after_s=0.9, lockstep=lockstep, period_s=0.05)
+    with _fleet(config) as (bridge, links, seen):
+        _tick(bridge, links, links)
+        links[1].close()   # r1 leaves after its state of this tick
+        assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+        for _ in range(3):
+            time.sleep(0.25)   # a slow machine: 0.75 s of wall time over three ticks
+            _tick(bridge, links, links[:1])
+        silent, state = seen[-1].silent, seen[-1]
+        assert silent.ids == ("r1",)
+        if lockstep:
+            assert silent.age_s[0] == pytest.approx(0.15, abs=1e-9)   # three ticks since
+            assert state.state_age_s[0] == 0.0 and state.time == pytest.approx(0.15, abs=1e-9)
+            assert bridge.summary()["lockstep"] and bridge.link.lossless
+        else:
+            assert silent.age_s[0] > 0.75

@@ -64,7 +64,7 @@ def run_pair(tmp_path: Path, sim_args: list[str], bridge_args: list[str],
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep",
                "--listen", endpoint, "--report", str(tmp_path / "sim.json"), *sim_args)
     bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--connect", endpoint,
-                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace", "--lossless",
+                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace", "--lockstep",
                   "--report", str(tmp_path / "bridge.json"), *bridge_args)
     try:
         if during is not None:
@@ -114,7 +114,7 @@ def test_scripted_controller_brings_five_robots_home_without_collision(tmp_path)
     assert sim["rejects"] == {} and bridge["rejects"] == {}
     assert bridge["robot_counts"] == [[0, 5]]
     assert bridge["estops"] == 0 and bridge["controller_faults"] == 0
-    assert sim["lossless"] and bridge["lossless"]   # lock-step: --lockstep and --lossless
+    assert sim["lossless"] and bridge["lossless"] and bridge["lockstep"]   # both lock-stepped
     assert proc.proc.returncode == 0  # SIGTERM: loop stopped, session closed, report written
     running = [t for t in sim["trace"] if t["modes"] == ["run"] * 5]
     assert len(running) >= 100  # commands arrived in lock-step nearly every tick
