@@ -172,6 +172,17 @@ def test_robots_leaving_and_rejoining_change_n_and_the_task_completes(tmp_path):
     assert_task_done(sim)
 
 
+def test_a_lockstep_run_with_a_silent_robot_repeats_exactly(tmp_path):
+    """Ages, silences and round trips count fleet ticks under --lockstep, so the same run gives
+    the same trace however busy the machine (on the wall clock it diverged after the leave)."""
+    runs = []
+    for k in range(2):
+        (tmp_path / str(k)).mkdir()
+        runs.append(run_pair(tmp_path / str(k), ["--ticks", "60", "--leave", "r4@20"], SCRIPTED)[0])
+    assert runs[0]["trace"][21]["modes"][4] == "offline"
+    assert runs[0]["trace"] == runs[1]["trace"]
+
+
 def test_a_robot_that_falls_silent_in_the_others_path_is_never_touched(tmp_path):
     sim, bridge, _ = run_pair(tmp_path, ["--ticks", "200", *SILENT_IN_THE_WAY], SCRIPTED)
     assert [n for _, n in bridge["robot_counts"]] == [5, 4]
