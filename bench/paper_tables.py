@@ -15,9 +15,10 @@ least every 50 training episodes; the first evaluation with success >= 0.9 whose
 also >= 0.9). A seed that does not converge within its budget counts as the budget, and
 ``converged_seeds`` says how many did. The paper's numbers are printed beside ours.
 
-Every run is a separate ``formation train`` process (one torch thread each, ``--jobs`` at a
-time) writing its usual folder under ``--out``; a finished run is reused when the table is
-produced again with the same settings, so an interrupted benchmark continues where it stopped.
+The runs are Ray Tune trials (:mod:`stack.sweep`, the engine of ``formation sweep``: one CPU
+and one torch thread each, ``--jobs`` CPUs), each writing its usual run folder under ``--out``;
+a finished run is reused when the table is produced again with the same settings, and an
+interrupted one continues from its checkpoint.
 
     python bench/paper_tables.py                       # 5 seeds, every setting
     python bench/paper_tables.py --seeds 2 --settings sdpa-3,transfer-3to5 --json
@@ -27,10 +28,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import statistics
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -40,6 +39,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._common import positive_int, print_json, print_table, progress  # noqa: E402
+from stack.sweep import TrialSpec, resolve_fields, run_trials  # noqa: E402
 
 PAPER_EPISODES = {"sdpa-3": 1200, "sdpa-4": 1500, "sdpa-5": 3200, "mlp-3": None,
                   "transfer-3to4": 650, "transfer-3to5": 850}
@@ -80,54 +80,31 @@ def run_dir(out: Path, name: str, seed: int) -> Path:
     return out / name / f"seed-{seed}"
 
 
-def train_one(out: Path, name: str, seed: int, budget: int, config: dict) -> dict:
-    """Train one (setting, seed) in its own process unless a finished run is there; its summary."""
+def trial(out: Path, name: str, seed: int, budget: int, config: dict) -> TrialSpec:
+    """The sweep trial of one (setting, seed): its resolved fields and run folder."""
     s = setting(name)
-    folder = run_dir(out, name, seed)
-    result_path = folder / "result.json"
-    fields = {**config, "progress": False, "torch_threads": 1}
-    cmd = [sys.executable, "-m", "stack.cli", "train", "--scenario", s.scenario, "--episodes", str(budget),
-           "--seed", str(seed), "--variant", s.variant, "--out", str(folder), "--config", json.dumps(fields)]
+    fields = {**config, "scenario": s.scenario, "total_episodes": budget,
+              "actor": {**config.get("actor", {}), "variant": s.variant}}
+    if s.variant == "mlp":
+        fields.setdefault("critic", {"variant": "mlp"})
     if s.transfer_from:
-        cmd += ["--init-from", str(run_dir(out, s.transfer_from, seed) / "checkpoint.pt")]
-    stamp = folder.parent / f"seed-{seed}.command.json"
-    if folder.exists() and (not stamp.exists() or json.loads(stamp.read_text()) != cmd[1:]):
-        shutil.rmtree(folder)     # made by another command (other settings): start afresh
-    if not _finished(folder, budget):
-        resume = (folder / "checkpoint.pt").exists()
-        if folder.exists() and not resume:
+        fields["init_from"] = str((run_dir(out, s.transfer_from, seed) / "checkpoint.pt").resolve())
+    return TrialSpec(name, seed, resolve_fields(fields, {}, seed), str(run_dir(out, name, seed).resolve()))
+
+
+def train_all(specs: list[TrialSpec], out: Path, cpus: int, phase: str) -> dict[tuple[str, int], dict]:
+    """Train ``specs`` as one Ray Tune sweep; a folder of another configuration (other settings,
+    budget or config) is this benchmark's cache: it starts afresh."""
+    for spec in specs:
+        folder = Path(spec.folder)
+        config = folder / "config.json"
+        if config.exists() and json.loads(config.read_text()) != json.loads(json.dumps(spec.fields)):
             shutil.rmtree(folder)
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        stamp.write_text(json.dumps(cmd[1:]))
-        log = folder.parent / f"seed-{seed}.log"
-        with log.open("w") as f:
-            proc = subprocess.run(cmd + (["--resume"] if resume else []), stdout=f, stderr=subprocess.STDOUT,
-                                  cwd=Path(__file__).resolve().parents[1],
-                                  env={**os.environ, "OMP_NUM_THREADS": "1"})
-        if proc.returncode != 0 or not result_path.exists():
-            raise RuntimeError(f"{name} seed {seed} failed (exit {proc.returncode}); see {log}")
-    return summarize(folder, budget)
-
-
-def _finished(folder: Path, budget: int) -> bool:
-    path = folder / "result.json"
-    if not path.exists():
-        return False
-    r = json.loads(path.read_text())
-    return r["converged_episode"] is not None or r["episodes"] >= budget
-
-
-def summarize(folder: Path, budget: int) -> dict:
-    """Episodes, env steps and wall-clock at convergence (the budget's if it never converged)."""
-    r = json.loads((folder / "result.json").read_text())
-    conv = r["converged_episode"]
-    evals = [json.loads(line) for line in (folder / "eval.jsonl").read_text().splitlines() if line.strip()]
-    if conv is not None:
-        at = next(e for e in evals if e["episodes"] == conv)
-        return {"converged": True, "episodes": conv, "env_steps": at["env_steps"], "wall_s": at["wall_time_s"],
-                "final_success": evals[-1]["success_rate"]}
-    return {"converged": False, "episodes": budget, "env_steps": r["env_steps"], "wall_s": r["wall_time_s"],
-            "final_success": evals[-1]["success_rate"] if evals else 0.0}
+    results = run_trials(specs, out, cpus=cpus, experiment=phase, restore=False, verbose=0)
+    for r in results:
+        progress(f"{r['group']} seed {r['seed']}: {'converged at' if r['converged'] else 'not converged within'} "
+                 f"{r['episodes']} episodes, {r['wall_s']:.0f} s")
+    return {(r["group"], r["seed"]): r for r in results}
 
 
 def zero_shot(out: Path, seed: int, robots: int, episodes: int = 100) -> float:
@@ -159,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=positive_int, default=5, help="seeds per setting (0..K-1; default 5)")
     p.add_argument("--settings", type=settings_list, default=list(SETTINGS),
                    help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3)")
-    p.add_argument("--jobs", type=positive_int, default=2, help="training processes at a time (default 2)")
+    p.add_argument("--jobs", type=positive_int, default=2, help="CPUs of the local Ray: trials at a time (default 2)")
     p.add_argument("--budget-scale", type=float, default=1.0,
                    help="multiply every episode budget (default budgets: twice the paper's episodes)")
     p.add_argument("--config", default="{}", help="extra MAPPOConfig fields as JSON for every run")
@@ -182,31 +159,19 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     results: dict[str, list[dict]] = {n: [] for n in names}
 
-    def job(name: str, seed: int) -> tuple[str, dict]:
-        r = train_one(args.out, name, seed, budgets[name], config)
-        progress(f"{name} seed {seed}: {'converged at' if r['converged'] else 'not converged within'} "
-                 f"{r['episodes']} episodes, {r['wall_s']:.0f} s")
-        return name, r
-
     transfers = [n for n in names if setting(n).transfer_from]
-    others = [n for n in names if n != "sdpa-3" and not setting(n).transfer_from]
-    with ThreadPoolExecutor(args.jobs) as pool:
-        # sdpa-3 first, then the transfer runs (each waits for its seed's sdpa-3 checkpoint,
-        # which is already running by then), then the other from-scratch settings
-        source = {s: pool.submit(job, "sdpa-3", s) for s in seeds} if "sdpa-3" in names else {}
-
-        def transfer_job(name: str, seed: int) -> tuple[str, dict]:
-            source[seed].result()
-            return job(name, seed)
-
-        futures = [source[s] for s in seeds] if source else []
-        futures += [pool.submit(transfer_job, n, s) for n in transfers for s in seeds]
-        futures += [pool.submit(job, n, s) for n in others for s in seeds]
-        for future in futures:
-            name, r = future.result()
-            results[name].append(r)
-        zero = {}
-        if "sdpa-3" in names:
+    scratch = [n for n in names if not setting(n).transfer_from]
+    # from-scratch settings first (sdpa-3 among them), then the transfers from sdpa-3's checkpoints
+    done = train_all([trial(args.out, n, s, budgets[n], config) for n in scratch for s in seeds],
+                     args.out, args.jobs, "scratch")
+    if transfers:
+        done |= train_all([trial(args.out, n, s, budgets[n], config) for n in transfers for s in seeds],
+                          args.out, args.jobs, "transfer")
+    for (name, _seed), r in sorted(done.items(), key=lambda kv: kv[0][1]):
+        results[name].append(r)
+    zero = {}
+    if "sdpa-3" in names:
+        with ThreadPoolExecutor(args.jobs) as pool:
             for robots in (4, 5):
                 rates = list(pool.map(lambda s, k=robots: zero_shot(args.out, s, k), seeds))
                 zero[f"3to{robots}"] = round(statistics.fmean(rates), 3)

@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "stack.commands.bridge",
     "stack.commands.eval",
     "stack.commands.train",
+    "stack.commands.sweep",
     "stack.commands.plot",
 ]
 

@@ -12,7 +12,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bench.paper_tables import row, summarize  # noqa: E402
+from bench.paper_tables import row, zero_shot  # noqa: E402
+from stack.sweep import summarize  # noqa: E402
 
 
 def _write_run(folder: Path, converged, evals):
@@ -47,8 +48,11 @@ def test_tiny_run_prints_the_documented_json_and_reuses_finished_runs(tmp_path):
     for r in doc["rows"]:
         assert {"setting", "seeds", "converged_seeds", "episodes_median", "env_steps_median",
                 "wall_s_median"} <= set(r)
-        assert r["seeds"] == 1 and 0 <= r["converged_seeds"] <= 1
-    assert set(doc["zero_shot"]) == {"3to4", "3to5"} and all(0 <= v <= 1 for v in doc["zero_shot"].values())
+        run = summarize(tmp_path / r["setting"] / "seed-0", doc["budgets"][r["setting"]])
+        assert r["seeds"] == 1 and r["converged_seeds"] == int(run["converged"])
+        assert r["episodes"] == [run["episodes"]] and r["env_steps_median"] == run["env_steps"]
+    assert set(doc["zero_shot"]) == {"3to4", "3to5"}
+    assert doc["zero_shot"]["3to5"] == pytest.approx(zero_shot(tmp_path, 0, 5), abs=1e-3)
     # the transfer run started from the 3-robot checkpoint of the same seed
     result = json.loads((tmp_path / "transfer-3to4" / "seed-0" / "result.json").read_text())
     assert result["transferred_from"] is not None

@@ -1,0 +1,145 @@
+"""`formation sweep`: train a grid of config overrides x seeds on Ray Tune, aggregated.
+
+Each trial is a normal `formation train` run folder under ``<out>/trials/<k>/seed-<s>``, with
+one CPU and one torch thread. The base configuration is ``--config`` (a .json/.toml file or
+inline JSON of MAPPOConfig fields, as for `formation train`); each ``--grid KEY=V1,V2`` adds
+an axis (dotted keys reach nested fields: ``actor.embed_dim=32,64``), and ``--seeds`` the
+seeds. Every trial's configuration is checked before Ray starts.
+
+The table gives, per override combination over its seeds: converged seeds, episodes to
+convergence (median, min-max, 95 % bootstrap interval of the median; a seed that never
+converged counts as its budget) and wall time. ``<out>/sweep.json`` holds it with every trial's
+numbers, the sweep's options and provenance (git commit, package versions).
+
+Ctrl-C stops the sweep with its state saved; the same command again (or ``--resume --out``)
+continues it: finished trials are kept, interrupted ones continue from their checkpoints.
+
+    formation sweep --config '{"scenario": "paper-3"}' --seeds 5 --grid lr=3e-4,1e-3
+    formation sweep --config base.toml --seeds 0-2 --grid actor.embed_dim=32,64 --cpus 2
+    formation sweep --resume --out runs/sweep-lr
+    formation sweep ... --address ray://head:10001      # on an existing Ray cluster
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from sim.files import ConfigFileError, atomic_write_text, read_config
+from sim.provenance import provenance
+from stack.sweep import SweepError, aggregate, grid_trials, parse_grid_option, run_trials
+
+OPTIONS_FILE = "sweep.json"
+
+
+def seeds_arg(text: str) -> list[int]:
+    """``5`` -> 0..4; ``2-4`` -> 2, 3, 4; ``0,3,7`` -> those."""
+    try:
+        if "," in text:
+            seeds = [int(s) for s in text.split(",") if s.strip()]
+        elif "-" in text.strip()[1:]:
+            lo, hi = (int(s) for s in text.split("-", 1))
+            seeds = list(range(lo, hi + 1))
+        else:
+            seeds = list(range(int(text)))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a count (5), a range (2-4) or a list (0,3,7), "
+                                         f"got {text!r}") from None
+    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0, got {text!r}")
+    return seeds
+
+
+def register(sub) -> None:
+    p = sub.add_parser("sweep", help="train a grid of configs x seeds on Ray Tune",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", metavar="FILE_OR_JSON", default=None,
+                   help="base MAPPOConfig fields: a .json/.toml file or inline JSON (default: defaults)")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",
+                   help="an axis of the grid (repeat for more axes); values read as JSON")
+    p.add_argument("--seeds", type=seeds_arg, default=None,
+                   help="a count (5: seeds 0-4), a range (2-4) or a list (0,3,7) (default 3)")
+    p.add_argument("--episodes", type=int, default=None, help="episode budget of every trial")
+    p.add_argument("--cpus", type=int, default=None,
+                   help="CPUs of the local Ray (one trial each; default: all of this machine)")
+    p.add_argument("--address", default=None,
+                   help="join the Ray cluster at this address instead of starting one")
+    p.add_argument("--out", type=Path, default=None,
+                   help="sweep folder (default runs/sweep-<timestamp>)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the sweep in --out with the options it was started with")
+    p.add_argument("--json", action="store_true", help="print the JSON document instead of the table")
+    p.set_defaults(func=run)
+
+
+def _options(args) -> dict:
+    """The sweep's options: from ``<out>/sweep.json`` with --resume, else from the flags."""
+    if args.resume:
+        if args.out is None:
+            raise SweepError("--resume needs --out, the folder of the sweep to continue")
+        saved = args.out / OPTIONS_FILE
+        if not saved.exists():
+            raise SweepError(f"--resume: {saved} does not exist; start the sweep without --resume")
+        return json.loads(saved.read_text())["options"]
+    base = read_config(args.config, "--config") if args.config else {}
+    if args.episodes is not None:
+        if args.episodes < 1:
+            raise SweepError(f"--episodes must be >= 1, got {args.episodes}")
+        base["total_episodes"] = args.episodes
+    grid = [parse_grid_option(g) for g in args.grid]
+    keys = [k for k, _ in grid]
+    if len(set(keys)) != len(keys) or "seed" in keys:
+        raise SweepError("--grid: each key once, and not 'seed' (use --seeds)")
+    return {"base": base, "grid": grid, "seeds": args.seeds or [0, 1, 2]}
+
+
+def run(args) -> int:
+    if args.cpus is not None and args.cpus < 1:
+        print("error: --cpus must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        options = _options(args)
+        out = args.out or Path("runs") / time.strftime("sweep-%Y%m%d-%H%M%S")
+        trials = grid_trials(options["base"], options["grid"], options["seeds"], out)
+    except (SweepError, ConfigFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    saved = out / OPTIONS_FILE
+    if saved.exists() and json.loads(saved.read_text())["options"] != json.loads(json.dumps(options)):
+        print(f"error: {out} holds another sweep; continue it with --resume --out {out}, or give "
+              "another --out", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    doc = {"options": options, "trials": [], "rows": [], "provenance": provenance()}
+    atomic_write_text(out / OPTIONS_FILE, json.dumps(doc, indent=2))
+    print(f"sweep: {len(trials)} trials in {out}", file=sys.stderr, flush=True)
+    try:
+        results = run_trials(trials, out, cpus=args.cpus, address=args.address)
+    except KeyboardInterrupt:
+        print(f"interrupted: the sweep's state is saved; continue with "
+              f"formation sweep --resume --out {out}", file=sys.stderr)
+        return 130
+    except SweepError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    doc |= {"trials": results, "rows": aggregate(results)}
+    atomic_write_text(out / OPTIONS_FILE, json.dumps(doc, indent=2))
+    if args.json:
+        print(json.dumps(doc, indent=2))
+    else:
+        print_rows(doc["rows"])
+        print(f"results: {out / OPTIONS_FILE}")
+    return 0
+
+
+def print_rows(rows: list[dict]) -> None:
+    headers = ["group", "converged", "episodes median", "95% CI", "min-max", "wall s median"]
+    table = [[r["group"], f"{r['converged_seeds']}/{len(r['seeds'])}", f"{r['episodes_median']:.0f}",
+              f"{r['episodes_ci95'][0]:.0f}-{r['episodes_ci95'][1]:.0f}",
+              f"{r['episodes_min']}-{r['episodes_max']}", f"{r['wall_s_median']:.0f}"] for r in rows]
+    widths = [max(len(str(x)) for x in col) for col in zip(headers, *table, strict=False)]
+    for line in [headers, *table]:
+        print("  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)))

@@ -1,0 +1,129 @@
+"""formation sweep: the grid, the aggregation by hand, and real Ray Tune runs (reuse, Ctrl-C)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from stack.commands.sweep import seeds_arg
+from stack.sweep import SweepError, aggregate, grid_trials, median_ci, parse_grid_option
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
+        "checkpoint_interval": 8}
+
+
+def test_grid_options_read_values_as_json_and_keep_other_text():
+    assert parse_grid_option("lr=3e-4,1e-3") == ("lr", [3e-4, 1e-3])
+    assert parse_grid_option("actor.variant=typed,mlp") == ("actor.variant", ["typed", "mlp"])
+    assert parse_grid_option("norm_adv=true,false") == ("norm_adv", [True, False])
+    with pytest.raises(SweepError, match="KEY=V1,V2"):
+        parse_grid_option("lr")
+
+
+def test_seeds_are_a_count_a_range_or_a_list():
+    assert seeds_arg("3") == [0, 1, 2] and seeds_arg("2-4") == [2, 3, 4] and seeds_arg("0,7") == [0, 7]
+    for bad in ("x", "1,1", "0"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            seeds_arg(bad)
+
+
+def test_the_grid_is_the_cross_product_with_nested_keys_and_checked_fields(tmp_path):
+    trials = grid_trials({"scenario": "paper-3", "total_episodes": 64},
+                         [("lr", [3e-4, 1e-3]), ("actor.embed_dim", [16, 32])], [0, 5], tmp_path)
+    assert len(trials) == 2 * 2 * 2
+    assert {(t.fields["lr"], t.fields["actor"]["embed_dim"], t.seed) for t in trials} == {
+        (lr, d, s) for lr in (3e-4, 1e-3) for d in (16, 32) for s in (0, 5)}
+    assert trials[0].group == 'lr=0.0003,actor.embed_dim=16' and trials[0].budget == 64
+    assert trials[1].folder == str(tmp_path.resolve() / "trials" / "000" / "seed-5")
+    assert all(t.fields["torch_threads"] == 1 and t.fields["progress"] is False for t in trials)
+    with pytest.raises(SweepError, match="lr=-1.*lr"):
+        grid_trials({}, [("lr", [-1])], [0], tmp_path)
+    with pytest.raises(SweepError, match=r"actor.nope=1: unknown actor field\(s\) \['nope'\]"):
+        grid_trials({}, [("actor.nope", [1])], [0], tmp_path)
+
+
+def test_median_interval_by_hand():
+    assert median_ci([700, 700, 700]) == (700.0, 700.0)
+    # a resample's median is 5000 when 3+ of its 5 draws are: P = 0.058 > 0.025, and likewise
+    # 100; so the 95 % interval spans the whole sample
+    assert median_ci([100, 200, 300, 400, 5000]) == (100.0, 5000.0)
+    # nine values: an end value is the median only if 5+ of 9 draws are it (P = 0.0015)
+    low, high = median_ci([100, 200, 300, 400, 500, 600, 700, 800, 5000])
+    assert 100 < low <= 500 <= high < 5000
+    assert median_ci([100, 200, 300, 400, 500, 600, 700, 800, 5000]) == (low, high)  # seeded
+
+
+def test_rows_aggregate_each_group_over_its_seeds():
+    runs = [{"group": "a", "seed": s, "converged": c, "episodes": e, "wall_s": w, "final_success": f}
+            for s, c, e, w, f in ((0, True, 400, 10.0, 0.95), (1, False, 1000, 30.0, 0.5),
+                                  (2, True, 600, 20.0, 0.92))]
+    runs.append({"group": "b", "seed": 0, "converged": True, "episodes": 50, "wall_s": 1.0,
+                 "final_success": 1.0})
+    a, b = aggregate(runs)
+    assert a["group"] == "a" and a["seeds"] == [0, 1, 2] and a["converged_seeds"] == 2
+    assert a["episodes_median"] == 600 and (a["episodes_min"], a["episodes_max"]) == (400, 1000)
+    assert a["wall_s_median"] == 20.0 and a["final_success_median"] == 0.92
+    assert b["episodes_ci95"] == [50.0, 50.0]
+
+
+def _sweep(out: Path, *extra: str, **kw) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "stack.cli", "sweep", "--config", json.dumps(TINY), "--cpus", "2",
+           "--out", str(out), *extra]
+    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+@pytest.mark.slow
+def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(tmp_path):
+    proc = _sweep(tmp_path, "--episodes", "16", "--seeds", "1", "--grid", "lr=3e-4,1e-3", "--json")
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+    doc = json.loads(out)   # stdout is the document alone: Tune reports on stderr
+    assert [r["group"] for r in doc["rows"]] == ["lr=0.0003", "lr=0.001"]
+    for k, lr in enumerate((3e-4, 1e-3)):
+        folder = tmp_path / "trials" / f"{k:03d}" / "seed-0"
+        assert json.loads((folder / "config.json").read_text())["lr"] == lr
+        result = json.loads((folder / "result.json").read_text())
+        assert doc["rows"][k]["episodes"] == [result["episodes"]] == [16]
+        assert (folder / "run.json").exists()
+    assert json.loads((tmp_path / "sweep.json").read_text())["rows"] == doc["rows"]
+    stamp = (tmp_path / "trials" / "000" / "seed-0" / "result.json").stat().st_mtime_ns
+    again = _sweep(tmp_path, "--episodes", "16", "--seeds", "1", "--grid", "lr=3e-4,1e-3", "--json")
+    out, err = again.communicate(timeout=600)
+    assert again.returncode == 0, err
+    assert json.loads(out)["rows"] == doc["rows"]
+    assert (tmp_path / "trials" / "000" / "seed-0" / "result.json").stat().st_mtime_ns == stamp
+    other = _sweep(tmp_path, "--episodes", "16", "--seeds", "2")   # another sweep, same folder
+    _, err = other.communicate(timeout=120)
+    assert other.returncode == 2 and "--resume" in err
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
+    proc = _sweep(tmp_path, "--episodes", "96", "--seeds", "1")
+    checkpoint = tmp_path / "trials" / "000" / "seed-0" / "checkpoint.pt"
+    deadline = time.monotonic() + 300
+    while not checkpoint.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+    assert checkpoint.exists(), proc.communicate()[1]
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "--resume --out" in err, err
+    logged = (tmp_path / "trials" / "000" / "seed-0" / "train.jsonl").read_text().splitlines()
+    assert not (tmp_path / "trials" / "000" / "seed-0" / "result.json").exists()
+    resumed = subprocess.run([sys.executable, "-m", "stack.cli", "sweep", "--resume", "--out",
+                              str(tmp_path), "--json"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert json.loads(resumed.stdout)["rows"][0]["episodes"] == [96]
+    iterations = [json.loads(line)["iteration"] for line in
+                  (tmp_path / "trials" / "000" / "seed-0" / "train.jsonl").read_text().splitlines()]
+    assert iterations == list(range(1, len(iterations) + 1))   # one curve, continued
+    assert len(iterations) > len(logged) >= 1
