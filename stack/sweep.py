@@ -190,8 +190,12 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
     Tune saved its state, and SweepError naming the folders of trials that failed.
     """
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # nothing leaves the machine
-    import ray
-    from ray import tune
+    try:
+        import ray
+        from ray import tune
+    except ImportError:
+        raise SweepError("sweeps run on Ray Tune, which is not installed: "
+                         "pip install -c constraints.txt -e '.[sweep]'") from None
 
     storage = (Path(out).resolve() / "ray")
     storage.mkdir(parents=True, exist_ok=True)
