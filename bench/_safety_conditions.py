@@ -43,6 +43,7 @@ CONDITIONS: dict[str, dict] = {
     "delay3": {"delay_ticks": 3},
     "delay_jitter": {"delay_ticks": 1, "delay_jitter_ticks": 2},
     "delay_jitter_playout": {"delay_ticks": 1, "delay_jitter_ticks": 2, "playout_ticks": 3},
+    "delay_jitter_adaptive": {"delay_ticks": 1, "delay_jitter_ticks": 2, "adaptive_playout": True},
     "noise": {"position_noise_std": 0.01, "velocity_noise_std": 0.02},
     "drops": {"state_drop": 0.2},
     "frozen_robot": {"freeze": "random"},

@@ -28,7 +28,8 @@ Dynamics per control tick (``dt`` = ``scenario.dynamics.dt``), per robot, with :
 
     u_k     = the newest command that has arrived by tick k: command j arrives at tick
               j + delay_ticks + J_j, J_j ~ U{0..delay_jitter_ticks}  (0 before the first) [m/s^2]
-              (a robot with a playout buffer acts on it at max(that, j + playout_ticks))
+              (a robot with a playout buffer acts on it at max(that, j + D_i): D_i = playout_ticks,
+              or with adaptive_playout the largest delay robot i has seen this episode, if larger)
     u_k     = clip_norm(u_k, accel_limit)
     a_act  += alpha * (gain_i * u_k - a_act),  alpha = 1 - exp(-dt / lag_tau)   (alpha = 1 if tau = 0)
     a       = a_act + disturbance + w_k,       w_k ~ N(0, disturbance_std^2) per axis
@@ -103,6 +104,11 @@ class ModelError:
             acts on command j no earlier than tick j + playout_ticks, so any delay up to that
             becomes exactly that (0 = act on arrival). Its robot runtime can do the same with
             the CMD's ``state_seq``: the robot tick the command answers.
+        adaptive_playout: the playout delay of each robot is the largest command delay it has
+            seen this episode (arrival tick - the tick the command answers), at least
+            ``playout_ticks``: a jittering delay becomes its maximum without configuring it,
+            and a constant delay stays as it is (no latency added). It only grows, so it
+            never skips a command; an increase holds one command an extra tick.
     """
 
     gain: float = 1.0
@@ -118,6 +124,7 @@ class ModelError:
     state_drop: float = 0.0
     freeze: tuple[int, int] | None = None
     playout_ticks: int = 0
+    adaptive_playout: bool = False
 
     def __post_init__(self) -> None:
         def number(name: str, value) -> float:
@@ -141,6 +148,8 @@ class ModelError:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
                 raise ValueError(f"ModelError.{name} must be an integer >= 0, got {value!r}")
+        if not isinstance(self.adaptive_playout, bool | np.bool_):
+            raise ValueError(f"ModelError.adaptive_playout must be true or false, got {self.adaptive_playout!r}")
         if not 0 <= number("state_drop", self.state_drop) < 1:
             raise ValueError(f"ModelError.state_drop must be a probability in [0, 1), "
                              f"got {self.state_drop!r}")
@@ -293,8 +302,9 @@ class PymunkWorld:
         starts = s.starts + self._rng_jitter.uniform(-j, j, size=(n, 2))
         self.gains = me.gain + self._rng_gain.uniform(-me.gain_spread, me.gain_spread, size=n)
         self._command = np.zeros((n, 2))
-        self._pending: deque[tuple[np.ndarray, int, np.ndarray]] = deque()  # (arrival (N,), seq, cmd)
+        self._pending: deque[tuple[np.ndarray, int, int, np.ndarray]] = deque()  # (arrival (N,), sent tick, seq, cmd)
         self._sent = 0
+        self._playout = np.full(n, me.playout_ticks, dtype=np.int64)   # D_i [ticks]
         self._held = np.zeros((n, 2))            # the newest command each robot has received
         self._held_seq = np.zeros(n, dtype=np.int64)
         self._delivered_seq = np.zeros(n, dtype=np.int64)  # held seq when the delivered row was measured
@@ -413,13 +423,17 @@ class PymunkWorld:
         frozen = self.frozen
         self._sent += 1           # the held command goes out again every tick (zero-order hold)
         jitter = self._rng_link.integers(0, me.delay_jitter_ticks + 1, n) if me.delay_jitter_ticks else 0
-        self._pending.append((np.maximum(k + me.delay_ticks + jitter, k + me.playout_ticks) + np.zeros(n, dtype=np.int64),
+        self._pending.append((k + me.delay_ticks + jitter + np.zeros(n, dtype=np.int64), k,
                               self._sent, self._command))
-        for arrival, seq, cmd in self._pending:
-            take = (arrival <= k) & (seq > self._held_seq) & ~frozen
+        if me.adaptive_playout:
+            for arrival, sent_tick, _, _ in self._pending:
+                arrived = (arrival <= k) & ~frozen
+                self._playout[arrived] = np.maximum(self._playout[arrived], arrival[arrived] - sent_tick)
+        for arrival, sent_tick, seq, cmd in self._pending:
+            take = (np.maximum(arrival, sent_tick + self._playout) <= k) & (seq > self._held_seq) & ~frozen
             self._held[take] = cmd[take]
             self._held_seq[take] = seq
-        while self._pending and (self._pending[0][0] <= k).all():
+        while self._pending and (np.maximum(self._pending[0][0], self._pending[0][1] + self._playout) <= k).all():
             self._pending.popleft()
         if frozen.any():
             since = k - me.freeze[1]

@@ -15,7 +15,7 @@ MODEL_ERROR_FIELDS = {f.name for f in dataclasses.fields(ModelError)}
 INT_FIELDS = ("delay_ticks", "delay_jitter_ticks", "playout_ticks")
 MODEL_ERROR_HELP = ("FIELD=VALUE,... of sim.pymunk_world.ModelError, e.g. gain=0.7,lag_tau=0.05,"
                     "disturbance=0.1:0,delay_ticks=2,delay_jitter_ticks=1,state_drop=0.2,freeze=2:40,"
-                    "playout_ticks=3 (a JSON object of the same fields is accepted too)")
+                    "playout_ticks=3,adaptive_playout=true (a JSON object of the same fields is accepted too)")
 
 
 class LinkArgumentError(ValueError):
@@ -71,8 +71,12 @@ def parse_model_error(text: str | None) -> ModelError:
                 values[key] = (float(x), float(y or 0.0)) if key == "disturbance" else (int(x), int(y))
             elif key in INT_FIELDS:
                 values[key] = int(raw)
+            elif key == "adaptive_playout":
+                values[key] = {"true": True, "1": True, "false": False, "0": False}[raw.strip().lower()]
             else:
                 values[key] = float(raw)
+        except KeyError:
+            raise LinkArgumentError(f"--model-error: {key}={raw!r}: write true or false") from None
         except ValueError:
             raise LinkArgumentError(f"--model-error: {key}={raw!r} is not a number"
                                     + (" (disturbance is X:Y in m/s^2)" if key == "disturbance" else "")

@@ -208,6 +208,32 @@ def test_each_state_counts_the_commands_sent_after_the_one_the_robot_acted_on():
 
 
 
+def test_an_adaptive_playout_buffer_fixes_a_jittering_delay_at_its_maximum_and_adds_none():
+    """adaptive_playout: once robot i has seen a 3-tick delay it acts on every command 3 ticks
+    after the tick it answers (the count is 3 for good); on a constant 2-tick link it changes
+    nothing, to the bit."""
+    def run(model_error, ticks=40):
+        world = PymunkWorld(SC3, model_error)
+        world.reset(seed=4)
+        rng, out = np.random.default_rng(0), []
+        for _ in range(ticks):
+            world.send_accelerations(rng.uniform(-0.3, 0.3, (3, 2)))
+            state = world.step()
+            out.append((state.commands_pending.tolist(), world.true_state().positions.copy()))
+        return out
+
+    jitter = run(ModelError(delay_ticks=1, delay_jitter_ticks=2, adaptive_playout=True))
+    counts = np.array([c for c, _ in jitter])                     # (ticks, robots)
+    first3 = [int(np.argmax(counts[:, i] == 3)) for i in range(3)]
+    assert all(f < 15 for f in first3)
+    assert all((counts[f:, i] == 3).all() for i, f in enumerate(first3))   # then exactly 3
+    newest = np.array([c for c, _ in run(ModelError(delay_ticks=1, delay_jitter_ticks=2))])
+    assert set(newest[15:].ravel()) == {1, 2, 3}                  # acting on arrival: 1-3
+    plain, adaptive = run(ModelError(delay_ticks=2)), run(ModelError(delay_ticks=2, adaptive_playout=True))
+    assert [c for c, _ in plain] == [c for c, _ in adaptive]
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(plain, adaptive, strict=True))
+
+
 # ------------------------------------------------------------- randomness
 ALL_ERRORS = ModelError(gain=0.85, gain_spread=0.15, lag_tau=0.1, delay_ticks=1, disturbance=(0.05, -0.02),
                         disturbance_std=0.1, floor_friction=0.05, position_noise_std=0.002,

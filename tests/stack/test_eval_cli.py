@@ -27,6 +27,9 @@ def test_parse_model_error_fields():
     assert link == ModelError(delay_ticks=1, delay_jitter_ticks=2, state_drop=0.2, freeze=(2, 40))
     with pytest.raises(LinkArgumentError, match="ROBOT:TICK"):
         parse_model_error("freeze=2")
+    assert parse_model_error("delay_jitter_ticks=2,adaptive_playout=true").adaptive_playout is True
+    with pytest.raises(LinkArgumentError, match="adaptive_playout='yes': write true or false"):
+        parse_model_error("adaptive_playout=yes")
     # the same fields as JSON (what fleet-sim took before; the demo passes dataclasses.asdict)
     assert parse_model_error('{"gain": 0.8, "freeze": [1, 5], "playout_ticks": 3}') == \
         ModelError(gain=0.8, freeze=(1, 5), playout_ticks=3)
