@@ -2,8 +2,9 @@
 
 Each condition is a pymunk :class:`~sim.pymunk_world.ModelError` (see :data:`CONDITIONS`):
 command delay of 1, 2, 3 ticks (50-150 ms), a delay that jitters 1-3 ticks from command to
-command (robots acting on the newest command that arrived; and robots with a 3-tick playout
-buffer, ``ModelError.playout_ticks``, which turns it into exactly 3), measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
+command (robots acting on the newest command that arrived; robots with a 3-tick playout
+buffer, ``ModelError.playout_ticks``, which turns it into exactly 3; and robots with an adaptive
+one, ``ModelError.adaptive_playout``, which settles at the largest delay seen), measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
 the way, a robot that freezes mid-episode (silent and deaf, its own watchdog brakes it after
 two ticks), gain 0.7 with two ticks of delay, and the randomised gain/lag/friction/disturbance
 model error of part (a). Per condition, on the same seeds:

@@ -309,6 +309,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.policy is not None and not Path(args.policy).is_file():
         print(f"error: --policy {args.policy!r} does not exist", file=sys.stderr)
         return 2
+    if args.policy is not None:
+        try:   # before any part runs: a stale file must not fail the run minutes in
+            load_policy(args.policy)
+        except Exception as exc:
+            print(f"error: --policy {args.policy}: {exc}", file=sys.stderr)
+            return 2
     threads = set_threads(args.threads)
     start = time.perf_counter()
     doc: dict = {}
