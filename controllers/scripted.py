@@ -11,9 +11,10 @@ Plan (made once, at the first call of an episode):
     ``clearance + j * gap`` beyond the object's edge, where ``gap`` is ``lane_spacing`` or less
     if the lanes must squeeze between the object and the wall;
   * waypoints: out to the lane beside the start, along the lane to above/below the target,
-    then onto the target. A robot advances to the next waypoint within ``switch_radius``, or
-    within twice that once it is nearer the waypoint after (it has rounded the corner: a
-    neighbour parked by the corner can keep it from the waypoint itself).
+    then onto the target. A robot advances to the next waypoint within ``switch_radius``, or,
+    held (slower than ``held_speed``) within twice that, once it is nearer the waypoint after: a
+    neighbour parked by the corner can keep it from the waypoint itself. A robot in motion
+    never cuts a corner (by the object that would take it into the object's corner).
 
 Swap rule (the formation is judged up to an assignment): the robots of one side leave their
 lanes for the targets' column in lane order, each passing the targets nearer its lane. A robot
@@ -43,11 +44,11 @@ class ScriptedController:
 
     def __init__(self, scenario: Scenario, kp: float = 6.0, kd: float = 4.0, cruise_speed: float = 0.3,
                  clearance: float = 0.07, lane_spacing: float = 0.125, switch_radius: float = 0.03,
-                 swap_margin: float = 0.02):
+                 swap_margin: float = 0.02, held_speed: float = 0.02):
         self.scenario = scenario
         self.kp, self.kd, self.cruise = kp, kd, cruise_speed
         self.clearance, self.lane_spacing, self.switch_radius = clearance, lane_spacing, switch_radius
-        self.swap_margin = swap_margin
+        self.swap_margin, self.held_speed = swap_margin, held_speed
         self.swaps = 0  # targets swapped by the swap rule over the controller's life
         self.reset()
 
@@ -81,11 +82,15 @@ class ScriptedController:
         self._waypoints = plans
         self._index = np.zeros(n, dtype=int)
 
-    def _reached(self, path: np.ndarray, k: int, p: np.ndarray) -> bool:
-        """Whether a robot at ``p`` is done with waypoint k of ``path`` (module docstring)."""
+    def _reached(self, path: np.ndarray, k: int, p: np.ndarray, v: np.ndarray) -> bool:
+        """Whether a robot at ``p`` moving at ``v`` is done with waypoint k of ``path``
+        (module docstring)."""
         gap = np.linalg.norm(path[k] - p)
+        if gap < self.switch_radius:
+            return True
+        held = np.linalg.norm(v) < self.held_speed
         rounded = np.linalg.norm(path[k + 1] - p) < np.linalg.norm(path[k + 1] - path[k])
-        return gap < self.switch_radius or (rounded and gap < 2 * self.switch_radius)
+        return bool(held and rounded and gap < 2 * self.switch_radius)
 
     def _on_leg(self, start: np.ndarray, end: np.ndarray, point: np.ndarray) -> bool:
         """Whether ``point`` lies strictly inside segment start->end, within 2 r + margin of it."""
@@ -120,7 +125,7 @@ class ScriptedController:
         limit = self.scenario.dynamics.accel_limit
         for i in range(len(pos)):
             path = self._waypoints[i]
-            while self._index[i] < len(path) - 1 and self._reached(path, self._index[i], pos[i]):
+            while self._index[i] < len(path) - 1 and self._reached(path, self._index[i], pos[i], vel[i]):
                 self._index[i] += 1
             err = path[self._index[i]] - pos[i]
             dist = np.linalg.norm(err)
