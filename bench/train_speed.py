@@ -9,7 +9,8 @@ thread, evaluations at their usual interval included, no early stop), timed by t
     transfer-3to5     5 robots from a 3-robot checkpoint (``init_from``; the typed actor only:
                       an MLP actor's input is fixed to its N, its row says so)
 
-``s_per_episode`` = wall seconds / training episodes; ``env_steps_per_s`` = environment steps /
+``s_per_episode`` = wall seconds / training episodes; ``update_share`` = the PPO update's part
+of the wall (the rest: rollouts, GAE, evaluations); ``env_steps_per_s`` = environment steps /
 wall seconds; ``vs_mlp`` = the row's seconds per episode over the MLP row's on the same robots
 (paper-5's for the transfer; the peer measured in the same run: machines are noisy, ratios are
 not). Variants run
@@ -51,8 +52,20 @@ def timed_run(scenario: str, variant: str, episodes: int, seed: int, init_from: 
         fields["critic"] = {"variant": "mlp"}
     config = MAPPOConfig.from_dict(fields)
     with tempfile.TemporaryDirectory() as tmp:
-        result = MAPPOTrainer(config, Path(tmp) / "run").run()
-    return {"episodes": result.episodes, "env_steps": result.env_steps, "wall_s": result.wall_time_s}
+        trainer = MAPPOTrainer(config, Path(tmp) / "run")
+        update, spent = trainer._update, [0.0]
+
+        def timed_update(*args, **kwargs):   # the profile: the PPO update's share of the wall
+            start = time.perf_counter()
+            try:
+                return update(*args, **kwargs)
+            finally:
+                spent[0] += time.perf_counter() - start
+
+        trainer._update = timed_update
+        result = trainer.run()
+    return {"episodes": result.episodes, "env_steps": result.env_steps, "wall_s": result.wall_time_s,
+            "update_s": spent[0]}
 
 
 def source_checkpoint(folder: Path, seed: int) -> str:
@@ -85,7 +98,8 @@ def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> list
                 per_episode = statistics.median(r["wall_s"] / r["episodes"] for r in done)
                 rate = statistics.median(r["env_steps"] / r["wall_s"] for r in done)
                 rows.append({"setting": name, "variant": variant, "s_per_episode": per_episode,
-                             "env_steps_per_s": rate, "episodes": done[0]["episodes"], "repeats": len(done)})
+                             "env_steps_per_s": rate, "episodes": done[0]["episodes"], "repeats": len(done),
+                             "update_share": statistics.median(r["update_s"] / r["wall_s"] for r in done)})
     for r in rows:              # the peer: MLP-MAPPO on the same robots (paper-5's for a transfer)
         robots = SETTINGS[r["setting"]][0]
         peer = next((m["s_per_episode"] for m in rows if SETTINGS[m["setting"]][0] == robots
@@ -118,10 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print_json(doc)
         return 0
-    print_table(["setting", "variant", "s / episode", "env steps / s", "vs MLP-MAPPO"],
+    print_table(["setting", "variant", "s / episode", "env steps / s", "vs MLP-MAPPO", "update share"],
                 [[r["setting"], r["variant"], "-" if r["s_per_episode"] is None else f"{r['s_per_episode']:.3f}",
                   "-" if r["env_steps_per_s"] is None else f"{r['env_steps_per_s']:.0f}",
-                  "-" if r["vs_mlp"] is None else f"{r['vs_mlp']:.2f}x"] for r in rows])
+                  "-" if r["vs_mlp"] is None else f"{r['vs_mlp']:.2f}x",
+                  f"{r['update_share']:.0%}" if r.get("update_share") is not None else "-"] for r in rows])
     return 0
 
 
