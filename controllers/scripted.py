@@ -14,7 +14,7 @@ Plan (made once, at the first call of an episode):
     then onto the target. A robot advances to the next waypoint within ``switch_radius``, or,
     held (slower than ``held_speed``) within twice that, once it is nearer the waypoint after: a
     neighbour parked by the corner can keep it from the waypoint itself. A robot in motion
-    never cuts a corner (by the object that would take it into the object's corner).
+    never cuts a corner: beside the object, that would take it into the object's corner.
 
 Swap rule (the formation is judged up to an assignment): the robots of one side leave their
 lanes for the targets' column in lane order, each passing the targets nearer its lane. A robot
