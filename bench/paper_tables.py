@@ -85,8 +85,6 @@ def trial(out: Path, name: str, seed: int, budget: int, config: dict) -> TrialSp
     s = setting(name)
     fields = {**config, "scenario": s.scenario, "total_episodes": budget,
               "actor": {**config.get("actor", {}), "variant": s.variant}}
-    if s.variant == "mlp":
-        fields.setdefault("critic", {"variant": "mlp"})
     if s.transfer_from:
         fields["init_from"] = str((run_dir(out, s.transfer_from, seed) / "checkpoint.pt").resolve())
     return TrialSpec(name, seed, resolve_fields(fields, {}, seed), str(run_dir(out, name, seed).resolve()))

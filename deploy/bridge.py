@@ -102,9 +102,7 @@ class TickClock:
     burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``."""
 
     def __init__(self, period_s: float):
-        if not (math.isfinite(period_s) and period_s > 0):
-            raise ValueError(f"period_s must be a positive number of seconds, got {period_s!r}")
-        self.period_ns = round(period_s * 1e9)
+        self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s
         self._ticks = 1
         self._lock = threading.Lock()
 
@@ -320,7 +318,7 @@ class Bridge:
         self.object_pose = np.asarray(object_pose, dtype=np.float64)
         self.config = config
         self.clock = TickClock(config.period_s) if config.lockstep else None
-        self.link = FleetLink(fleet, registry, transport, clock_ns=self.clock or time.monotonic_ns,
+        self.link = FleetLink(fleet, registry, transport, clock_ns=time.monotonic_ns if self.clock is None else self.clock,
                               lossless=config.lossless or config.lockstep)
         self.stats = BridgeStats()
         self.uplink = UplinkExcess()
@@ -347,13 +345,13 @@ class Bridge:
         if not link.wait_for(lambda: any(self._unanswered(link.latest_states(), r)
                                          for r in link.alive_robots), timeout_s):
             return False
-        gather_s = LOCKSTEP_GATHER_S if self.clock else self.config.gather_s
+        gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
         link.wait_for(lambda: all(self._unanswered(link.latest_states(), r)
                                   for r in link.alive_robots), gather_s)
         return True
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:
-        uplink_ns = 0 if self.clock else self.uplink.excess_ns(rs)
+        uplink_ns = 0 if self.clock is not None else self.uplink.excess_ns(rs)
         return max(0.0, now - rs.receive_time_ns + uplink_ns) / 1e9
 
     def stop(self) -> None:
@@ -486,7 +484,7 @@ class Bridge:
         state = self._fleet_state(view)
         controller_flags, commands, controller_s = self._run_controller(state)
         late_s = (self.link.clock_ns() - now) / 1e9  # the picture aged while the controller ran
-        if self.clock:
+        if self.clock is not None:
             self.clock.advance()  # before the answers go out: the next burst is one tick later
         finite = np.isfinite(state.positions).all(1) & np.isfinite(state.velocities).all(1)
         sent_flags = []

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from controllers.mappo import MAPPOConfig
-from controllers.mappo.config import TRAINING_REWARD
+from controllers.mappo.config import user_fields
 
 EXPERIMENT = "sweep"  # Tune's experiment name under <out>/ray
 
@@ -90,17 +90,14 @@ def _set_dotted(fields: dict, key: str, value: Any) -> dict:
 
 def resolve_fields(base: dict, overrides: dict[str, Any], seed: int) -> dict:
     """MAPPOConfig fields of one trial: ``base`` < ``overrides`` (dotted keys) < ``seed``,
-    validated (the error names the field); ``reward_weights`` given merge into the training
-    reward's, as in ``formation train``."""
+    validated (the error names the field), read as ``formation train`` reads them
+    (:func:`controllers.mappo.config.user_fields`)."""
     fields = dict(base)
     for key, value in overrides.items():
         fields = _set_dotted(fields, key, value)
     fields |= {"seed": seed, "progress": False, "torch_threads": 1}
-    fields.setdefault("total_episodes", 2000)
-    if isinstance(fields.get("reward_weights"), dict):
-        fields["reward_weights"] = {**TRAINING_REWARD, **fields["reward_weights"]}
     try:
-        return MAPPOConfig.from_dict(fields).to_dict()
+        return MAPPOConfig.from_dict(user_fields(fields)).to_dict()
     except (TypeError, ValueError) as exc:
         where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "the base config"
         raise SweepError(f"{where}: {exc}") from None
@@ -167,7 +164,7 @@ def _tune_trial(space: dict) -> None:
     from ray import tune
 
     spec = TrialSpec(**space["trial"])
-    tune.report({**train_trial(spec), "group": spec.group, "seed": spec.seed, "folder": spec.folder})
+    tune.report(train_trial(spec))
 
 
 def check_folders(trials: Sequence[TrialSpec]) -> None:

@@ -18,6 +18,18 @@ TRAINING_REWARD = {"w_dist": 0.0, "w_assigned": 1.0, "assignment_power": 2.0, "w
                    "w_own_arrive": 0.5, "w_onset": 2.0, "detour_clearance": 0.03, "contact_margin": 0.01}
 
 
+def user_fields(fields: dict[str, Any]) -> dict[str, Any]:
+    """What a user writes (``formation train --config``, a sweep's grid) -> MAPPOConfig fields:
+    an MLP actor gets the MLP critic unless a critic is given, and ``reward_weights`` given
+    change the weights of :data:`TRAINING_REWARD` they name and keep the others."""
+    out = dict(fields)
+    if isinstance(out.get("actor"), dict) and out["actor"].get("variant") == "mlp":
+        out.setdefault("critic", {"variant": "mlp"})
+    if isinstance(out.get("reward_weights"), dict):
+        out["reward_weights"] = {**TRAINING_REWARD, **out["reward_weights"]}
+    return out
+
+
 class TrainConfigError(PolicyConfigError):
     """A training configuration that cannot run; the message names the field and the fix."""
 

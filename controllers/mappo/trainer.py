@@ -14,8 +14,9 @@ One iteration::
               (x (1 - episodes / total) too with anneal_lr); with policy_ema the averaged
               actor is the one evaluated and saved as the policy
 
-Profile (paper-3, defaults, one torch thread, 2-core machine, 2026-12-01; 12 iterations timed
-around ``_update``, as ``bench/train_speed.py`` reports ``update_share``): 186 ms per training episode, of which the PPO update is
+Profile (paper-3, defaults, one torch thread, 2-core machine, 2026-12-01; 12 iterations without
+evaluation, ``_update`` timed as ``bench/train_speed.py`` times it for ``update_share``, which
+in its 48-episode runs, two evaluations included, reads 81 %): 186 ms per training episode, of which the PPO update is
 168 ms (90 %: 10 epochs x 4 minibatches of 128 team samples, ~17 ms per forward + backward of
 actor and critic), the rollout and GAE 18 ms, and the evaluation (100 episodes every 50) 7 ms.
 The world itself is ~0.1 ms of an episode. So the update's small attention kernels set the cost;

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from controllers.mappo import MAPPOConfig, TrainConfigError, train
-from controllers.mappo.config import TRAINING_REWARD
+from controllers.mappo.config import user_fields
 from controllers.policy import PolicyConfigError
 from sim.files import ConfigFileError, read_config
 from sim.scenario import ScenarioError
@@ -66,12 +66,7 @@ def resolve_config(args) -> MAPPOConfig:
         fields["tensorboard"] = True
     if args.variant is not None:
         fields["actor"] = {**fields.get("actor", {}), "variant": args.variant}
-    if fields.get("actor", {}).get("variant") == "mlp":
-        fields.setdefault("critic", {"variant": "mlp"})
-    fields.setdefault("total_episodes", 2000)
-    if isinstance(fields.get("reward_weights"), dict):   # a few weights change the training reward
-        fields["reward_weights"] = {**TRAINING_REWARD, **fields["reward_weights"]}
-    return MAPPOConfig.from_dict(fields)
+    return MAPPOConfig.from_dict(user_fields(fields))
 
 
 def run(args) -> int:
