@@ -12,9 +12,12 @@ Plan (made once, at the first call of an episode):
     if the lanes must squeeze between the object and the wall;
   * waypoints: out to the lane beside the start, along the lane to above/below the target,
     then onto the target. A robot advances to the next waypoint within ``switch_radius``, or,
-    held (slower than ``held_speed``) within twice that, once it is nearer the waypoint after: a
-    neighbour parked by the corner can keep it from the waypoint itself. A robot in motion
-    never cuts a corner: beside the object, that would take it into the object's corner.
+    held within twice that, once it is nearer the waypoint after: a neighbour parked by the
+    corner can keep it from the waypoint itself. A robot in motion never cuts a corner: beside
+    the object, that would take it into the object's corner. Held means slower than
+    ``held_speed``, or closer to its waypoint by less than ``held_speed * held_ticks * dt`` than
+    ``held_ticks`` ticks ago: with 2 cm/s of velocity noise a robot held still reads faster than
+    2 cm/s in most ticks, and only its lack of progress tells.
 
 Swap rule (the formation is judged up to an assignment): the robots of one side leave their
 lanes for the targets' column in lane order, each passing the targets nearer its lane. A robot
@@ -44,17 +47,18 @@ class ScriptedController:
 
     def __init__(self, scenario: Scenario, kp: float = 6.0, kd: float = 4.0, cruise_speed: float = 0.3,
                  clearance: float = 0.07, lane_spacing: float = 0.125, switch_radius: float = 0.03,
-                 swap_margin: float = 0.02, held_speed: float = 0.02):
+                 swap_margin: float = 0.02, held_speed: float = 0.02, held_ticks: int = 10):
         self.scenario = scenario
         self.kp, self.kd, self.cruise = kp, kd, cruise_speed
         self.clearance, self.lane_spacing, self.switch_radius = clearance, lane_spacing, switch_radius
-        self.swap_margin, self.held_speed = swap_margin, held_speed
+        self.swap_margin, self.held_speed, self.held_ticks = swap_margin, held_speed, held_ticks
         self.swaps = 0  # targets swapped by the swap rule over the controller's life
         self.reset()
 
     def reset(self) -> None:
         self._waypoints: list[np.ndarray] | None = None
         self._index: np.ndarray | None = None
+        self._gaps: list[list[float]] = []   # per robot, its distances to its waypoint, oldest first
 
     def _plan(self, pos: np.ndarray, targets: np.ndarray) -> None:
         n = len(pos)
@@ -81,14 +85,17 @@ class ScriptedController:
             plans[i] = np.array([[pos[i, 0], y], [targets[k, 0], y], targets[k]])
         self._waypoints = plans
         self._index = np.zeros(n, dtype=int)
+        self._gaps = [[] for _ in range(n)]
 
-    def _reached(self, path: np.ndarray, k: int, p: np.ndarray, v: np.ndarray) -> bool:
-        """Whether a robot at ``p`` moving at ``v`` is done with waypoint k of ``path``
-        (module docstring)."""
+    def _reached(self, path: np.ndarray, k: int, p: np.ndarray, v: np.ndarray, gaps: list[float]) -> bool:
+        """Whether a robot at ``p`` moving at ``v`` is done with waypoint k of ``path``, its
+        distances to it over the last ticks ``gaps`` (module docstring)."""
         gap = np.linalg.norm(path[k] - p)
         if gap < self.switch_radius:
             return True
-        held = np.linalg.norm(v) < self.held_speed
+        stuck = (len(gaps) >= self.held_ticks
+                 and gaps[-self.held_ticks] - gap < self.held_speed * self.held_ticks * self.scenario.dynamics.dt)
+        held = stuck or np.linalg.norm(v) < self.held_speed
         rounded = np.linalg.norm(path[k + 1] - p) < np.linalg.norm(path[k + 1] - path[k])
         return bool(held and rounded and gap < 2 * self.switch_radius)
 
@@ -124,9 +131,12 @@ class ScriptedController:
         acc = np.zeros_like(pos)
         limit = self.scenario.dynamics.accel_limit
         for i in range(len(pos)):
-            path = self._waypoints[i]
-            while self._index[i] < len(path) - 1 and self._reached(path, self._index[i], pos[i], vel[i]):
+            path, gaps = self._waypoints[i], self._gaps[i]
+            while self._index[i] < len(path) - 1 and self._reached(path, self._index[i], pos[i], vel[i], gaps):
                 self._index[i] += 1
+                gaps.clear()
+            gaps.append(float(np.linalg.norm(path[self._index[i]] - pos[i])))
+            del gaps[:-self.held_ticks]
             err = path[self._index[i]] - pos[i]
             dist = np.linalg.norm(err)
             if dist > 0 and self.kp * dist > self.kd * self.cruise:   # cap the approach speed

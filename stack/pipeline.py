@@ -12,6 +12,11 @@ every per-robot estimate is keyed by robot id)::
                    Kalman observers over command delays 0..3 ticks, noise-adaptive; its velocity
                    estimate replaces the measured one for policy and filter
                    (``estimated_velocity``); dropped or stale rows only predict
+      -> positions: controllers.position_estimator.PositionEstimator (``estimated_position``):
+                   a Kalman filter per robot on the measured positions, driven by the measured
+                   velocity, that measures its own noise (exact measurements pass unchanged);
+                   its estimate replaces the measured position for policy and filter, and its
+                   standard deviation grows the robot's disc in the filter
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
@@ -63,6 +68,7 @@ import torch
 from torch import nn
 
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
+from controllers.position_estimator import PositionEstimator
 from controllers.safety import (
     SafetyConfig,
     SafetyFilter,
@@ -162,6 +168,10 @@ class StackConfig:
         estimated_velocity: policy and filter read the compensator's velocity estimate (its
             Kalman observer, noise-adaptive, :mod:`controllers.mec`) instead of the measured
             velocity (only with ``mec``; stale rows keep their measurement).
+        estimated_position: policy and filter read the position estimator's positions
+            (:mod:`controllers.position_estimator`: a Kalman filter that measures each robot's
+            position noise and passes exact measurements through unchanged); the filter grows
+            each disc by the estimate's standard deviation.
     """
 
     safety: bool = True
@@ -170,6 +180,7 @@ class StackConfig:
     mec_config: MecConfig = field(default_factory=MecConfig)
     latency: LatencyConfig = field(default_factory=LatencyConfig)
     estimated_velocity: bool = True
+    estimated_position: bool = True
 
 
 class LastKnown:
@@ -284,6 +295,7 @@ class ControlStack:
         self.mec = ModelErrorCompensator(self.dynamics, self.config.mec_config) if self.config.mec else None
         self.predictor = (LatencyPredictor(self.dynamics, self.config.latency)
                           if self.config.safety and self.config.latency.enabled else None)
+        self.positions = PositionEstimator(self.dynamics.dt) if self.config.estimated_position else None
         self._last_known = LastKnown()
         self.num_robots: int | None = None
 
@@ -293,6 +305,8 @@ class ControlStack:
             self.mec.reset()
         if self.predictor is not None:
             self.predictor.reset()
+        if self.positions is not None:
+            self.positions.reset()
         self._last_known = LastKnown()
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
@@ -355,10 +369,17 @@ class ControlStack:
         stale = unknown | (ages > self.config.latency.stale_after_s)
         if self.predictor is not None and state.commands_pending is not None:
             stale |= self.predictor.late(ages, state.commands_pending, state.command_delay_s)
+        measured_vel = vel
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
             v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
             if self.config.estimated_velocity:
                 vel = np.where(stale[:, None], vel, v_est)
+        position_std = None
+        if self.positions is not None:      # measured noise filtered out, its residual returned
+            noise = self.mec.noise_var if self.mec is not None else np.full(n, self.config.mec_config.velocity_noise**2)
+            estimate, position_std = self.positions.update(ids, pos, measured_vel, measured_vel, state.time - ages,
+                                                           news & ~stale, noise)
+            pos = np.where(stale[:, None], pos, estimate)
         policy_status, brake_reason = PolicyStatus.OK, ""
         if unplaced.any():                      # nowhere to put a robot: nobody may move
             a_nom = self.brake(vel)
@@ -366,7 +387,7 @@ class ControlStack:
             brake_reason = "non-finite fleet state: policy skipped, braking"
             t_obs = t_pol = time.perf_counter_ns()
         else:
-            if unknown.any() or vel is not state.velocities:
+            if unknown.any() or vel is not state.velocities or pos is not state.positions:
                 state = copy.copy(state)        # same shapes: no need to validate again
                 state.positions, state.velocities, state.state_age_s = pos, vel, ages
             a_nom, t_obs, t_pol = self._policy(state, t0)
@@ -376,7 +397,7 @@ class ControlStack:
                 brake_reason = "policy output not finite: braking"
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
-            safe = self._safety(state, pos, vel, ages, unknown, a_nom)
+            safe = self._safety(state, pos, vel, ages, unknown, a_nom, position_std)
             a_safe, safety_status, safety_reason = safe.result.a_safe[:n], safe.result.status, safe.result.reason
         else:
             a_safe = clip_norm(a_nom, self.dynamics.accel_limit)
@@ -435,8 +456,9 @@ class ControlStack:
         return raw, t_obs, t_pol
 
     def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
-                unknown: np.ndarray, a_nom: np.ndarray) -> SafeStage:
-        """Filter the N commanded robots together with the silent ones (obstacles), over the latency."""
+                unknown: np.ndarray, a_nom: np.ndarray, position_std: np.ndarray | None = None) -> SafeStage:
+        """Filter the N commanded robots together with the silent ones (obstacles), over the
+        latency; ``position_std`` (N,) [m], the position estimator's error, grows their discs."""
         silent = state.silent if state.silent is not None and len(state.silent) else None
         ids = state.robot_ids
         if silent is not None:
@@ -445,13 +467,16 @@ class ControlStack:
             ages = np.concatenate([ages, silent.age_s])
             unknown = np.concatenate([unknown, np.ones(len(silent), dtype=bool)])
             a_nom = np.vstack([a_nom, np.zeros((len(silent), 2))])
+            if position_std is not None:
+                position_std = np.concatenate([position_std, np.zeros(len(silent))])
         prediction = None
         if self.predictor is not None:
             pending = state.pending()
             if silent is not None:
                 pending = np.concatenate([pending, np.full(len(silent), -1)])
             prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
-                                                state.command_delay_s, fixed=unknown, pending=pending)
+                                                state.command_delay_s, fixed=unknown, pending=pending,
+                                                position_noise=position_std)
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

@@ -36,7 +36,9 @@ than the bound allows (its command link is down): it is not listening (below).
   command;
 * the model error left after the compensator, ``|a_achieved - a_asked| <= delta_a``
   (``accel_uncertainty``);
-* measurement noise bounded by ``sigma_p``, ``sigma_v`` (``position_noise``, ``velocity_noise``).
+* measurement noise bounded by ``sigma_p``, ``sigma_v`` (``position_noise``, ``velocity_noise``);
+  the stack adds to ``sigma_p`` of each robot the standard deviation its position estimator
+  leaves (:mod:`controllers.position_estimator`: 0 on an exact link, ~3 mm under 1 cm of noise).
 
 With ``A_i = D_i + delta_a`` the semi-implicit Euler steps give the bounds after ``h`` ticks::
 
@@ -279,7 +281,8 @@ class LatencyPredictor:
 
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
-                fixed: np.ndarray | None = None, pending: np.ndarray | None = None) -> Prediction:
+                fixed: np.ndarray | None = None, pending: np.ndarray | None = None,
+                position_noise: np.ndarray | None = None) -> Prediction:
         """Prediction of (N, 2) measured states of ``ages`` (N,) [s] (module docstring).
 
         ``a_nom`` (N, 2) joins the window whose spread bounds the unknown order of commands;
@@ -287,6 +290,8 @@ class LatencyPredictor:
         silent), besides those older than ``stale_after_s`` and those :meth:`late`.
         ``pending`` (N,) int: commands sent after the newest one each robot had acted on when
         measured (-1: unknown; :attr:`sim.fleet.FleetState.commands_pending`).
+        ``position_noise`` (N,) [m]: a per-robot position error (an estimator's) added to
+        ``position_noise`` of the config.
         """
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
@@ -304,7 +309,8 @@ class LatencyPredictor:
         spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
         weight = np.where(unsure, max(cfg.jitter_spread_weight, cfg.spread_weight), cfg.spread_weight)
         accel = weight * spread + cfg.accel_uncertainty
-        grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + cfg.position_noise
+        sigma_p = cfg.position_noise + (0.0 if position_noise is None else np.asarray(position_noise))
+        grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + sigma_p
         closing = accel * dyn.dt * h + cfg.velocity_noise
         steps = int(h.max(initial=0))
         largest = np.hypot(a_nom[:, 0], a_nom[:, 1])            # the largest command of the window
@@ -318,7 +324,7 @@ class LatencyPredictor:
             centre, centre_vel, radius, rate = reach(pos[fixed], vel[fixed], ages[fixed] + delay,
                                                      brake_after, dyn, self._accel_bound[fixed])
             p[fixed], v[fixed] = centre, centre_vel
-            grow[fixed] = radius + cfg.position_noise
+            grow[fixed] = radius + (sigma_p[fixed] if np.ndim(sigma_p) else sigma_p)
             closing[fixed] = rate + cfg.velocity_noise
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h)
 

@@ -112,3 +112,13 @@ def test_a_frozen_robot_is_kept_clear_of_and_is_run_into_without_the_latency_ter
     on = [s for s in seeds if collided(s, None, StackConfig())]
     assert on == []
     assert sum(collided(s, None, NO_LATENCY) for s in seeds) >= 1
+
+
+@pytest.mark.slow
+def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_the_estimator():
+    noisy = ModelError(position_noise_std=0.02, velocity_noise_std=0.04)
+    seeds = range(16)
+    on = [s for s in seeds if collided(s, noisy, StackConfig())]
+    assert on == [], f"seeds {on} collided with the default stack"
+    raw = [s for s in seeds if collided(s, noisy, StackConfig(estimated_position=False))]
+    assert raw, "no teeth: the filter on raw noisy positions never collided"

@@ -306,8 +306,8 @@ def test_tick_without_mask_equals_the_network_on_fresh_tokens_and_full_mask(scri
 
     net = actor(2)
     module = torch.jit.script(net) if scripted else net
-    # the measured state goes to the policy as is (by default it reads the MEC's velocity estimate)
-    stack = ControlStack(make_scenario("paper-3"), module, StackConfig(estimated_velocity=False))
+    # the measured state goes to the policy as is (by default it reads the estimators' state)
+    stack = ControlStack(make_scenario("paper-3"), module, StackConfig(estimated_velocity=False, estimated_position=False))
     for n in (3, 5, 3):
         sc = transport_scenario(n)
         for state in _states(sc, 4, seed=n):
