@@ -55,7 +55,14 @@ class MAPPOConfig:
             on its own target (the team bonus alone left robots stopping short), a one-off cost
             per new contact, a detour path 3 cm off the object and penalties that count a gap
             under 1 cm as contact (a policy trained on exact contact grazes the object).
-        num_envs: parallel environments E of the training world.
+        team_sizes: train one policy on several team sizes at once (e.g. ``[3, 4, 5]``): the
+            training world holds ``num_envs`` environments per size, side by side
+            (:mod:`controllers.mappo.rollout`), of the scenario's layout for that many robots
+            (:meth:`sim.scenario.Scenario.with_robots`; the scenario itself for its own N), and
+            every evaluation runs ``eval_episodes`` per size, its success rate the worst
+            size's. Needs networks that run any N (``actor.variant`` typed, ``critic.variant``
+            attention). ``[]``: the scenario's own N only.
+        num_envs: parallel environments E of the training world (per team size).
         rollout_steps: steps per environment between updates (S); a rollout holds S * E * N
             robot transitions.
         gamma: discount per step (dt = 0.05 s).
@@ -133,6 +140,7 @@ class MAPPOConfig:
     actor: ActorConfig = field(default_factory=ActorConfig)
     critic: CriticConfig = field(default_factory=CriticConfig)
     reward_weights: dict = field(default_factory=lambda: dict(TRAINING_REWARD))
+    team_sizes: list = field(default_factory=list)
     num_envs: int = 16
     rollout_steps: int = 32
     gamma: float = 0.99
@@ -192,6 +200,13 @@ class MAPPOConfig:
         except (ScenarioError, TypeError) as exc:
             raise TrainConfigError(f"scenario: {exc}") from None
         raise TrainConfigError(f"scenario must be a preset name or a scenario dict, got {self.scenario!r}")
+
+    def build_team_scenarios(self) -> list:
+        """The scenario of each team size trained on (:attr:`team_sizes`; the scenario alone
+        when empty)."""
+        scenario = self.build_scenario()
+        return [scenario if n == scenario.num_robots else scenario.with_robots(n)
+                for n in (self.team_sizes or [scenario.num_robots])]
 
     def build_reward_weights(self):
         """The :class:`sim.reward.RewardWeights` of this run (defaults plus ``reward_weights``)."""
@@ -253,11 +268,29 @@ class MAPPOConfig:
         if not isinstance(self.torch_threads, int) or self.torch_threads < 0:
             raise TrainConfigError(f"torch_threads must be an integer >= 0 (0 = leave as is), "
                                    f"got {self.torch_threads!r}")
+        self._validate_team_sizes()
         if self.actor.obs_kind != self.critic.obs_kind:
             raise TrainConfigError(
                 f"actor.variant {self.actor.variant!r} reads {self.actor.obs_kind} observations but "
                 f"critic.variant {self.critic.variant!r} reads {self.critic.obs_kind}; use "
                 "critic.variant='mlp' with actor.variant='mlp', else critic.variant='attention'")
+
+    def _validate_team_sizes(self) -> None:
+        from sim.scenario import MAX_ROBOTS
+
+        sizes = self.team_sizes
+        if not isinstance(sizes, list | tuple) or not all(
+                isinstance(n, int) and not isinstance(n, bool) and 1 <= n <= MAX_ROBOTS for n in sizes):
+            raise TrainConfigError(f"team_sizes must be a list of robot counts in 1..{MAX_ROBOTS} "
+                                   f"(e.g. [3, 4, 5]; [] = the scenario's own), got {sizes!r}")
+        if len(set(sizes)) != len(sizes):
+            raise TrainConfigError(f"team_sizes lists a size twice: {list(sizes)!r}")
+        if sizes and (self.actor.variant != "typed" or self.critic.variant != "attention"):
+            raise TrainConfigError("team_sizes needs networks that run any team size: actor.variant "
+                                   f"{self.actor.variant!r} and critic.variant {self.critic.variant!r} "
+                                   "given; use actor.variant 'typed' and critic.variant 'attention'")
+        if isinstance(sizes, tuple):
+            object.__setattr__(self, "team_sizes", list(sizes))
 
     # ---------------------------------------------------------------- (de)serialise
     def to_dict(self) -> dict[str, Any]:

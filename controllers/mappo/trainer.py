@@ -66,6 +66,7 @@ from controllers.mappo.losses import (
     explained_variance,
     value_loss,
 )
+from controllers.mappo.rollout import TeamGroup, collect
 from controllers.policy import build_actor, build_critic, gaussian_entropy, gaussian_log_prob
 from sim.batched_env import BatchedFormationEnv
 from sim.provenance import provenance
@@ -125,9 +126,11 @@ class MAPPOTrainer:
         self.sampler = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
 
         self.reward_weights = cfg.build_reward_weights()
-        self.env = BatchedFormationEnv(self.scenario, cfg.num_envs, seed=cfg.seed, device=self.device,
-                                       obs=cfg.obs_kind, reward_weights=self.reward_weights)
-        self.obs, self.mask = self.env.reset()
+        self.scenarios = cfg.build_team_scenarios()        # one per team size trained on
+        self.groups = [TeamGroup.start(BatchedFormationEnv(sc, cfg.num_envs, seed=cfg.seed + 7919 * k,
+                                                           device=self.device, obs=cfg.obs_kind,
+                                                           reward_weights=self.reward_weights))
+                       for k, sc in enumerate(self.scenarios)]
         self.arrival_rate = 0.0     # running fraction of training episodes ending on target
         self.iteration = self.episodes = self.env_steps = self.eval_count = self.last_eval_episodes = 0
         self.wall_time_s = 0.0
@@ -158,7 +161,8 @@ class MAPPOTrainer:
                 before = self.episodes
                 row = self._iteration()
                 bar.update(self.episodes - before)
-                if evaluation_due(self.episodes, self.last_eval_episodes, cfg.eval_interval, cfg.num_envs):
+                if evaluation_due(self.episodes, self.last_eval_episodes, cfg.eval_interval,
+                                  cfg.num_envs * len(self.groups)):
                     self._evaluate()
                 if self.iteration % cfg.checkpoint_interval == 0:
                     self.save()
@@ -186,86 +190,70 @@ class MAPPOTrainer:
     def _iteration(self) -> dict:
         cfg = self.config
         start = time.perf_counter()
-        s, e, n = cfg.rollout_steps, cfg.num_envs, self.num_robots
         scale = max(0.0, 1.0 - self.episodes / cfg.total_episodes) if cfg.anneal_lr else 1.0
         if self.last_eval is not None and self.last_eval["success_rate"] >= cfg.success_threshold:
             scale *= cfg.lr_after_success
         for opt, lr in ((self.actor_optimizer, cfg.lr), (self.critic_optimizer, cfg.critic_lr or cfg.lr)):
             opt.param_groups[0]["lr"] = scale * lr
 
-        obs_buf = self.obs.new_empty((s, *self.obs.shape))
-        mask_buf = None if self.mask is None else self.mask.new_empty((s, *self.mask.shape))
-        actions = self.obs.new_empty((s, e, n, 2))
-        log_probs, values, rewards = (self.obs.new_empty((s, e, n)) for _ in range(3))
-        dones = torch.zeros(s, e, dtype=torch.bool, device=self.device)
-        final_values = torch.zeros_like(values) if cfg.bootstrap_from == "final" else values
-        finished = []
-        with torch.no_grad():
-            log_std = self.actor.log_std
-            for t in range(s):
-                obs_buf[t] = self.obs
-                if mask_buf is not None:
-                    mask_buf[t] = self.mask
-                mean = self.actor(self.obs, self.mask)
-                noise = torch.randn(mean.shape, generator=self.sampler, device=self.device, dtype=mean.dtype)
-                action = mean + noise * log_std.exp()
-                actions[t] = action
-                log_probs[t] = gaussian_log_prob(action, mean, log_std)
-                values[t] = self.value_norm.denormalize(self.critic(self.obs, self.mask))
-                step = self.env.step(action)
-                rewards[t], dones[t] = step.reward, step.done
-                self.obs, self.mask = step.obs, step.mask
-                if len(step.finished):
-                    finished.append(step.finished)
-                    if step.final_obs is not None and cfg.bootstrap_from == "final":
-                        final_values[t] = self.value_norm.denormalize(self.critic(step.final_obs, step.final_mask))
-            next_values = self.value_norm.denormalize(self.critic(self.obs, self.mask))
+        rollouts = [collect(g, self.actor, self.critic, self.value_norm, cfg.rollout_steps, self.sampler,
+                            cfg.bootstrap_from == "final") for g in self.groups]
         # Episodes end only by the time limit, which the observation does not show: bootstrap
         # the final step from V of its own observation ("last") or of the state it ended in ("final")
-        advantages, returns = compute_gae(rewards, values, dones, next_values, cfg.gamma, cfg.gae_lambda,
-                                          truncation_values=final_values if cfg.bootstrap_time_limit else None)
-        self.value_norm.update(returns)
-        stats = self._update(obs_buf, mask_buf, actions, log_probs, advantages,
-                             self.value_norm.normalize(returns), self.value_norm.normalize(values))
+        gae = [compute_gae(r.rewards, r.values, r.dones, r.next_values, cfg.gamma, cfg.gae_lambda,
+                           truncation_values=r.final_values if cfg.bootstrap_time_limit else None)
+               for r in rollouts]
+        self.value_norm.update(torch.cat([returns.reshape(-1) for _, returns in gae]))
+        stats = self._update([r.flat(adv, self.value_norm.normalize(ret), self.value_norm.normalize(r.values))
+                              for r, (adv, ret) in zip(rollouts, gae, strict=True)])
         if self.policy is not self.actor:
             self._average_policy()
 
+        finished = [f for r in rollouts for f in r.finished]
         self.iteration += 1
-        self.env_steps += s * e
+        self.env_steps += cfg.rollout_steps * cfg.num_envs * len(self.groups)
         episodes_now = sum(len(f) for f in finished)
         if episodes_now:
             arrived = float(torch.cat([f.arrived for f in finished]).float().mean())
             self._set_arrival_rate(self.arrival_rate + 0.25 * (arrived - self.arrival_rate))
         self.episodes += episodes_now
         self.wall_time_s += time.perf_counter() - start
+        values = torch.cat([r.values.reshape(-1) for r in rollouts])
+        returns = torch.cat([ret.reshape(-1) for _, ret in gae])
         row = {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
                "wall_time_s": round(self.wall_time_s, 3), "episodes_finished": episodes_now,
-               **_episode_summary(finished), "reward_mean": float(rewards.mean()),
-               "explained_variance": explained_variance(values.reshape(-1), returns.reshape(-1)),
+               **_episode_summary(finished),
+               "reward_mean": float(torch.cat([r.rewards.reshape(-1) for r in rollouts]).mean()),
+               "explained_variance": explained_variance(values, returns),
                "action_std": float(self.actor.log_std.detach().exp().mean()),
-               "lr": self.actor_optimizer.param_groups[0]["lr"], "penalty_scale": self.env.penalty_scale,
+               "lr": self.actor_optimizer.param_groups[0]["lr"], "penalty_scale": self.groups[0].env.penalty_scale,
                **stats}
         self.train_log.append(row)
         if self.scalars is not None:
             self.scalars.add("train", row)
         return row
 
-    def _update(self, obs, mask, actions, old_log_probs, advantages, returns_n, old_values_n) -> dict:
-        """PPO epochs over the rollout; minibatches of (step, env) pairs keep teams together."""
+    def _minibatches(self, batches: list[dict]) -> list[tuple[dict, torch.Tensor]]:
+        """One epoch's minibatches: each group's (step, env) samples split ``num_minibatches``
+        ways in a fresh random order (teams stay whole); several groups take turns at random."""
+        out = []
+        for batch in batches:
+            b = batch["obs"].shape[0]
+            order = torch.randperm(b, generator=self.sampler, device=self.device)
+            out += [(batch, idx) for idx in order.split(math.ceil(b / self.config.num_minibatches))]
+        if len(batches) > 1:
+            out = [out[k] for k in torch.randperm(len(out), generator=self.sampler).tolist()]
+        return out
+
+    def _update(self, batches: list[dict]) -> dict:
+        """PPO epochs over the rollouts of every group (:meth:`_minibatches`)."""
         cfg = self.config
-        b = obs.shape[0] * obs.shape[1]
-        flat = {"obs": obs.flatten(0, 1), "actions": actions.flatten(0, 1),
-                "old_log_probs": old_log_probs.flatten(0, 1), "advantages": advantages.flatten(0, 1),
-                "returns": returns_n.flatten(0, 1), "old_values": old_values_n.flatten(0, 1)}
-        flat_mask = None if mask is None else mask.flatten(0, 1)
-        size = math.ceil(b / cfg.num_minibatches)
         sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "approx_kl": 0.0, "clipfrac": 0.0}
         steps = 0
         for _ in range(cfg.update_epochs):
-            order = torch.randperm(b, generator=self.sampler, device=self.device)
             kl_epoch = []
-            for idx in order.split(size):
-                mb_mask = None if flat_mask is None else flat_mask[idx]
+            for flat, idx in self._minibatches(batches):
+                mb_mask = None if flat["mask"] is None else flat["mask"][idx]
                 mean = self.actor(flat["obs"][idx], mb_mask)
                 new_log_prob = gaussian_log_prob(flat["actions"][idx], mean, self.actor.log_std)
                 log_ratio = new_log_prob - flat["old_log_probs"][idx]
@@ -300,7 +288,8 @@ class MAPPOTrainer:
     def _set_arrival_rate(self, rate: float) -> None:
         """Record the running arrival rate and set the contact-penalty curriculum from it."""
         self.arrival_rate = rate
-        self.env.penalty_scale = 1.0 + self.config.penalty_curriculum * rate
+        for group in self.groups:
+            group.env.penalty_scale = 1.0 + self.config.penalty_curriculum * rate
 
     @torch.no_grad()
     def _average_policy(self) -> None:
@@ -318,22 +307,33 @@ class MAPPOTrainer:
         return 1_000_000 * (self.config.seed + 1) + 1_000 * index
 
     def _evaluate(self) -> None:
+        """``eval_episodes`` deterministic episodes per team size; with several sizes the run's
+        success rate is the worst size's (every size must meet the convergence rule), the other
+        numbers are means over sizes, and each size's success rate is kept (``success_rate_n<N>``)."""
         cfg = self.config
         start = time.perf_counter()
-        result = evaluate(self.policy, self.scenario, episodes=cfg.eval_episodes,
-                          seed=self.eval_seed(self.eval_count), device=self.device,
-                          reward_weights=self.reward_weights)
-        converged = self.tracker.add(self.episodes, result.success_rate)
+        seed = self.eval_seed(self.eval_count)
+        results = [evaluate(self.policy, sc, episodes=cfg.eval_episodes, seed=seed, device=self.device,
+                            reward_weights=self.reward_weights) for sc in self.scenarios]
+        success = min(r.success_rate for r in results)
+        converged = self.tracker.add(self.episodes, success)
         self.eval_count += 1
         self.last_eval_episodes = self.episodes
         self.wall_time_s += time.perf_counter() - start
+
+        def mean(name: str) -> float:
+            return sum(getattr(r, name) for r in results) / len(results)
+
         self.last_eval = {"iteration": self.iteration, "episodes": self.episodes, "env_steps": self.env_steps,
-                          "wall_time_s": round(self.wall_time_s, 3), "success_rate": result.success_rate,
-                          "final_distance": result.final_distance, "episode_return": result.episode_return,
-                          "robot_collisions": result.robot_collisions,
-                          "object_collisions": result.object_collisions,
-                          "wall_collisions": result.wall_collisions, "collision_rate": result.collision_rate,
-                          "eval_seed": result.seed, "converged_episode": converged}
+                          "wall_time_s": round(self.wall_time_s, 3), "success_rate": success,
+                          "final_distance": mean("final_distance"), "episode_return": mean("episode_return"),
+                          "robot_collisions": mean("robot_collisions"),
+                          "object_collisions": mean("object_collisions"),
+                          "wall_collisions": mean("wall_collisions"), "collision_rate": mean("collision_rate"),
+                          "eval_seed": seed, "converged_episode": converged}
+        if len(results) > 1:
+            self.last_eval.update({f"success_rate_n{sc.num_robots}": r.success_rate
+                                   for sc, r in zip(self.scenarios, results, strict=True)})
         self.eval_log.append(self.last_eval)
         if self.scalars is not None:
             self.scalars.add("eval", self.last_eval)
@@ -353,7 +353,7 @@ class MAPPOTrainer:
                          "wall_time_s": self.wall_time_s, "arrival_rate": self.arrival_rate},
             "convergence": self.tracker.state_dict(), "last_eval": self.last_eval,
             "transferred_from": self.transferred_from,
-            "rng": {"sampler": self.sampler.get_state()}, "env_state": env_state_dict(self.env),
+            "rng": {"sampler": self.sampler.get_state()}, "env_state": _env_states(self.groups),
         })
         return path
 
@@ -383,8 +383,13 @@ class MAPPOTrainer:
         self.last_eval = data["last_eval"]
         self.transferred_from = data["transferred_from"]
         self.sampler.set_state(data["rng"]["sampler"])
-        load_env_state(self.env, data["env_state"])
-        self.obs, self.mask = self.env.observe()
+        states = data["env_state"] if isinstance(data["env_state"], list) else [data["env_state"]]
+        if len(states) != len(self.groups):
+            raise TrainConfigError(f"cannot resume: the checkpoint holds {len(states)} team groups, "
+                                   f"this run {len(self.groups)}; use the run's config.json")
+        for group, state in zip(self.groups, states, strict=True):
+            load_env_state(group.env, state)
+            group.obs, group.mask = group.env.observe()
         self.train_log.truncate(self.iteration)
         self.eval_log.truncate(self.eval_count)
 
@@ -410,6 +415,12 @@ class MAPPOTrainer:
         if source.value_norm == self.config.value_norm:
             self.value_norm.load_state_dict(data["value_norm"])
         self.transferred_from = str(path)
+
+
+def _env_states(groups: list[TeamGroup]) -> dict | list[dict]:
+    """The checkpoint's environment state: one dict (one team size, as before) or one per group."""
+    states = [env_state_dict(g.env) for g in groups]
+    return states[0] if len(states) == 1 else states
 
 
 def _episode_summary(finished: list) -> dict:

@@ -27,6 +27,21 @@ def positive(text: str) -> int:
     return value
 
 
+def int_list(text: str) -> list[int]:
+    """A comma-separated list of positive integers (``3,4,5``) or a range (``3-5``)."""
+    try:
+        if "-" in text and "," not in text:
+            lo, hi = (int(x) for x in text.split("-"))
+            values = list(range(lo, hi + 1))
+        else:
+            values = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected integers like 3,4,5 or 3-5, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers like 3,4,5 or 3-5, got {text!r}")
+    return values
+
+
 def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where: str = "") -> None:
     """``--safety/--no-safety`` and ``--mec/--no-mec``, the one spelling every command uses;
     ``default`` None leaves the choice to the command (``args.safety is None``: not given)."""

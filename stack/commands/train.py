@@ -41,6 +41,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
     p.add_argument("--variant", choices=("typed", "slot", "mlp"), default=None,
                    help="actor: typed SDPA (any N, default), the paper's slot SDPA, or the MLP baseline")
+    p.add_argument("--team-sizes", type=argtypes.int_list, metavar="LIST", default=None,
+                   help="train one policy on several team sizes at once, e.g. 3,4,5 or 3-5 "
+                        "(team_sizes; default: the scenario's own)")
     p.add_argument("--init-from", metavar="CKPT", help="start from an M-robot checkpoint (transfer)")
     p.add_argument("--config", metavar="FILE_OR_JSON",
                    help="MAPPOConfig fields: a .json/.toml file or inline JSON, e.g. '{\"lr\": 5e-4}'")
@@ -58,7 +61,7 @@ def resolve_config(args) -> MAPPOConfig:
     """Defaults < ``--config`` < flags given (module docstring); raises ValueError-like errors."""
     fields = read_config(args.config, "--config") if args.config else {}
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed,
-             "init_from": args.init_from}
+             "init_from": args.init_from, "team_sizes": args.team_sizes}
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
         fields["stop_at_convergence"] = False

@@ -112,7 +112,7 @@ def test_policy_average_is_evaluated_saved_and_loaded(tmp_path):
 
 def test_penalty_curriculum_follows_the_arrival_rate(tmp_path):
     trainer = MAPPOTrainer(tiny(penalty_curriculum=4.0), tmp_path)
-    assert trainer.env.penalty_scale == 1.0
+    assert trainer.groups[0].env.penalty_scale == 1.0
     arrived = []
     for _ in range(8):                     # 32-step rollouts: 4 envs finish every 4th iteration
         row = trainer._iteration()
@@ -123,11 +123,11 @@ def test_penalty_curriculum_follows_the_arrival_rate(tmp_path):
         rate += 0.25 * (0.0 - rate)
     assert len(arrived) == 2 and trainer.arrival_rate == rate == 0.0
     trainer.arrival_rate = 0.5             # as if half the recent episodes had ended on target
-    trainer.env.penalty_scale = 1.0
+    trainer.groups[0].env.penalty_scale = 1.0
     trainer._iteration(), trainer._iteration(), trainer._iteration()
     row = trainer._iteration()             # a batch finishes: 0.5 + 0.25 * (0 - 0.5) = 0.375
     assert trainer.arrival_rate == pytest.approx(0.375)
-    assert row["penalty_scale"] == pytest.approx(1.0 + 4.0 * 0.375) == trainer.env.penalty_scale
+    assert row["penalty_scale"] == pytest.approx(1.0 + 4.0 * 0.375) == trainer.groups[0].env.penalty_scale
 
 
 def test_learning_rate_drops_while_the_last_evaluation_succeeds(tmp_path):
@@ -288,3 +288,49 @@ def test_tensorboard_scalars_hold_the_logged_rows(tmp_path):
     rewards = [e.value for e in events.Scalars("train/reward_mean")]
     assert rewards == pytest.approx([r["reward_mean"] for r in train_rows], rel=1e-6)
     assert "train/return_mean" in events.Tags()["scalars"]       # None rows are skipped, others kept
+
+
+def test_several_team_sizes_train_side_by_side_and_resume_on_the_same_curve(tmp_path):
+    config = tiny(team_sizes=[2, 3], total_episodes=16, eval_interval=8)
+    whole = train(config, tmp_path / "whole")
+    # every iteration steps both groups: 4 envs x 32 steps each; 8 episodes finish per episode length
+    assert whole.env_steps == whole.iterations * 32 * 4 * 2 and whole.episodes == 16
+    evals = rows(tmp_path / "whole" / "eval.jsonl")
+    assert [e["episodes"] for e in evals] == [0, 8, 16]
+    for e in evals:                       # the run's success is its worst size's
+        assert e["success_rate"] == min(e["success_rate_n2"], e["success_rate_n3"])
+    ckpt = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")
+    assert [s["pos"].shape[1] for s in ckpt["env_state"]] == [2, 3]
+    train(config.replace(total_episodes=8), tmp_path / "parts")
+    train(config, tmp_path / "parts", resume=True)
+    assert rows(tmp_path / "parts" / "train.jsonl") == rows(tmp_path / "whole" / "train.jsonl")
+    assert rows(tmp_path / "parts" / "eval.jsonl") == evals
+    with pytest.raises(TrainConfigError, match="team_sizes"):
+        train(tiny(total_episodes=16, eval_interval=8, team_sizes=[2, 3, 4]), tmp_path / "parts", resume=True)
+
+
+def test_the_update_draws_minibatches_of_every_team_size(tmp_path):
+    trainer = MAPPOTrainer(tiny(team_sizes=[2, 4]), tmp_path / "run")
+    seen = []
+    forward = trainer.actor.forward
+
+    def spy(obs, mask=None):
+        if torch.is_grad_enabled():
+            seen.append(obs.shape[1])
+        return forward(obs, mask)
+
+    trainer.actor.forward = spy
+    trainer._iteration()
+    # 2 epochs x 2 minibatches x 2 sizes, in a shuffled order that mixes the sizes
+    assert sorted(seen) == [2] * 4 + [4] * 4 and seen != sorted(seen)
+
+
+@pytest.mark.parametrize(("changes", "field"), [
+    ({"team_sizes": [3, 3]}, "twice"),
+    ({"team_sizes": [0, 3]}, "1..21"),
+    ({"team_sizes": "3,4"}, "team_sizes must be a list"),
+    ({"team_sizes": [3, 4], "actor": {"variant": "slot"}}, "actor.variant 'slot'"),
+])
+def test_team_sizes_errors_name_the_field(changes, field):
+    with pytest.raises(TrainConfigError, match=field):
+        tiny(**changes)
