@@ -27,6 +27,8 @@ every per-robot estimate is keyed by robot id)::
                    (the tick writes the tokens into a float32 buffer kept per N and, every token
                    being valid, passes ``mask=None`` to a network whose forward accepts it, else
                    an all-true mask kept per N; a TorchScript forward is called directly)
+      -> docking:  controllers.docking.Docking: a robot near its free matched target gets a PD
+                   law onto it instead (``docking``); the filter judges it like any command
       -> latency:  controllers.safety.latency.LatencyPredictor: every robot (silent ones
                    appended) predicted to where the new command acts, over its state age plus
                    the command delay, through the commands in flight; discs grown by what the
@@ -67,6 +69,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from controllers.docking import Docking, DockingConfig
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
 from controllers.position_estimator import PositionEstimator
 from controllers.safety import (
@@ -113,6 +116,7 @@ class TickResult:
         brake_reason: why a stage output was replaced by braking ("" when none was).
         stale: (N,) bool, robots treated as obstacles this tick (state older than the latency
             config's ``stale_after_s``, or not finite): they were sent the braking law.
+        docking: (N,) bool, robots whose ``a_nom`` is the docking law (:mod:`controllers.docking`).
         timings_ns: nanoseconds per stage: observe, policy, safety, mec, total.
     """
 
@@ -125,6 +129,7 @@ class TickResult:
     safety_reason: str = ""
     brake_reason: str = ""
     stale: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    docking: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     timings_ns: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -172,6 +177,9 @@ class StackConfig:
             (:mod:`controllers.position_estimator`: a Kalman filter that measures each robot's
             position noise and passes exact measurements through unchanged); the filter grows
             each disc by the estimate's standard deviation.
+        docking: the terminal mode that takes a robot near its free matched target onto it
+            (:mod:`controllers.docking`), before the filter; ``DockingConfig(enabled=False)``
+            leaves the policy's command as it is.
     """
 
     safety: bool = True
@@ -181,6 +189,7 @@ class StackConfig:
     latency: LatencyConfig = field(default_factory=LatencyConfig)
     estimated_velocity: bool = True
     estimated_position: bool = True
+    docking: DockingConfig = field(default_factory=DockingConfig)
 
 
 class LastKnown:
@@ -296,6 +305,8 @@ class ControlStack:
         self.predictor = (LatencyPredictor(self.dynamics, self.config.latency)
                           if self.config.safety and self.config.latency.enabled else None)
         self.positions = PositionEstimator(self.dynamics.dt) if self.config.estimated_position else None
+        self.docking = (Docking(scenario.robot_radius, self.dynamics.accel_limit, self.config.docking)
+                        if self.config.docking.enabled else None)
         self._last_known = LastKnown()
         self.num_robots: int | None = None
 
@@ -307,6 +318,8 @@ class ControlStack:
             self.predictor.reset()
         if self.positions is not None:
             self.positions.reset()
+        if self.docking is not None:
+            self.docking.reset()
         self._last_known = LastKnown()
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
@@ -381,6 +394,7 @@ class ControlStack:
                                                            news & ~stale, noise)
             pos = np.where(stale[:, None], pos, estimate)
         policy_status, brake_reason = PolicyStatus.OK, ""
+        docked = np.zeros(n, dtype=bool)
         if unplaced.any():                      # nowhere to put a robot: nobody may move
             a_nom = self.brake(vel)
             policy_status = PolicyStatus.INVALID_STATE
@@ -395,6 +409,8 @@ class ControlStack:
                 a_nom = self.brake(vel)
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
+            elif self.docking is not None:
+                a_nom, docked = self.docking(ids, pos, vel, state.targets, a_nom, movable=~stale)
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
             safe = self._safety(state, pos, vel, ages, unknown, a_nom, position_std)
@@ -423,7 +439,7 @@ class ControlStack:
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
-            brake_reason=brake_reason, stale=stale,
+            brake_reason=brake_reason, stale=stale, docking=docked,
             timings_ns={"observe": t_obs - t0, "policy": t_pol - t_obs, "safety": t_safe - t_pol,
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 

@@ -3,7 +3,8 @@
 One iteration::
 
     rollout   S steps of E environments: a ~ N(actor(o), exp(log_std)^2) per robot,
-              V(o) from the centralised critic (de-normalised)
+              V(o) from the centralised critic (de-normalised); with ``team_sizes``, of E
+              environments per team size (controllers.mappo.rollout), minibatches of one size
     GAE       advantages and returns per robot (controllers.mappo.losses.compute_gae)
     update    update_epochs x num_minibatches Adam steps over (step, env) pairs, each holding
               the whole team: clipped surrogate - ent_coef * entropy (actor),
@@ -152,7 +153,8 @@ class MAPPOTrainer:
     def run(self) -> TrainResult:
         cfg = self.config
         bar = tqdm(total=cfg.total_episodes, initial=self.episodes, unit="ep", disable=not cfg.progress,
-                   dynamic_ncols=True, desc=f"MAPPO {cfg.scenario_name}")
+                   dynamic_ncols=True, desc=f"MAPPO {cfg.scenario_name}"
+                   + (f" N={','.join(map(str, cfg.team_sizes))}" if cfg.team_sizes else ""))
         shown = {"ret": "-", "succ": "-"}      # training return and success of the last finished batch
         try:
             if self.eval_count == 0:

@@ -1,0 +1,158 @@
+"""One policy for any team: the generalist against the paper's specialist, zero-shot on a grid.
+
+Trains, for ``--seeds`` seeds on Ray Tune (:mod:`stack.sweep`, one CPU each):
+
+    generalist   SDPA-MAPPO on the team sizes ``--team-sizes`` (default 3,4,5) of the paper's
+                 layout at once (``MAPPOConfig.team_sizes``), budget ``--budget``
+    specialist   SDPA-MAPPO on paper-3 alone (the paper's recipe: what 3 robots learned)
+
+then judges every final policy, no further training, on a grid of ``--robots`` (default 1..10)
+x layouts (:data:`LAYOUTS`: the default transport layout; its mirror, left to right; a larger
+object; a hexagonal object), ``--episodes`` deterministic episodes each in the batched world
+(no filter, no MEC), and with ``--pymunk-episodes`` > 0 also in pymunk with model error (gain
+0.85 +- 0.15, lag 0.03 s, one tick of command delay) through the default stack (filter + MEC).
+A success needs every robot within the target tolerance at the end and no contact.
+
+``--json``: ``{"train": {"generalist": {"episodes": ..., "env_steps": ..., "wall_s": ...,
+"converged_seeds": ...}, "specialist": {...}}, "grid": [{"policy", "seed", "scenario", "robots",
+"world", "success", "collisions", "final_distance_mm"}, ...], "finetune": null}`` (fine-tuning on
+a held-out layout is not measured yet).
+
+    python bench/generalization.py --seeds 3                      # the full grid
+    python bench/generalization.py --seeds 1 --robots 3,6 --episodes 20 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench._common import (  # noqa: E402
+    add_output_args,
+    positive_int,
+    positive_int_list,
+    print_json,
+    print_table,
+    progress,
+)
+from stack.sweep import TrialSpec, resolve_fields, run_trials, summarize  # noqa: E402
+
+LAYOUTS = ("transport", "mirrored", "large-object", "hexagon")
+PYMUNK_ERROR = {"gain": 0.85, "gain_spread": 0.15, "lag_tau": 0.03, "delay_ticks": 1}
+
+
+def layout(name: str, n: int):
+    """The scenario of layout ``name`` for ``n`` robots (module docstring)."""
+    import dataclasses
+
+    import numpy as np
+
+    from sim.scenario import rectangle, transport_scenario
+
+    if name == "transport":
+        return transport_scenario(n)
+    if name == "mirrored":
+        sc = transport_scenario(n)
+        return dataclasses.replace(sc, name=f"mirrored-{n}", start_slots=sc.target_slots, target_slots=sc.start_slots)
+    if name == "large-object":
+        return transport_scenario(n, object_vertices=rectangle((0.5, 0.5), (0.24, 0.36)), name=f"large-object-{n}")
+    if name == "hexagon":
+        angles = np.arange(6) * np.pi / 3
+        hexagon = np.stack([0.5 + 0.15 * np.cos(angles), 0.5 + 0.15 * np.sin(angles)], 1)
+        return transport_scenario(n, object_vertices=hexagon, name=f"hexagon-{n}")
+    raise ValueError(f"unknown layout {name!r}; choose from {LAYOUTS}")
+
+
+def trials(args, out: Path) -> list[TrialSpec]:
+    base = {"scenario": "paper-3", "update_epochs": args.update_epochs, "total_episodes": args.budget}
+    specs = []
+    for seed in range(args.seeds):
+        for name, extra in (("generalist", {"team_sizes": args.team_sizes}), ("specialist", {})):
+            folder = out / name / f"seed-{seed}"
+            specs.append(TrialSpec(name, seed, resolve_fields({**base, **extra}, {}, seed), str(folder.resolve())))
+    return specs
+
+
+def judge(checkpoint: str, args) -> list[dict]:
+    """The grid rows of one policy (module docstring)."""
+    import torch
+
+    from controllers.mappo import evaluate, load_actor
+    from sim.pymunk_world import ModelError, PymunkWorld
+    from stack.pipeline import ControlStack, run_episode
+
+    torch.set_num_threads(1)
+    actor = load_actor(checkpoint)
+    rows = []
+    for name in args.layouts:
+        for n in args.robots:
+            sc = layout(name, n)
+            r = evaluate(actor, sc, episodes=args.episodes, seed=10_000)
+            rows.append({"scenario": sc.name, "layout": name, "robots": n, "world": "batched",
+                         "success": r.success_rate, "collisions": r.collision_rate,
+                         "final_distance_mm": 1000 * r.final_distance})
+            if args.pymunk_episodes:
+                runs = [run_episode(PymunkWorld(sc, ModelError(**PYMUNK_ERROR)), ControlStack(sc, actor), 10_000 + k)
+                        for k in range(args.pymunk_episodes)]
+                ok = [m.final_distance for m in runs if m.success]
+                rows.append({"scenario": sc.name, "layout": name, "robots": n, "world": "pymunk",
+                             "success": sum(m.success for m in runs) / len(runs),
+                             "collisions": sum(m.collided for m in runs) / len(runs),
+                             "final_distance_mm": 1000 * statistics.mean(ok) if ok else None})
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=positive_int, default=3, help="training seeds 0..K-1 (default 3)")
+    p.add_argument("--team-sizes", type=positive_int_list, default=[3, 4, 5],
+                   help="the generalist's team sizes (default 3,4,5)")
+    p.add_argument("--budget", type=positive_int, default=3200, help="episode budget of each run (default 3200)")
+    p.add_argument("--update-epochs", type=positive_int, default=4, help="PPO epochs per rollout (default 4)")
+    p.add_argument("--robots", type=positive_int_list, default=list(range(1, 11)), help="grid team sizes (default 1..10)")
+    p.add_argument("--layouts", type=lambda s: s.split(","), default=list(LAYOUTS),
+                   help=f"grid layouts, from {','.join(LAYOUTS)} (default all)")
+    p.add_argument("--episodes", type=positive_int, default=100, help="batched episodes per cell (default 100)")
+    p.add_argument("--pymunk-episodes", type=int, default=0, help="pymunk episodes per cell (default 0: skip)")
+    p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")
+    p.add_argument("--out", type=Path, default=Path("runs/generalization"), help="run folders (default runs/generalization)")
+    add_output_args(p)
+    args = p.parse_args(argv)
+    bad = sorted(set(args.layouts) - set(LAYOUTS))
+    if bad:
+        p.error(f"--layouts: unknown {bad}; choose from {','.join(LAYOUTS)}")
+    specs = trials(args, args.out)
+    progress(f"training {len(specs)} runs on {args.cpus} CPUs under {args.out}")
+    run_trials(specs, args.out, cpus=args.cpus, experiment="generalization", restore=False, verbose=0)
+    train, grid = {}, []
+    for name in ("generalist", "specialist"):
+        runs = [summarize(Path(s.folder), args.budget) for s in specs if s.group == name]
+        train[name] = {"episodes": statistics.median(r["episodes"] for r in runs),
+                       "env_steps": statistics.median(r["env_steps"] for r in runs),
+                       "wall_s": statistics.median(r["wall_s"] for r in runs),
+                       "converged_seeds": sum(r["converged"] for r in runs), "seeds": len(runs)}
+    for s in specs:
+        progress(f"judging {s.group} seed {s.seed}")
+        grid += [{"policy": s.group, "seed": s.seed, **row} for row in judge(str(Path(s.folder) / "checkpoint.pt"), args)]
+    doc = {"train": train, "grid": grid, "finetune": None}
+    if args.json:
+        print_json(doc)
+        return 0
+    print_table(["policy", "train episodes (median)", "converged", "wall s"],
+                [[k, v["episodes"], f"{v['converged_seeds']}/{v['seeds']}", v["wall_s"]] for k, v in train.items()])
+    cells = {}
+    for row in grid:
+        cells.setdefault((row["policy"], row["world"], row["layout"], row["robots"]), []).append(row["success"])
+    print_table(["policy", "world", "layout", *[f"N={n}" for n in args.robots]],
+                [[pol, world, lay, *[f"{statistics.mean(cells[(pol, world, lay, n)]):.2f}" for n in args.robots]]
+                 for pol in train for world in ("batched", "pymunk") for lay in args.layouts
+                 if (pol, world, lay, args.robots[0]) in cells])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
