@@ -43,13 +43,17 @@ def int_list(text: str) -> list[int]:
 
 
 def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where: str = "") -> None:
-    """``--safety/--no-safety`` and ``--mec/--no-mec``, the one spelling every command uses;
+    """``--safety/--no-safety``, ``--mec/--no-mec`` and ``--docking/--no-docking``, the one
+    spelling every command uses;
     ``default`` None leaves the choice to the command (``args.safety is None``: not given)."""
     state = "on" if default or default is None else "off"
     parser.add_argument("--safety", action=argparse.BooleanOptionalAction, default=default,
                         help=f"the barrier-QP safety filter{where} (default {state})")
     parser.add_argument("--mec", action=argparse.BooleanOptionalAction, default=default,
                         help=f"the Kalman model error compensator{where} (default {state})")
+    parser.add_argument("--docking", action=argparse.BooleanOptionalAction, default=default,
+                        help=f"the terminal mode that drives a robot near its free target onto "
+                             f"it, through the filter{where} (default {state})")
 
 
-__all__ = ["add_stage_flags", "positive", "seed"]
+__all__ = ["add_stage_flags", "int_list", "positive", "seed"]

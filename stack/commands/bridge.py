@@ -116,15 +116,16 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def build_stack(scenario: Scenario, policy: str, safety: bool, mec: bool, latency=None):
-    """ControlStack(policy -> safety -> MEC); ``policy`` a file or 'scripted'; ``latency`` a
-    :class:`controllers.safety.latency.LatencyConfig` (default: 150 ms)."""
+def build_stack(scenario: Scenario, policy: str, safety: bool, mec: bool, latency=None, docking: bool = True):
+    """ControlStack(policy -> docking -> safety -> MEC); ``policy`` a file or 'scripted';
+    ``latency`` a :class:`controllers.safety.latency.LatencyConfig` (default: 150 ms)."""
+    from controllers.docking import DockingConfig
     from controllers.safety.latency import LatencyConfig
     from stack.pipeline import ControlStack, StackConfig
 
     source = ScriptedFleetController(scenario) if policy == "scripted" else policy
-    return ControlStack(scenario, source, StackConfig(safety=safety, mec=mec,
-                                                      latency=latency or LatencyConfig()))
+    return ControlStack(scenario, source, StackConfig(safety=safety, mec=mec, latency=latency or LatencyConfig(),
+                                                      docking=DockingConfig(enabled=docking)))
 
 
 def build_controller(scenario: Scenario, policy: str, safety: bool, mec: bool):
@@ -212,7 +213,7 @@ def run(args) -> int:
     try:
         scenario = make_scenario(args.scenario)
         stack = build_stack(scenario, args.policy, args.safety, args.mec,
-                            latency_config(args))
+                            latency_config(args), args.docking)
         recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)

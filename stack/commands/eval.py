@@ -88,7 +88,8 @@ def evaluate_from_args(args) -> dict:
     notes = []
     if args.world == "batched":
         ignored = [flag for flag, value in (("--safety", args.safety), ("--mec", args.mec),
-                                            ("--model-error", args.model_error)) if value is not None]
+                                            ("--docking", args.docking), ("--model-error", args.model_error))
+                   if value is not None]
         if ignored:
             note = (f"{', '.join(ignored)} ignored: the batched world runs the policy alone with "
                     "the nominal model; use --world pymunk for the safety filter, MEC and model error")
@@ -125,6 +126,7 @@ def _batched(args, scenario) -> dict:
 
 
 def _pymunk(args, scenario, model_error: ModelError) -> dict:
+    from controllers.docking import DockingConfig
     from stack.pipeline import ControlStack, StackConfig, load_policy
 
     safety = True if args.safety is None else args.safety
@@ -139,7 +141,8 @@ def _pymunk(args, scenario, model_error: ModelError) -> dict:
         latency = latency_config(args)
     except ValueError as exc:
         raise EvalArgumentError(str(exc)) from None
-    stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec, latency=latency))
+    docking = DockingConfig(enabled=True if args.docking is None else args.docking)
+    stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec, latency=latency, docking=docking))
     world = PymunkWorld(scenario, model_error, seed=args.seed)
     out = _episodes(args, world, stack, safety=safety, mec=mec)
     out["model_error"] = dataclasses.asdict(model_error)

@@ -13,7 +13,7 @@ def test_stage_switches_are_spelled_alike(command, capsys):
         main([command, "--help"])
     assert done.value.code == 0
     text = capsys.readouterr().out
-    assert "--safety, --no-safety" in text and "--mec, --no-mec" in text
+    assert "--safety, --no-safety" in text and "--mec, --no-mec" in text and "--docking, --no-docking" in text
     assert "on|off" not in text
 
 

@@ -135,3 +135,18 @@ def test_a_scenario_file_runs_where_a_preset_does(tmp_path, capsys):
     capsys.readouterr()
     assert main(["train", "--scenario", str(path), "--print-config"]) == 0
     assert json.loads(capsys.readouterr().out)["scenario"]["name"] == "my-layout"   # content, not path
+
+
+def test_the_docking_switch_reaches_the_stack():
+    import argparse
+
+    from sim.scenario import make_scenario
+    from stack.commands import argtypes
+    from stack.commands.bridge import build_stack
+
+    parser = argparse.ArgumentParser()
+    argtypes.add_stage_flags(parser, None)
+    assert parser.parse_args([]).docking is None
+    assert parser.parse_args(["--no-docking"]).docking is False
+    assert build_stack(make_scenario("paper-3"), "scripted", True, True, docking=False).docking is None
+    assert build_stack(make_scenario("paper-3"), "scripted", True, True).docking is not None
