@@ -31,6 +31,7 @@ import torch
 from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start
 from _common import map_episodes
 
+from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
 from sim.fleet import FleetState
@@ -54,6 +55,8 @@ CONDITIONS: dict[str, dict] = {
 """Condition name -> ModelError fields ("random": drawn per episode, see :func:`model_error`)."""
 
 BARE = StackConfig(safety=False, mec=False)
+OPEN_LOOP = StackConfig(safety=False, mec=False, docking=DockingConfig(enabled=False))
+"""The replay of recorded commands: nothing but the MEC (when on) closes a loop."""
 _NETWORKS: dict = {}
 
 
@@ -137,7 +140,7 @@ def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
             world = PymunkWorld(sc, me)
             state = world.reset(seed=seed + k)
             stack = ControlStack(sc, lambda s, c=commands: c[min(s.step, len(c) - 1)],
-                                 StackConfig(safety=False, mec=mec))
+                                 OPEN_LOOP if not mec else dataclasses.replace(OPEN_LOOP, mec=True))
             dev = []
             for t in range(len(commands)):
                 world.send_accelerations(stack.tick(state).a_cmd)

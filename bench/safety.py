@@ -73,6 +73,7 @@ from _safety_conditions import CONDITIONS, run_conditions  # noqa: E402
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from controllers.docking import DockingConfig  # noqa: E402
 from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
@@ -170,7 +171,8 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
         for key, mec in (("without", False), ("with", True)):
             world = PymunkWorld(sc, MEC_ERROR)
             state = world.reset(seed=seed + k)
-            stack = ControlStack(sc, Replay(np.array(commands)), StackConfig(safety=False, mec=mec))
+            stack = ControlStack(sc, Replay(np.array(commands)),   # open loop: no docking either
+                                 StackConfig(safety=False, mec=mec, docking=DockingConfig(enabled=False)))
             deviation = []
             for t in range(len(commands)):
                 world.send_accelerations(stack.tick(state).a_cmd)
