@@ -382,17 +382,7 @@ class ControlStack:
         stale = unknown | (ages > self.config.latency.stale_after_s)
         if self.predictor is not None and state.commands_pending is not None:
             stale |= self.predictor.late(ages, state.commands_pending, state.command_delay_s)
-        measured_vel = vel
-        if self.mec is not None:            # the observer's velocity: less noisy, same delay
-            v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
-            if self.config.estimated_velocity:
-                vel = np.where(stale[:, None], vel, v_est)
-        position_std = None
-        if self.positions is not None:      # measured noise filtered out, its residual returned
-            noise = self.mec.noise_var if self.mec is not None else np.full(n, self.config.mec_config.velocity_noise**2)
-            estimate, position_std = self.positions.update(ids, pos, measured_vel, measured_vel, state.time - ages,
-                                                           news & ~stale, noise)
-            pos = np.where(stale[:, None], pos, estimate)
+        pos, vel, position_std = self._estimate(ids, pos, vel, state.time - ages, stale, news)
         policy_status, brake_reason = PolicyStatus.OK, ""
         docked = np.zeros(n, dtype=bool)
         if unplaced.any():                      # nowhere to put a robot: nobody may move
@@ -444,6 +434,22 @@ class ControlStack:
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 
     __call__ = tick
+
+    def _estimate(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, measured_at: np.ndarray,
+                  stale: np.ndarray, news: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The MEC's velocity and the position estimator's positions for the fresh rows (stale
+        rows keep their measurement); ``(pos, vel, position_std (N,) or None)``."""
+        measured_vel = vel
+        if self.mec is not None:            # the observer's velocity: less noisy, same delay
+            v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
+            if self.config.estimated_velocity:
+                vel = np.where(stale[:, None], vel, v_est)
+        if self.positions is None:
+            return pos, vel, None
+        noise = (self.mec.noise_var if self.mec is not None
+                 else np.full(len(pos), self.config.mec_config.velocity_noise**2))
+        estimate, std = self.positions.update(ids, pos, measured_vel, measured_vel, measured_at, news & ~stale, noise)
+        return np.where(stale[:, None], pos, estimate), vel, std
 
     def _policy(self, state: FleetState, t0: int) -> tuple[np.ndarray, int, int]:
         """``a_nom`` (N, 2) of the policy and the times after observing and after the policy."""
