@@ -140,7 +140,7 @@ def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
             world = PymunkWorld(sc, me)
             state = world.reset(seed=seed + k)
             stack = ControlStack(sc, lambda s, c=commands: c[min(s.step, len(c) - 1)],
-                                 OPEN_LOOP if not mec else dataclasses.replace(OPEN_LOOP, mec=True))
+                                 dataclasses.replace(OPEN_LOOP, mec=mec))
             dev = []
             for t in range(len(commands)):
                 world.send_accelerations(stack.tick(state).a_cmd)

@@ -69,11 +69,10 @@ from _common import (  # noqa: E402
     progress,
     set_threads,
 )
-from _safety_conditions import CONDITIONS, run_conditions  # noqa: E402
+from _safety_conditions import CONDITIONS, OPEN_LOOP, run_conditions  # noqa: E402
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from controllers.docking import DockingConfig  # noqa: E402
 from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
@@ -171,8 +170,7 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
         for key, mec in (("without", False), ("with", True)):
             world = PymunkWorld(sc, MEC_ERROR)
             state = world.reset(seed=seed + k)
-            stack = ControlStack(sc, Replay(np.array(commands)),   # open loop: no docking either
-                                 StackConfig(safety=False, mec=mec, docking=DockingConfig(enabled=False)))
+            stack = ControlStack(sc, Replay(np.array(commands)), dataclasses.replace(OPEN_LOOP, mec=mec))
             deviation = []
             for t in range(len(commands)):
                 world.send_accelerations(stack.tick(state).a_cmd)

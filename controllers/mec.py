@@ -94,6 +94,7 @@ from enum import StrEnum
 import numpy as np
 import scipy.linalg
 
+from controllers.checks import check_numbers
 from sim.scenario import Dynamics
 
 NOISE_LEVELS = 6        # velocity noise levels sigma_y * 2^l, l = 0..5 (up to 32 sigma_y)
@@ -145,10 +146,8 @@ class MecConfig:
     adapt_noise: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("velocity_noise", "velocity_process_noise", "disturbance_rate"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"mec.{name} must be a positive finite number, got {value!r}")
+        check_numbers(self, ("velocity_noise", "velocity_process_noise", "disturbance_rate"), "mec", ValueError,
+                      positive=True)
         if self.max_disturbance is not None and not (
                 math.isfinite(self.max_disturbance) and self.max_disturbance > 0):
             raise ValueError(f"mec.max_disturbance must be positive or None, got {self.max_disturbance!r}")

@@ -9,7 +9,7 @@ the scripted controller 40 % of its successes: targets lie 3 cm from the object.
 
 **Model.** Per robot and axis, the kinematic relation of the robots' semi-implicit Euler step
 (exact for :class:`sim.scenario.Dynamics` and the pymunk world, to rounding) drives the
-estimate, with the velocity the stack uses this tick as the input::
+estimate, with the measured velocity as the input (unbiased, its noise white)::
 
     p_k = p_{k-1} + g_k v_k + w_k,     w_k ~ N(0, (g_k sigma_v)^2)     (g_k: time since the last measurement)
     y_k = p_k + n_k,                   n_k ~ N(0, sigma_p^2)
@@ -91,15 +91,14 @@ class PositionEstimator:
         self.ids = ids
         return fresh
 
-    def update(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, measured_vel: np.ndarray,
-               time_s: np.ndarray, new: np.ndarray, velocity_noise_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, time_s: np.ndarray,
+               new: np.ndarray, velocity_noise_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One tick for N robots.
 
         Args:
             ids: (N,) robot names.
             pos: (N, 2) measured positions [m] (finite where ``new``).
-            vel: (N, 2) the velocity the stack uses this tick (the input ``v_k``) [m/s].
-            measured_vel: (N, 2) the measured velocity (for the noise residual) [m/s].
+            vel: (N, 2) measured velocities (the input ``v_k`` and the noise residual's) [m/s].
             time_s: (N,) measurement times [s].
             new: (N,) bool, rows that carry a measurement not seen before.
             velocity_noise_var: (N,) ``sigma_v^2`` per axis [m^2/s^2].
@@ -115,7 +114,7 @@ class PositionEstimator:
         new = np.asarray(new, dtype=bool) & np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1)
         gap = time_s - self.t_prev
         step = new & np.isfinite(self.p_hat).all(axis=1) & np.isfinite(gap) & (gap > 0)
-        self._measure_noise(pos, np.asarray(measured_vel, np.float64), step & (np.abs(gap - self.dt) < 0.5 * self.dt))
+        self._measure_noise(pos, vel, step & (np.abs(gap - self.dt) < 0.5 * self.dt))
         r = self.noise_var
         wary = 1.0 + 2.0 / np.sqrt(np.maximum(self.count, 1.0))   # few residuals: an upper estimate
         if new.all() and (r <= NOISE_FLOOR**2).all():           # an exact link: pass through
@@ -142,10 +141,10 @@ class PositionEstimator:
         var = np.where(self.passed, r, self.var) * wary
         return np.where(known[:, None], self.p_hat, pos), np.sqrt(np.where(known, var, 0.0))
 
-    def _measure_noise(self, pos: np.ndarray, measured_vel: np.ndarray, consecutive: np.ndarray) -> None:
+    def _measure_noise(self, pos: np.ndarray, vel: np.ndarray, consecutive: np.ndarray) -> None:
         """Update ``sigma_p^2`` from the residual of the robots measured one tick apart (module
         docstring, Noise): ``E|r|^2 / 4`` per axis, a plain mean, then forgetting."""
-        residual = pos - self.y_prev - self.dt * measured_vel
+        residual = pos - self.y_prev - self.dt * vel
         own = 0.25 * (residual * residual).sum(axis=1)
         good = consecutive & np.isfinite(own)
         self.count = self.count + good

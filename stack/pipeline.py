@@ -448,7 +448,7 @@ class ControlStack:
             return pos, vel, None
         noise = (self.mec.noise_var if self.mec is not None
                  else np.full(len(pos), self.config.mec_config.velocity_noise**2))
-        estimate, std = self.positions.update(ids, pos, measured_vel, measured_vel, measured_at, news & ~stale, noise)
+        estimate, std = self.positions.update(ids, pos, measured_vel, measured_at, news & ~stale, noise)
         return np.where(stale[:, None], pos, estimate), vel, std
 
     def _policy(self, state: FleetState, t0: int) -> tuple[np.ndarray, int, int]:

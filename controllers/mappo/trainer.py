@@ -385,10 +385,8 @@ class MAPPOTrainer:
         self.last_eval = data["last_eval"]
         self.transferred_from = data["transferred_from"]
         self.sampler.set_state(data["rng"]["sampler"])
+        # one state per team group (the config check above made the groups the checkpoint's)
         states = data["env_state"] if isinstance(data["env_state"], list) else [data["env_state"]]
-        if len(states) != len(self.groups):
-            raise TrainConfigError(f"cannot resume: the checkpoint holds {len(states)} team groups, "
-                                   f"this run {len(self.groups)}; use the run's config.json")
         for group, state in zip(self.groups, states, strict=True):
             load_env_state(group.env, state)
             group.obs, group.mask = group.env.observe()

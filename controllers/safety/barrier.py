@@ -63,6 +63,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.checks import check_numbers
 from controllers.safety.geometry import SceneDistances
 from controllers.safety.latency import Prediction, row_sums
 from sim.scenario import Dynamics
@@ -112,15 +113,9 @@ class SafetyConfig:
     postcheck_margin: float = 0.0
 
     def __post_init__(self) -> None:
-        positive = ("gamma", "braking_share", "sqrt_floor", "accel_fraction", "eps", "slack_weight")
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise SafetyConfigError(f"safety.{name} must be a positive finite number, got {value!r}")
-        for name in ("margin", "tighten", "postcheck_margin"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise SafetyConfigError(f"safety.{name} must be a finite number >= 0, got {value!r}")
+        check_numbers(self, ("gamma", "braking_share", "sqrt_floor", "accel_fraction", "eps", "slack_weight"),
+                      "safety", SafetyConfigError, positive=True)
+        check_numbers(self, ("margin", "tighten", "postcheck_margin"), "safety", SafetyConfigError)
         if self.braking_share > 1:
             raise SafetyConfigError(f"safety.braking_share must be in (0, 1], got {self.braking_share}")
         if self.accel_fraction > 1:

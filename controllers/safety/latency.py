@@ -99,11 +99,11 @@ so a robot silent for good stays an obstacle of bounded size where it must have 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.checks import check_numbers
 from sim.scenario import Dynamics, clip_norm
 
 
@@ -140,12 +140,9 @@ class LatencyConfig:
     jitter_spread_weight: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
-                     "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, int | float) and math.isfinite(value)
-                                               and value >= 0):
-                raise LatencyConfigError(f"latency.{name} must be a finite number >= 0, got {value!r}")
+        check_numbers(self, ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
+                             "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight"),
+                      "latency", LatencyConfigError)
         if self.stale_after_s <= 0:
             raise LatencyConfigError(f"latency.stale_after_s must be > 0 seconds, got {self.stale_after_s!r}")
 

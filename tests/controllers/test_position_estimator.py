@@ -23,7 +23,7 @@ def run(est: PositionEstimator, truth: np.ndarray, vel: np.ndarray, noise_p: flo
         y = truth[k] + rng.normal(0, noise_p, truth[k].shape)
         v = vel[k] + rng.normal(0, noise_v, vel[k].shape)
         n = len(truth[k])
-        p, s = est.update(ids, y, v, v, np.full(n, k * DT), np.ones(n, bool), np.full(n, noise_v**2))
+        p, s = est.update(ids, y, v, np.full(n, k * DT), np.ones(n, bool), np.full(n, noise_v**2))
         out.append(p)
         stds.append(s)
     return np.array(out), np.array(stds)
@@ -79,7 +79,7 @@ def test_a_robot_moved_by_hand_restarts_at_its_measurement():
     est = PositionEstimator(DT)
     run(est, truth, vel, 0.01, 0.02, rng)
     moved = truth[-1] + np.array([[0.2, 0.0]])
-    p, _ = est.update(("a",), moved, vel[-1], vel[-1], np.array([60 * DT]), np.array([True]), np.array([0.02**2]))
+    p, _ = est.update(("a",), moved, vel[-1], np.array([60 * DT]), np.array([True]), np.array([0.02**2]))
     np.testing.assert_array_equal(p, moved)
 
 
@@ -90,7 +90,7 @@ def test_estimates_follow_ids_and_a_new_robot_starts_at_its_measurement():
     out, _ = run(est, truth, vel, 0.01, 0.02, rng, ids=("a", "b"))
     kept = est.p_hat.copy()
     p, s = est.update(("c", "b", "a"), np.array([[0.5, 0.5], [9.0, 9.0], [9.0, 9.0]]), np.zeros((3, 2)),
-                      np.zeros((3, 2)), np.full(3, 40 * DT), np.array([True, False, False]), np.full(3, 4e-4))
+                      np.full(3, 40 * DT), np.array([True, False, False]), np.full(3, 4e-4))
     np.testing.assert_array_equal(p[0], [0.5, 0.5])          # new: its measurement
     np.testing.assert_array_equal(p[1:], kept[::-1])         # not new: the estimate stays, re-keyed
     assert s[0] == 0.0 and s[1] > 0.0
@@ -102,9 +102,9 @@ def test_a_dropped_state_predicts_over_the_gap():
     rng = np.random.default_rng(2)
     for k in range(30):
         y = np.array([[0.1 * k * DT, 0.0]]) + rng.normal(0, 0.01, (1, 2))
-        est.update(ids, y, v, v, np.array([k * DT]), np.array([True]), np.array([1e-6]))
+        est.update(ids, y, v, np.array([k * DT]), np.array([True]), np.array([1e-6]))
     before = est.p_hat.copy()
     y = np.array([[0.1 * 32 * DT, 0.0]])                  # two ticks lost: the gap is 3 dt
-    p, _ = est.update(ids, y, v, v, np.array([32 * DT]), np.array([True]), np.array([1e-6]))
+    p, _ = est.update(ids, y, v, np.array([32 * DT]), np.array([True]), np.array([1e-6]))
     assert abs(p[0, 0] - y[0, 0]) < abs(before[0, 0] - y[0, 0])
     assert abs(p[0, 0] - (before[0, 0] + 3 * DT * 0.1)) < 0.01

@@ -79,3 +79,25 @@ def test_without_a_late_robot_nobody_swaps():
             fleet.send_accelerations(ctl(state))
             state = fleet.step()
         assert ctl.swaps == 0, name
+
+
+@pytest.mark.parametrize("held_ticks", [10, 10_000])
+def test_a_robot_that_makes_no_progress_counts_as_held_whatever_its_noisy_speed_reads(held_ticks):
+    """paper-3, r0 (top robot, over the object) reaches its column waypoint's neighbourhood and
+    is held 4 cm short of it (inside twice the 3 cm switch radius, nearer its target), while its
+    velocity reads 3 cm/s, alternating (noise). After 10 ticks without progress it moves on to
+    its target; with the progress rule off (held_ticks 10000) it stays on the waypoint."""
+    sc = make_scenario("paper-3")
+    ctl = ScriptedController(sc, held_ticks=held_ticks)
+    pos = sc.starts.copy()
+    ctl(_state(sc, pos))
+    top = int(np.argmax(pos[:, 1]))
+    lane_start, column, target = ctl._waypoints[top]
+    pos[top] = lane_start
+    ctl(_state(sc, pos))                                   # the lane's start is reached
+    pos[top] = column + np.array([0.0, -0.04])             # 4 cm short, on the way to the target
+    for k in range(12):
+        state = _state(sc, pos)
+        state.velocities[top] = [0.03 * (-1) ** k, 0.0]    # reads faster than held_speed
+        ctl(state)
+    assert ctl._index[top] == (2 if held_ticks == 10 else 1)
