@@ -127,6 +127,8 @@ class LatencyConfig:
         spread_weight: ``w``, weight of the command spread in the tightening (module docstring).
         jitter_spread_weight: the weight for a robot whose observed delay changed lately or whose
             pending count is unknown (the larger of the two weights applies).
+        jitter_brake_measured: a robot whose observed delay changed lately is braked from its
+            measured velocity, not the predicted one (module docstring, Braking).
     """
 
     enabled: bool = True
@@ -138,11 +140,15 @@ class LatencyConfig:
     watchdog_s: float = 0.1
     spread_weight: float = 0.25
     jitter_spread_weight: float = 0.5
+    jitter_brake_measured: bool = True
 
     def __post_init__(self) -> None:
         check_numbers(self, ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
                              "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight"),
                       "latency", LatencyConfigError)
+        if not isinstance(self.jitter_brake_measured, bool | np.bool_):
+            raise LatencyConfigError("latency.jitter_brake_measured must be true or false, "
+                                     f"got {self.jitter_brake_measured!r}")
         if self.stale_after_s <= 0:
             raise LatencyConfigError(f"latency.stale_after_s must be > 0 seconds, got {self.stale_after_s!r}")
 
@@ -204,6 +210,9 @@ class Prediction:
         closing: (N,) approach-speed allowance ``e_v`` (or the reach speed bound) [m/s].
         fixed: (N,) bool, robots that are obstacles, not decision variables.
         horizon: (N,) ticks predicted.
+        brake_vel: (N, 2) the velocity a braking command aims to stop [m/s]: ``vel``, or the
+            measured velocity of a robot whose delay jitters (module docstring, Braking);
+            None: ``vel``.
     """
 
     pos: np.ndarray
@@ -212,6 +221,11 @@ class Prediction:
     closing: np.ndarray
     fixed: np.ndarray
     horizon: np.ndarray
+    brake_vel: np.ndarray | None = None
+
+    def braking_velocity(self) -> np.ndarray:
+        """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
+        return self.vel if self.brake_vel is None else self.brake_vel
 
 
 class LatencyPredictor:
@@ -302,7 +316,8 @@ class LatencyPredictor:
         m = np.where(known, np.minimum(pending, h), h)
         p, v = self._roll_forward(pos, vel, m)
         lo, hi = self._window_box(h, m, known, a_nom)
-        unsure = self._jittering(pending, ages) | ~known      # the delay may change under it
+        jittering = self._jittering(pending, ages)
+        unsure = jittering | ~known                           # the delay may change under it
         spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
         weight = np.where(unsure, max(cfg.jitter_spread_weight, cfg.spread_weight), cfg.spread_weight)
         accel = weight * spread + cfg.accel_uncertainty
@@ -323,7 +338,11 @@ class LatencyPredictor:
             p[fixed], v[fixed] = centre, centre_vel
             grow[fixed] = radius + (sigma_p[fixed] if np.ndim(sigma_p) else sigma_p)
             closing[fixed] = rate + cfg.velocity_noise
-        return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h)
+        brake_vel = v
+        if cfg.jitter_brake_measured and (jittering & ~fixed).any():
+            brake_vel = np.where((jittering & ~fixed)[:, None], vel, v)
+        return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
+                          brake_vel=brake_vel)
 
     def _roll_forward(self, pos: np.ndarray, vel: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each robot ``i`` through the newest ``m_i`` recorded commands, oldest first (module

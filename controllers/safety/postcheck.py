@@ -51,6 +51,8 @@ def braking_acceleration(vel: np.ndarray, dynamics: Dynamics,
     (``|c v - v / dt| < accel_limit``) spreads its stop over ``h + 1`` ticks,
     ``c v - v / ((h + 1) dt)``; a faster one brakes at the limit, as :meth:`Dynamics.brake`
     (spreading that too let a robot brake slower than the one ahead of it stopped)."""
+    if prediction is not None:
+        vel = prediction.braking_velocity()
     one_tick = dynamics.brake(vel)
     if prediction is None or not prediction.horizon.any():
         return one_tick

@@ -188,3 +188,19 @@ def test_velocity_noise_is_measured_and_not_compensated_as_a_disturbance():
     assert sizes[False] > 0.3
     assert sizes[True] < 0.3 * sizes[False]                  # measured: 0.2
     assert measured == pytest.approx(0.02, rel=0.3)
+
+
+def test_pure_noise_passes_the_threshold_about_once_in_a_million_robot_ticks(monkeypatch):
+    """20 robots x 3000 ticks at rest under 2 cm/s of velocity noise, nothing to compensate: the
+    norm of ``d_hat``'s wander is Rayleigh, so the 5.26-sigma threshold lets almost none of it
+    through (0 of 60,000 robot-ticks here); the former 4 sigma (exp(-8) = 3e-4 a tick, and the
+    estimate wanders in runs) let through about 1e-3 of them."""
+    def compensated_fraction() -> float:
+        mec, rng, hits = ModelErrorCompensator(DYN), np.random.default_rng(0), 0
+        for t in range(3000):
+            out = mec.step(rng.normal(0.0, 0.02, (20, 2)), np.zeros((20, 2)))
+            hits += int((np.abs(out.compensation).sum(axis=1) > 0).sum()) if t >= 50 else 0
+        return hits / (20 * 2950)
+    assert compensated_fraction() < 1e-4
+    monkeypatch.setattr("controllers.mec.SIGNIFICANCE", 4.0)
+    assert compensated_fraction() > 5e-4

@@ -122,3 +122,29 @@ def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_th
     assert on == [], f"seeds {on} collided with the default stack"
     raw = [s for s in seeds if collided(s, noisy, StackConfig(estimated_position=False))]
     assert raw, "no teeth: the filter on raw noisy positions never collided"
+
+
+def crowd_collided(seed: int, config: StackConfig) -> bool:
+    """One episode of ``bench/safety.py``'s conditions (its adversary, 3-16 robots) with a delay
+    that jitters 1-3 ticks, each robot acting on the newest command that arrived."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
+    from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start
+    rng = np.random.default_rng(seed)
+    sc = transport_scenario(int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1)))
+    world = PymunkWorld(sc, CONDITIONS["delay_jitter"])
+    barrier = SafetyFilter(sc)
+    stack = ControlStack(sc, AdversarialPolicy(sc, rng), config)
+    return run_episode(world, stack, seed, STEPS, start=lambda w: random_start(w, barrier, rng)).collided
+
+
+@pytest.mark.slow
+def test_a_jittering_robot_braked_from_its_prediction_is_run_into_and_not_from_its_measurement():
+    """Crowds of 10-15 robots where the QP is infeasible and pairs are braked: a brake computed from
+    a prediction that counts on pending commands a newer one then overtook never stops the robot
+    (bench/safety.py ``delay_jitter`` seeds 3, 24, 33: each touched before the rule)."""
+    seeds = (3, 24, 33)
+    assert [s for s in seeds if crowd_collided(s, StackConfig())] == []
+    old = StackConfig(latency=LatencyConfig(jitter_brake_measured=False))
+    assert [s for s in seeds if crowd_collided(s, old)] == list(seeds)

@@ -218,3 +218,28 @@ def test_a_robot_whose_delay_changes_gets_the_jitter_weight_for_a_while():
     np.testing.assert_allclose(grow[1], 0.25 * unit)
     np.testing.assert_allclose(grow[2:2 + pred.depth], 0.5 * unit)
     np.testing.assert_allclose(grow[-1], 0.25 * unit)
+
+
+def test_a_robot_whose_delay_jitters_is_braked_from_its_measured_velocity():
+    """Two robots at 2 cm/s along x, each with one command of 0.2 m/s^2 along x pending. "a" keeps
+    its observed delay: it is braked from the prediction, 0.02 + dt (0.2 - c 0.02) = 0.0295 m/s.
+    "b"'s delay changed this tick: its pending command may be overtaken and never act, so it is
+    braked from the 0.02 m/s measured; with the rule off, from the prediction as "a". Both are slow
+    enough to stop within a tick, so the brake spreads the stop over h + 1 ticks."""
+    from controllers.safety import braking_acceleration
+    ids, pos = ("a", "b"), np.array([[0.3, 0.3], [0.7, 0.7]])
+    vel, push = np.array([[0.02, 0.0], [0.02, 0.0]]), np.array([[0.2, 0.0], [0.2, 0.0]])
+    predicted_speed = 0.02 + DYN.dt * (0.2 - DYN.damping * 0.02)
+    for rule, b_speed in ((True, 0.02), (False, predicted_speed)):
+        pred = LatencyPredictor(DYN, LatencyConfig(jitter_brake_measured=rule))
+        for pending in ([1, 1], [1, 2], [1, 1]):       # b's observed delay 1, 2, 1 ticks
+            pred.record(ids, push)
+            out = pred.predict(ids, pos, vel, np.zeros(2), push, pending=np.array(pending))
+        np.testing.assert_allclose(out.vel[:, 0], predicted_speed)
+        np.testing.assert_allclose(out.braking_velocity()[:, 0], [predicted_speed, b_speed])
+        brake = braking_acceleration(out.vel, DYN, out)
+        h = out.horizon + 1.0                        # slow robots stop over h + 1 ticks
+        speeds = np.array([predicted_speed, b_speed])
+        np.testing.assert_allclose(brake[:, 0], DYN.damping * speeds - speeds / (h * DYN.dt))
+    with pytest.raises(LatencyConfigError, match="latency.jitter_brake_measured"):
+        LatencyConfig(jitter_brake_measured=1)
