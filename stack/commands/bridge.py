@@ -53,6 +53,13 @@ class ScriptedFleetController:
         self.positions = scenario.starts.copy()
         self.velocities = np.zeros_like(self.positions)
         self.targets = scenario.targets
+        self.scenario = scenario
+
+    def reset(self) -> None:
+        """A new episode (the ControlStack's reset calls it): plan afresh from the next state."""
+        self.inner.reset()
+        self.positions = self.scenario.starts.copy()
+        self.velocities = np.zeros_like(self.positions)
 
     def __call__(self, state: FleetState) -> np.ndarray:
         rows = [self.names.index(r) for r in state.robot_ids]
