@@ -83,6 +83,7 @@ from typing import Any
 
 import numpy as np
 
+from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState, TransportConfig
 from deploy.wire import CmdFlags, CmdMsg, RobotRegistry, StateStatus
 from sim.fleet import FleetState, SilentRobots
@@ -125,7 +126,9 @@ class BridgeConfig:
     answer; the default DROP is for real time (:mod:`deploy.transport`, Delivery); lockstep:
     the fleet is lock-stepped (``fleet-sim --lockstep``): sim time of ``period_s`` per tick
     (module docstring) and lossless; delay_percentile, delay_window: the command delay
-    bound is this percentile of the last delay_window round trips."""
+    bound is this percentile of the last delay_window round trips; shared_clock: the robots
+    stamp their STATEs on this host's monotonic clock, so one sent more than 100 ms ahead of it
+    is refused (FROM_FUTURE); None: when every endpoint of the transport is on loopback."""
 
     ttl_ms: int = 150
     stale_after_s: float = 0.15
@@ -137,6 +140,7 @@ class BridgeConfig:
     period_s: float = 0.05
     delay_percentile: float = 99.0
     delay_window: int = 256
+    shared_clock: bool | None = None
 
     def __post_init__(self) -> None:
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
@@ -318,11 +322,15 @@ class Bridge:
         self.object_pose = np.asarray(object_pose, dtype=np.float64)
         self.config = config
         self.clock = TickClock(config.period_s) if config.lockstep else None
+        shared = config.shared_clock
+        if shared is None:
+            shared = isinstance(transport, TransportConfig) and transport.loopback_only()
         self.link = FleetLink(fleet, registry, transport, clock_ns=time.monotonic_ns if self.clock is None else self.clock,
-                              lossless=config.lossless or config.lockstep)
+                              lossless=config.lossless or config.lockstep, shared_clock=bool(shared))
         self.stats = BridgeStats()
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
+        self._reject_log = RejectLog(f"bridge {fleet}", self.link.rejects.snapshot)
         self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
         self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
         self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
@@ -513,6 +521,7 @@ class Bridge:
         """Tick until :meth:`stop` (e.g. from a signal handler) or ``max_ticks`` answered."""
         while not self._stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
             record = self.step()
+            self._reject_log.poll()
             if record is not None and on_tick is not None:
                 on_tick(record)
         return self.stats
@@ -523,7 +532,7 @@ class Bridge:
                 "controller_faults": s.controller_faults, "rearms": s.rearms, "estops": s.estops,
                 "robot_counts": s.robot_counts, "rejects": self.link.rejects.snapshot(),
                 "estop_engaged": self.link.estop_engaged, "lossless": self.link.lossless,
-                "lockstep": self.config.lockstep,
+                "lockstep": self.config.lockstep, "shared_clock": self.link.shared_clock,
                 "silent_marks": s.silent_marks, "silent_counts": s.silent_counts,
                 "nonfinite_brakes": s.nonfinite_brakes, "unknown_brakes": s.unknown_brakes,
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,

@@ -47,12 +47,19 @@ is 0 within 9 ticks (0.45 s) of the last command, measured 0.445 s from outside
 The status published with a state says what the robot does if that state goes unanswered.
 Re-arming the latch: the controller sees FAULT in the robot's state and sends a command with
 the STOP flag; the robot leaves the latch into STOP (held at rest) and moves again on the
-next command without STOP. While latched, other commands are ignored and counted.
+next command without STOP. While latched, other commands are ignored and counted. So are
+commands that arrive while the robot sees no controller liveliness token (``ctrl/alive``): a
+robot obeys the node that holds it, not any node that can publish on its key.
 
 Trace (``summary()["trace"]``, one entry per tick k, the true state at tick k): ``modes`` (each
 robot's watchdog branch when it published its state), ``applied`` (the branch whose acceleration
 it applied), ``speeds`` [m/s], ``positions`` (N, 2) [m] and ``contacts`` (N, 3) (robot, object,
 wall; from the previous tick's motion).
+
+Clock: on one host (``shared_clock``; by default when every endpoint is on loopback) a robot
+refuses a CMD sent more than 100 ms ahead of its clock (FROM_FUTURE) and, in real time, one older
+than its ttl (EXPIRED), as ``docs/wire-format.md`` asks; lock-step runs on sim time, where a
+command's wall-clock age says nothing, so only FROM_FUTURE applies there.
 
 Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
 lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
@@ -74,6 +81,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from deploy.reject_log import RejectLog
 from deploy.transport import RobotLink, TransportConfig
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.files import atomic_write_text
@@ -120,6 +128,12 @@ class FleetSimConfig:
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     events: tuple[tuple[int, str, str], ...] = ()
     episodes: int | None = None
+    shared_clock: bool | None = None
+
+    def clock_is_shared(self) -> bool:
+        """``shared_clock``, or (None) whether every endpoint is on loopback: the controller then
+        runs on this host, and its CMDs' send times are on this clock (module docstring)."""
+        return self.transport.loopback_only() if self.shared_clock is None else bool(self.shared_clock)
 
     def __post_init__(self) -> None:
         if self.episodes is not None and (isinstance(self.episodes, bool)
@@ -175,6 +189,7 @@ class FleetSim:
         self._in_force: deque[np.ndarray] = deque(maxlen=64)  # accepted seqs per tick, newest last
         self._acted = np.zeros(len(self.robots), dtype=np.int64)
         self.ignored_while_latched = 0
+        self.ignored_without_controller = 0
         self.lockstep_timeouts = 0
         self.trace: list[dict[str, Any]] = []
         self.on_episode = on_episode
@@ -183,6 +198,8 @@ class FleetSim:
         self._episode: dict[str, list] | None = None
         self._timeouts_before = 0
         self.closed_link_rejects: dict[str, int] = {}
+        self.closed_link_missed = 0
+        self._reject_log = RejectLog(f"fleet-sim {config.fleet}", self.rejects)
         self.session: zenoh.Session | None = None
 
     def stop(self) -> None:
@@ -196,15 +213,21 @@ class FleetSim:
     # ------------------------------------------------------------------ links
     def _open_link(self, robot: _Robot) -> None:
         robot.link = RobotLink(self.config.fleet, robot.name, self.registry, self.session,
-                               shared_clock=False, lossless=self.lossless)
+                               shared_clock=self.config.clock_is_shared(), expiry=not self.lossless,
+                               lossless=self.lossless)
         robot.seen = (0, 0)
 
     def _close_link(self, robot: _Robot) -> None:
         if robot.link is not None:
             for reason, count in robot.link.rejects.snapshot().items():
                 self.closed_link_rejects[reason] = self.closed_link_rejects.get(reason, 0) + count
+            self.closed_link_missed += robot.link.missed_commands
             robot.link.close()
             robot.link = None
+
+    def missed_commands(self) -> int:
+        """Valid commands no robot link saw (gaps in the controller's seq), open and closed links."""
+        return self.closed_link_missed + sum(r.link.missed_commands for r in self.robots if r.link is not None)
 
     def rejects(self) -> dict[str, int]:
         """Rejected messages by reason over every robot link, open and closed."""
@@ -225,6 +248,9 @@ class FleetSim:
         if received is None or (received.msg.epoch, received.msg.seq) == robot.seen:
             return
         robot.seen = (received.msg.epoch, received.msg.seq)
+        if not link.controller_alive:      # only the node holding the controller token commands
+            self.ignored_without_controller += 1
+            return
         if self.config.drop_commands and self._rng.random() < self.config.drop_commands:
             self.dropped += 1
             return
@@ -406,6 +432,7 @@ class FleetSim:
                 state = self.world.step()
                 self._acted = self._acted_seqs(state)
                 self.tick += 1
+                self._reject_log.poll()
                 if self._episode is not None:
                     self._record_tick(round_trip_ms)
                     if len(self._episode["contacts"]) >= self.episode_ticks:
@@ -432,9 +459,12 @@ class FleetSim:
                 "collisions": {"robot": counts.robot, "object": counts.object, "wall": counts.wall},
                 "positions": true.positions.tolist(),
                 "speeds": np.linalg.norm(true.velocities, axis=1).tolist(),
-                "dropped_commands": self.dropped, "ignored_while_latched": self.ignored_while_latched,
+                "dropped_commands": self.dropped, "missed_commands": self.missed_commands(),
+                "ignored_while_latched": self.ignored_while_latched,
+                "ignored_without_controller": self.ignored_without_controller,
                 "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),
-                "lossless": self.lossless, "episodes": self.episodes, "trace": self.trace}
+                "lossless": self.lossless, "shared_clock": self.config.clock_is_shared(),
+                "episodes": self.episodes, "trace": self.trace}
 
 
 def write_json(path: str | Path, document: dict[str, Any]) -> None:

@@ -441,13 +441,16 @@ class WireDecoder:
             (``time.monotonic_ns`` on one host): enables EXPIRED (CMD older than ttl_ms) and
             FROM_FUTURE (any message sent more than ``max_future_ms`` ahead of now).
         counter: where rejections are counted (a new one if None).
+        check_expiry: with ``clock_ns``, also judge EXPIRED (False: FROM_FUTURE only, for a
+            receiver on sim time, where a command's wall-clock age says nothing).
     """
 
     def __init__(self, registry: RobotRegistry | None = None,
                  clock_ns: Callable[[], int] | None = None, max_future_ms: float = 100.0,
-                 counter: RejectCounter | None = None):
+                 counter: RejectCounter | None = None, check_expiry: bool = True):
         self.registry = registry
         self.clock_ns = clock_ns
+        self.check_expiry = check_expiry
         self.max_future_ns = int(max_future_ms * 1e6)
         self.rejects = counter if counter is not None else RejectCounter()
         self.sequences = SequenceTracker()
@@ -477,7 +480,8 @@ class WireDecoder:
             if msg.send_time_ns > now + self.max_future_ns:
                 return self.reject(Reason.FROM_FUTURE, f"sent {(msg.send_time_ns - now) / 1e6:.3f}"
                                    " ms in the future: sender and receiver clocks differ")
-            if isinstance(msg, CmdMsg) and now - msg.send_time_ns > msg.ttl_ms * 1_000_000:
+            if (self.check_expiry and isinstance(msg, CmdMsg)
+                    and now - msg.send_time_ns > msg.ttl_ms * 1_000_000):
                 return self.reject(Reason.EXPIRED, f"command is {(now - msg.send_time_ns) / 1e6:.3f}"
                                    f" ms old, ttl {msg.ttl_ms} ms")
         stream = (int(msg.TYPE), msg.robot_id)

@@ -17,6 +17,8 @@ COMMAND_MODULES = [
     "stack.commands.export",
     "stack.commands.fleet_sim",
     "stack.commands.bridge",
+    "stack.commands.certs",
+    "stack.commands.router",
     "stack.commands.eval",
     "stack.commands.train",
     "stack.commands.sweep",

@@ -57,3 +57,44 @@ def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where
 
 
 __all__ = ["add_stage_flags", "int_list", "positive", "seed"]
+
+
+def add_shared_clock_flag(parser: argparse.ArgumentParser, peers: str) -> None:
+    """``--shared-clock/--no-shared-clock``: whether this node and its ``peers`` read one
+    monotonic clock (one host); default: yes when every endpoint is on loopback."""
+    parser.add_argument("--shared-clock", action=argparse.BooleanOptionalAction, default=None,
+                        help=f"this node and the {peers} share one monotonic clock (one host): refuse "
+                             "messages sent from the future and commands older than their ttl "
+                             "(default: when every --listen/--connect endpoint is on loopback)")
+
+
+def add_transport_flags(parser: argparse.ArgumentParser, identity: str) -> None:
+    """``--listen``, ``--connect``, ``--certs``, ``--identity``, ``--insecure``: how a node joins
+    the fleet's Zenoh network, the one spelling of ``bridge`` and ``fleet-sim``."""
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (peer mode; repeat for several)")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to connect to: a peer's, or with --certs the router's "
+                             "tls/HOST:PORT (repeat for several)")
+    parser.add_argument("--certs", default=None, metavar="DIR",
+                        help="mutual TLS through `formation router` with this node's certificate from "
+                             "DIR (`formation certs`); the node is then a client of the router")
+    parser.add_argument("--identity", default=identity,
+                        help=f"whose certificate of --certs this node presents (default {identity})")
+    parser.add_argument("--insecure", action="store_true",
+                        help="allow plain tcp links to endpoints off this host (a trusted network)")
+
+
+def transport_config(args: argparse.Namespace):
+    """The :class:`deploy.transport.TransportConfig` of :func:`add_transport_flags`' flags."""
+    from deploy.certs import NodeFiles
+    from deploy.transport import TransportConfig
+
+    if args.certs is None:
+        return TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect),
+                               insecure=args.insecure)
+    if args.listen:
+        raise ValueError("--listen with --certs: a client of the router listens nowhere; "
+                         "give the router's endpoint with --connect tls/HOST:PORT")
+    return TransportConfig(connect=tuple(args.connect), mode="client",
+                           tls=NodeFiles.in_dir(args.certs, args.identity))

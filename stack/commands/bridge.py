@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import zenoh
 
 from controllers.scripted import ScriptedController
 from deploy.bridge import Bridge, BridgeConfig
 from deploy.fleet_sim import robot_names, write_json
-from deploy.transport import TransportConfig
 from deploy.wire import RobotRegistry
 from sim.fleet import FleetState
 from sim.scenario import Scenario, make_scenario
@@ -83,10 +83,7 @@ def register(sub) -> None:
     p.add_argument("--scenario", default="paper-5", help="preset, transport-N or a .json/.toml scenario file (default paper-5)")
     p.add_argument("--policy", required=True,
                    help="exported policy (.pt, .pt2, .onnx), training checkpoint, or 'scripted'")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to (repeatable)")
+    argtypes.add_transport_flags(p, "controller")
     argtypes.add_stage_flags(p, True)
     add_command_delay_arg(p)
     p.add_argument("--ttl-ms", type=int, default=d.ttl_ms, metavar="MS",
@@ -112,6 +109,7 @@ def register(sub) -> None:
                    help="the fleet waits for every command: send them with Zenoh congestion "
                         "control BLOCK, never dropped (default DROP: right for real robots, "
                         "where the next tick replaces a lost command)")
+    argtypes.add_shared_clock_flag(p, "robots")
     p.add_argument("--lockstep", action="store_true",
                    help="the fleet is lock-stepped (fleet-sim --lockstep): run on sim time, one "
                         "scenario dt per answered burst, so ages, silences and delays count "
@@ -224,20 +222,20 @@ def run(args) -> int:
         recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)
-        transport = TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect))
+        transport = argtypes.transport_config(args)
         config = BridgeConfig(ttl_ms=args.ttl_ms, stale_after_s=args.stale_after,
                               estop_after_s=args.estop_after, gather_s=args.gather,
                               episode_ticks=args.episode_ticks, lossless=args.lossless,
                               lockstep=args.lockstep, period_s=scenario.dynamics.dt,
                               delay_percentile=args.delay_percentile,
-                              delay_window=args.delay_window)
+                              delay_window=args.delay_window, shared_clock=args.shared_clock)
         c = scenario.object_center
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),
                         object_pose=np.array([c[0], c[1], 0.0]), config=config,
                         on_episode=recorder.start_episode if recorder else None,
                         on_stall=recorder.on_stall if recorder else stack.reset)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, zenoh.ZError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -24,8 +24,9 @@ import signal
 import sys
 from pathlib import Path
 
+import zenoh
+
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
-from deploy.transport import TransportConfig
 from sim.scenario import make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
@@ -50,8 +51,7 @@ def register(sub) -> None:
     pace.add_argument("--lockstep", action="store_true",
                       help="advance when every command for the current states arrived "
                            "(pair with bridge --lockstep)")
-    p.add_argument("--listen", action="append", default=[], help="Zenoh endpoint to listen on")
-    p.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    argtypes.add_transport_flags(p, "fleet-sim")
     p.add_argument("--model-error", default=None, metavar="K=V,...", help=MODEL_ERROR_HELP)
     p.add_argument("--seed", type=argtypes.seed, default=0)
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
@@ -72,6 +72,7 @@ def register(sub) -> None:
                    metavar="ROBOT@TICK", help="close a robot's link at a tick")
     p.add_argument("--join", type=_event("join"), action="append", default=[],
                    metavar="ROBOT@TICK", help="open a robot's link at a tick")
+    argtypes.add_shared_clock_flag(p, "controller")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.set_defaults(func=run)
 
@@ -86,15 +87,15 @@ def run(args) -> int:
         model_error = parse_model_error(args.model_error)
         config = FleetSimConfig(
             fleet=args.fleet, scenario=make_scenario(args.scenario),
-            transport=TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect)),
+            transport=argtypes.transport_config(args),
             model_error=model_error, seed=args.seed,
             rate_hz=None if args.lockstep else args.rate_hz,
             lockstep_timeout_s=args.lockstep_timeout, max_ticks=args.ticks,
             drop_commands=args.drop_commands, episodes=args.episodes,
             start_timeout_s=args.start_timeout,
             watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
-            events=tuple(args.leave + args.join))
-    except (ValueError, TypeError) as err:
+            events=tuple(args.leave + args.join), shared_clock=args.shared_clock)
+    except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     sim = FleetSim(config, on_episode=_print_episode)
@@ -102,7 +103,11 @@ def run(args) -> int:
         signal.signal(sig, lambda *_: sim.stop())
     print(f"fleet-sim {args.fleet}: {config.scenario.name}, "
           f"{'lock-step' if args.lockstep else f'{args.rate_hz} Hz'}", file=sys.stderr, flush=True)
-    summary = sim.run()
+    try:
+        summary = sim.run()
+    except zenoh.ZError as err:            # e.g. a certificate the router refuses
+        print(f"error: Zenoh: {err}", file=sys.stderr)
+        return 2
     if args.report:
         write_json(args.report, summary)
     print(json.dumps({k: v for k, v in summary.items() if k not in ("trace", "episodes")}), flush=True)

@@ -206,7 +206,8 @@ def test_a_state_that_queued_on_the_uplink_is_aged_and_braked():
     seen = []
     bridge = Bridge("up", RobotRegistry(("r0",)), TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)),
                     lambda s: seen.append(s) or np.zeros((s.num_robots, 2)),
-                    targets={"r0": np.zeros(2)}, object_pose=np.zeros(3))
+                    targets={"r0": np.zeros(2)}, object_pose=np.zeros(3),
+                    config=BridgeConfig(shared_clock=False))   # loopback, but "another host"
     link = None
     try:
         link = RobotLink("up", "r0", RobotRegistry(("r0",)),

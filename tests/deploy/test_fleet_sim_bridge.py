@@ -218,8 +218,8 @@ def test_a_robot_that_leaves_in_the_others_path_and_rejoins_is_never_touched(tmp
     assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
 
 
-def _cmd_bytes(robot_id: int, seq: int, acc=(0.0, 0.0), ttl_ms: int = 100) -> bytes:
-    return (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.CMD), robot_id, 0, 77, seq, 1)
+def _cmd_bytes(robot_id: int, seq: int, acc=(0.0, 0.0), ttl_ms: int = 100, sent_ns: int = 1) -> bytes:
+    return (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.CMD), robot_id, 0, 77, seq, sent_ns)
             + CMD_BODY.pack(*acc, 0, ttl_ms, 0))
 
 
@@ -240,21 +240,29 @@ def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_
                         _cmd_bytes(3, 6),                             # ROBOT_MISMATCH
                         _cmd_bytes(1, 7, ttl_ms=0),                   # BAD_TTL
                         b"XX" + _cmd_bytes(1, 8)[2:]]                 # BAD_MAGIC
+            # one host, one clock: a new epoch dated 1000 s ahead would otherwise take the
+            # stream over, and the genuine robot's (or controller's) messages become STALE
+            future = time.monotonic_ns() + 10**12
+            bad_cmds.append(_cmd_bytes(1, 9, (0.3, 0.0), sent_ns=future))  # FROM_FUTURE
             for payload in bad_cmds:
                 session.put(cmd_r1, payload)
             state = (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.STATE), 9, 0, 5, 1, 1)
                      + STATE_BODY.pack(0.5, 0.5, 0.0, 0.0, 0, 0))
             session.put("formation/t/robot/r9/state", state)  # not a robot of this fleet
             session.put("formation/t/robot/r2/state", state[:40])  # truncated
+            forged = (HEADER.pack(MAGIC, WIRE_VERSION, int(MsgType.STATE), 2, 0, 5, 10**6, future)
+                      + STATE_BODY.pack(0.9, 0.9, 0.0, 0.0, 0, 0))
+            session.put("formation/t/robot/r2/state", forged)  # FROM_FUTURE
             bridge.wait_tick(20)
 
         connect = ["--connect", inject_endpoint]
         sim, bridge, _ = run_pair(tmp_path, ["--ticks", "150", *connect], SCRIPTED + connect,
                                   during=inject)
     assert sim["rejects"] == {"BAD_SIZE": 1, "BAD_MAGIC": 1, "BAD_TTL": 1, "NON_FINITE": 1,
-                              "ROBOT_MISMATCH": 1}
+                              "ROBOT_MISMATCH": 1, "FROM_FUTURE": 1}
+    assert sim["shared_clock"] and bridge["shared_clock"]       # every endpoint on loopback
     assert_task_done(sim)
-    assert bridge["rejects"] == {"BAD_SIZE": 1, "UNKNOWN_ROBOT": 1}
+    assert bridge["rejects"] == {"BAD_SIZE": 1, "UNKNOWN_ROBOT": 1, "FROM_FUTURE": 1}
     assert bridge["ticks"] >= 140 and bridge["estops"] == 0
 
 

@@ -66,7 +66,7 @@ def test_keys_and_config():
     with pytest.raises(ValueError, match="never '@'"):
         keys.state("@r0")
     config = TransportConfig(listen=("tcp/127.0.0.1:7447",), connect=("tcp/10.0.0.2:7447",),
-                             lease_ms=1000).to_zenoh()
+                             lease_ms=1000, insecure=True).to_zenoh()
     assert json.loads(config.get_json("mode")) == "peer"
     assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.2:7447"]
@@ -297,3 +297,63 @@ def test_lossless_links_publish_states_and_commands_with_block(port, lossless, e
             controller.send_command("r0", (0.5, -0.5), 100)
             assert robot.wait_for(lambda: robot.latest_command is not None, WAIT_S)
             assert robot.latest_command.msg.acceleration == (0.5, -0.5)
+
+
+def _burst_rounds(port: int, rounds: int, junk: int) -> tuple[list[int], RobotLink]:
+    """Each round: one valid CMD (seq k) then ``junk`` undecodable messages, all at once; the
+    seqs of the rounds whose valid command the robot never saw (within 1 s)."""
+    robot_port = free_tcp_port()
+    r0 = robot_link(port, "r0", listen_port=robot_port)
+    lost = []
+    with _raw_session(robot_port) as raw:
+        key = FleetKeys(FLEET).cmd("r0")
+        now = time.monotonic_ns()
+        for k in range(1, rounds + 1):
+            valid = encode(CmdMsg(0, 12345, k, now, (0.1, 0.0), 60000))
+            _inject(raw, key, [valid] + [b"junk"] * junk)
+            if not r0.wait_for(lambda k=k: r0.latest_command is not None and r0.latest_command.msg.seq == k, 1.0):
+                lost.append(k)
+        assert r0.wait_for(lambda: r0.rejects.total == rounds * junk, WAIT_S)
+    return lost, r0
+
+
+def test_a_burst_of_junk_never_pushes_a_valid_command_out_unseen(port):
+    """50 junk messages right behind each valid command (a ring of 16 lost 19 % of the valid ones,
+    uncounted): every valid command is seen, every junk message counted, nothing missed."""
+    lost, r0 = _burst_rounds(port, 20, 50)
+    with r0:
+        assert lost == []
+        assert r0.rejects.snapshot() == {"BAD_SIZE": 20 * 50}
+        assert r0.missed_commands == 0
+
+
+def test_a_robot_counts_the_commands_it_never_saw(controller, port):
+    """The controller numbers its commands 1, 2, ...: a robot that sees 1 and then 4 missed two."""
+    robot_port = free_tcp_port()
+    with robot_link(port, "r0", listen_port=robot_port) as r0, _raw_session(robot_port) as raw:
+        now, key = time.monotonic_ns(), FleetKeys(FLEET).cmd("r0")
+        _inject(raw, key, [encode(CmdMsg(0, 99, 1, now, (0.0, 0.0), 500))])
+        assert r0.wait_for(lambda: r0.latest_command is not None, WAIT_S)
+        _inject(raw, key, [encode(CmdMsg(0, 99, 4, now, (0.0, 0.0), 500))])
+        assert r0.wait_for(lambda: r0.latest_command.msg.seq == 4, WAIT_S)
+        assert r0.missed_commands == 2
+        _inject(raw, key, [encode(CmdMsg(0, 7, 1, now, (0.0, 0.0), 500))])   # a restart: no gap
+        assert r0.wait_for(lambda: r0.latest_command.msg.epoch == 7, WAIT_S)
+        assert r0.missed_commands == 2
+
+
+def test_a_clock_is_shared_when_every_endpoint_is_on_loopback():
+    from deploy.fleet_sim import FleetSimConfig
+    from sim.scenario import make_scenario
+
+    local = TransportConfig(listen=("tcp/127.0.0.1:7447",), connect=("udp/[::1]:7448", "tcp/localhost:1"))
+    assert local.loopback_only()
+    assert not TransportConfig(listen=("tcp/127.0.0.1:7447",), connect=("tcp/10.0.0.2:7447",),
+                               insecure=True).loopback_only()
+    assert not TransportConfig().loopback_only()                       # no endpoint: scouting decides
+    assert not TransportConfig(listen=("tcp/127.0.0.1:7447",), multicast_scouting=True).loopback_only()
+    sc = make_scenario("paper-3")
+    assert FleetSimConfig(fleet="f", scenario=sc, transport=local).clock_is_shared()
+    assert not FleetSimConfig(fleet="f", scenario=sc, transport=local, shared_clock=False).clock_is_shared()
+    remote = TransportConfig(connect=("tcp/10.0.0.2:7447",), insecure=True)
+    assert FleetSimConfig(fleet="f", scenario=sc, transport=remote, shared_clock=True).clock_is_shared()

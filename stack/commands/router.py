@@ -1,0 +1,51 @@
+"""`formation router`: the fleet's Zenoh router, mutual TLS and access control (deploy/router.py).
+
+Only the controller's certificate may command robots or touch the e-stop; robot `rid` may
+publish only its own state and token (deploy/security.py). Runs until Ctrl-C / SIGTERM.
+
+    formation router --fleet f1 --scenario paper-5 --certs certs --listen tls/0.0.0.0:7447
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+import zenoh
+
+from deploy.fleet_sim import robot_names
+from deploy.router import Router, router_config
+from sim.scenario import make_scenario
+
+
+def register(sub) -> None:
+    p = sub.add_parser("router", help="run the fleet's Zenoh router (mutual TLS, access control)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
+    p.add_argument("--scenario", default="paper-5", help="its robots r0..r{N-1} (default paper-5)")
+    p.add_argument("--robots", default=None, metavar="A,B,...", help="robot ids instead")
+    p.add_argument("--certs", required=True, help="folder made by `formation certs`")
+    p.add_argument("--listen", action="append", default=[], metavar="tls/HOST:PORT",
+                   help="endpoint to listen on (default tls/127.0.0.1:7447); repeat for several")
+    p.add_argument("--lease-ms", type=int, default=None, help="link lease [ms] (Zenoh default 10000)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    try:
+        robots = (args.robots.split(",") if args.robots
+                  else robot_names(make_scenario(args.scenario).num_robots))
+        config = router_config(args.fleet, robots, args.certs, args.listen or ["tls/127.0.0.1:7447"],
+                               args.lease_ms)
+        router = Router(config)
+    except (ValueError, OSError, zenoh.ZError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: router.stop())
+    print(f"router {args.fleet}: listening on {', '.join(config.listen)}, robots {', '.join(config.robots)}",
+          file=sys.stderr, flush=True)
+    with router:
+        router.serve()
+    return 0

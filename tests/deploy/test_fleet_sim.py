@@ -1,0 +1,42 @@
+"""deploy.fleet_sim in process over real Zenoh on 127.0.0.1: whom a simulated robot obeys."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from deploy.fleet_sim import FleetSim, FleetSimConfig
+from deploy.transport import FleetKeys, TransportConfig, free_tcp_port
+from deploy.wire import CmdMsg, encode
+from sim.scenario import make_scenario
+
+
+def test_a_robot_obeys_no_command_while_no_controller_token_is_seen():
+    """A node that publishes well-formed, fresh commands on r0's key but holds no controller
+    liveliness token moves no robot: every command is ignored and counted (before the rule the
+    robot drove off at 1 m/s^2)."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    sim = FleetSim(FleetSimConfig(fleet="nc", scenario=make_scenario("paper-3"), rate_hz=20.0, max_ticks=30,
+                                  start_timeout_s=0.1, transport=TransportConfig(listen=(endpoint,))))
+    runner = threading.Thread(target=sim.run)
+    runner.start()
+    with zenoh.open(TransportConfig(connect=(endpoint,)).to_zenoh()) as raw:
+        publisher = raw.declare_publisher(FleetKeys("nc").cmd("r0"))
+        deadline = time.monotonic() + 10.0
+        while not publisher.matching_status and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert publisher.matching_status, "fleet-sim never subscribed"
+        seq = 0
+        while runner.is_alive():
+            seq += 1
+            publisher.put(encode(CmdMsg(0, 4242, seq, time.monotonic_ns(), (1.0, 0.0), 500)))
+            time.sleep(0.02)
+    runner.join(timeout=10.0)
+    report = sim.summary()
+    assert report["rejects"] == {}                          # every command was well formed
+    assert report["ignored_without_controller"] >= 10
+    assert max(report["speeds"]) == 0.0
+    assert np.allclose(report["positions"], sim.world.scenario.starts, atol=0.02)
