@@ -1,79 +1,159 @@
-"""router, fleet-sim and bridge as separate processes over mutual TLS, with intruders.
+"""router, fleet-sim and bridge as separate processes over mutual TLS, with intruders; on
+127.0.0.1, and across network namespaces (one per host) joined by veth pairs.
 
 The fleet runs its episode through `formation router` (access control on, every link TLS with
-certificates of the fleet CA) while three intruders try to take it over: one holding robot r1's
-certificate (a valid one) publishes well-formed, fresh commands for every robot, a forged state
-of r0 and an e-stop; one with a self-signed "controller" certificate and one with none try to
-link. None gets a message to a node: the fleet completes with nothing rejected (a forged command
-with a fresh epoch that reached a robot would have retired the controller's epoch, and every
-genuine command after it would read STALE).
+certificates of the fleet CA) while the intruders of tests/deploy/intruder_proc.py try to take it
+over: one holding robot r1's (valid) certificate publishes well-formed, fresh commands for every
+robot, an e-stop and a forged state of r0; one with a self-signed "controller" certificate and one
+with none try to link. None gets a message to a node: the fleet completes with nothing rejected
+(a forged command with a fresh epoch that reached a robot would have retired the controller's
+epoch, and every genuine command after it would read STALE; a forged e-stop would have stopped
+the fleet).
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
-import zenoh
 
-from deploy.certs import CONTROLLER, NodeFiles, make_certs
-from deploy.transport import TransportConfig, free_tcp_port
-from deploy.wire import CmdMsg, EstopMsg, StateMsg, encode
-from tests.deploy.test_fleet_sim_bridge import SCRIPTED, Proc, assert_task_done
+from deploy.certs import CONTROLLER, make_certs
+from deploy.transport import free_tcp_port
+from tests.deploy.intruder_proc import intrude
+from tests.deploy.test_fleet_sim_bridge import ROOT, SCRIPTED, Proc, assert_task_done
+
+ROBOTS = 5
 
 
-@pytest.mark.slow
-def test_the_fleet_completes_through_the_router_while_intruders_try_to_command_it(tmp_path):
+def run_fleet(tmp_path: Path, listen: str, sim_to: str, bridge_to: str, intruders, prefix=None) -> tuple:
+    """Router (listening on ``listen``), fleet-sim and bridge (connecting to ``sim_to`` and
+    ``bridge_to``), each under ``prefix(role)`` (e.g. ``ip netns exec``); ``intruders()`` runs
+    once the bridge has answered 10 ticks. Returns (fleet-sim report, bridge report, attempts)."""
     certs = tmp_path / "certs"
-    assert Proc("certs", "--out", str(certs), "--scenario", "paper-5").finish() == 0
-    make_certs(tmp_path / "rogue", [CONTROLLER])
-    endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
-    tls = ["--certs", str(certs), "--connect", endpoint]
-    router = Proc("router", "--fleet", "t", "--scenario", "paper-5", "--certs", str(certs), "--listen", endpoint)
+    wrap = prefix or (lambda role: ())
+    router = Proc("router", "--fleet", "t", "--scenario", "paper-5", "--certs", str(certs),
+                  "--listen", listen, prefix=wrap("router"))
     time.sleep(1.0)
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--ticks", "150",
-               "--report", str(tmp_path / "sim.json"), *tls)
+               "--report", str(tmp_path / "sim.json"), "--certs", str(certs), "--connect", sim_to,
+               prefix=wrap("sim"))
     bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--trace",
-                  "--report", str(tmp_path / "bridge.json"), *SCRIPTED, *tls)
-    attempts = {"messages": 0, "links_refused": 0}
+                  "--report", str(tmp_path / "bridge.json"), *SCRIPTED, "--certs", str(certs),
+                  "--connect", bridge_to, prefix=wrap("ctrl"))
     try:
         bridge.wait_tick(10)
-        r1 = TransportConfig(connect=(endpoint,), mode="client", tls=NodeFiles.in_dir(certs, "r1"))
-        with r1.open() as intruder:
-            now = time.monotonic_ns()
-            for k in range(1, 21):
-                for rid in range(5):
-                    intruder.put(f"formation/t/robot/r{rid}/cmd",
-                                 encode(CmdMsg(rid, 31337, k, now, (1.0, 0.0), 500)))
-                intruder.put("formation/t/estop", encode(EstopMsg(31337, k, now, True)))
-                intruder.put("formation/t/robot/r0/state",
-                             encode(StateMsg(0, 31337, k, now, (0.9, 0.9), (0.0, 0.0))))
-                attempts["messages"] += 7
-                time.sleep(0.01)
-        for folder, plain in ((tmp_path / "rogue", False), (None, True)):
-            try:
-                if plain:
-                    config = zenoh.Config()
-                    config.insert_json5("mode", '"client"')
-                    config.insert_json5("connect/endpoints", json.dumps([endpoint.replace("tls/", "tcp/")]))
-                    zenoh.open(config).close()
-                else:
-                    TransportConfig(connect=(endpoint,), mode="client",
-                                    tls=NodeFiles.in_dir(folder, CONTROLLER)).open().close()
-            except zenoh.ZError:
-                attempts["links_refused"] += 1
+        attempts = intruders()
         assert sim.finish() == 0, "".join(sim.stderr)
         bridge.proc.send_signal(signal.SIGTERM)      # the fleet is done: the clean shutdown path
         bridge.finish()
     finally:
         for p in (sim, bridge, router):
             if p.proc.poll() is None:
-                p.proc.kill()
-    report, controller = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("sim", "bridge"))
-    assert attempts == {"messages": 140, "links_refused": 2}
+                p.proc.send_signal(signal.SIGTERM)
+                try:
+                    p.proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    p.proc.kill()
+    reports = [json.loads((tmp_path / f"{n}.json").read_text()) for n in ("sim", "bridge")]
+    return (*reports, attempts)
+
+
+def check(report: dict, controller: dict, attempts: dict) -> None:
+    assert attempts == {"messages": 20 * (ROBOTS + 2), "links_refused": 2}
     assert_task_done(report)
     assert report["rejects"] == {} and report["ignored_without_controller"] == 0
     assert controller["rejects"] == {} and controller["estops"] == 0
-    assert controller["robot_counts"] == [[0, 5]]
+    assert controller["robot_counts"] == [[0, ROBOTS]]
+
+
+def make_fleet_certs(tmp_path: Path, *hosts: str) -> None:
+    host_args = [a for h in hosts for a in ("--host", h)]
+    assert Proc("certs", "--out", str(tmp_path / "certs"), "--scenario", "paper-5", *host_args).finish() == 0
+    make_certs(tmp_path / "rogue", [CONTROLLER])
+
+
+@pytest.mark.slow
+def test_the_fleet_completes_through_the_router_while_intruders_try_to_command_it(tmp_path):
+    make_fleet_certs(tmp_path)
+    endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
+    report, controller, attempts = run_fleet(
+        tmp_path, endpoint, endpoint, endpoint,
+        lambda: intrude("t", ROBOTS, endpoint, str(tmp_path / "certs"), str(tmp_path / "rogue")))
+    check(report, controller, attempts)
+
+
+# one namespace per host, each joined to the router's by a veth pair (a /30 of its own)
+HOSTS = {"sim": 1, "ctrl": 2, "intruder": 3}
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=10)
+
+
+def _namespaces_allowed() -> str | None:
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        return "needs root and iproute2 (ip netns) to build network namespaces"
+    probe = f"fsprobe{os.getpid()}"
+    try:
+        _ip("netns", "add", probe)
+        _ip("netns", "del", probe)
+    except (subprocess.CalledProcessError, OSError) as err:
+        return f"network namespaces are not allowed here: {err}"
+    return None
+
+
+@pytest.fixture
+def hosts():
+    reason = _namespaces_allowed()
+    if reason:
+        pytest.skip(reason)
+    tag = f"fs{os.getpid() % 10000}"
+    names = {role: f"{tag}{role}" for role in ("router", *HOSTS)}
+    try:
+        for ns in names.values():
+            _ip("netns", "add", ns)
+            _ip("-n", ns, "link", "set", "lo", "up")
+        for role, k in HOSTS.items():
+            a, b = f"{tag}r{k}", f"{tag}h{k}"
+            _ip("link", "add", a, "netns", names["router"], "type", "veth", "peer", "name", b,
+                "netns", names[role])
+            _ip("-n", names["router"], "addr", "add", f"10.77.{k}.1/30", "dev", a)
+            _ip("-n", names[role], "addr", "add", f"10.77.{k}.2/30", "dev", b)
+            _ip("-n", names["router"], "link", "set", a, "up")
+            _ip("-n", names[role], "link", "set", b, "up")
+        yield names
+    finally:
+        for ns in names.values():
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+
+
+@pytest.mark.slow
+def test_across_hosts_the_fleet_completes_through_the_router_and_intruders_move_nothing(tmp_path, hosts):
+    """Router, fleet-sim, bridge and the intruders each in a network namespace of its own (a host):
+    every byte between them crosses a veth pair and the router, on addresses this test made."""
+    router_ips = [f"10.77.{k}.1" for k in HOSTS.values()]
+    make_fleet_certs(tmp_path, *router_ips)
+    port = 7447
+    endpoint = {role: f"tls/10.77.{k}.1:{port}" for role, k in HOSTS.items()}
+
+    def intruders() -> dict:
+        out = subprocess.run(["ip", "netns", "exec", hosts["intruder"], sys.executable,
+                              str(ROOT / "tests" / "deploy" / "intruder_proc.py"), "--fleet", "t",
+                              "--robots", str(ROBOTS), "--endpoint", endpoint["intruder"],
+                              "--certs", str(tmp_path / "certs"), "--rogue", str(tmp_path / "rogue")],
+                             cwd=ROOT, capture_output=True, text=True, timeout=120,
+                             env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert out.returncode == 0, out.stderr
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    report, controller, attempts = run_fleet(
+        tmp_path, f"tls/0.0.0.0:{port}", endpoint["sim"], endpoint["ctrl"], intruders,
+        prefix=lambda role: ("ip", "netns", "exec", hosts[role]))
+    check(report, controller, attempts)

@@ -28,8 +28,9 @@ SCRIPTED = ["--policy", "scripted"]  # safety filter and MEC on (the defaults)
 class Proc:
     """A `formation` subcommand in its own process; stdout lines arrive on a queue."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "stack.cli", *args], cwd=ROOT,
+    def __init__(self, *args: str, prefix: tuple[str, ...] = ()):
+        """``prefix``: a command to run it under, e.g. ``("ip", "netns", "exec", NS)``."""
+        self.proc = subprocess.Popen([*prefix, sys.executable, "-m", "stack.cli", *args], cwd=ROOT,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: queue.Queue[str] = queue.Queue()
         self.stderr: list[str] = []
