@@ -13,6 +13,11 @@ Controller process (this script): :class:`deploy.bridge.Bridge` with a trivial c
 Peer in the same run (``peer_raw_zenoh``): the same N messages of 64 bytes per tick echoed by
 a bare Zenoh subscriber/publisher pair, without the wire format, validation or the bridge.
 
+Through a router with mutual TLS (``tls_router``, ``--tls``): the same bridge and robots as
+clients of a ``formation router`` (:mod:`deploy.router`: TLS with the certificates of a fresh
+fleet CA, the fleet's access control on), the router in this script's process; every message
+crosses two TLS links and the router. Compare its p50 with the plain peer-to-peer row.
+
     python bench/fleet_loop.py                       # N = 5, 20, 50; 1000 ticks each
     python bench/fleet_loop.py --robots 5 --ticks 200 --json
 """
@@ -23,6 +28,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -40,6 +46,8 @@ from bench._common import (  # noqa: E402
     progress,
 )
 from deploy.bridge import Bridge, BridgeConfig  # noqa: E402
+from deploy.certs import CONTROLLER, FLEET_SIM, ROUTER, NodeFiles, make_certs  # noqa: E402
+from deploy.router import Router, RouterConfig  # noqa: E402
 from deploy.transport import RobotLink, TransportConfig, free_tcp_port  # noqa: E402
 from deploy.wire import RobotRegistry  # noqa: E402
 
@@ -80,8 +88,12 @@ def paced(ticks: int, one_tick) -> dict:
 
 
 # ---------------------------------------------------------------------- robot process
-def robot_process(n: int, port: int, ticks: int) -> int:
-    config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
+def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> int:
+    if certs is None:
+        config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
+    else:          # one session holds every robot: the fleet-sim identity
+        config = TransportConfig(connect=(f"tls/127.0.0.1:{port}",), mode="client",
+                                 tls=NodeFiles.in_dir(certs, FLEET_SIM))
     registry = RobotRegistry(names(n))
     with config.open() as session:
         links = [RobotLink(FLEET, r, registry, session) for r in registry.names]
@@ -107,6 +119,9 @@ def robot_process(n: int, port: int, ticks: int) -> int:
         result = {"ours": paced(ticks, ours)}
         for link in links:
             link.close()
+        if certs is not None:             # the router's access control knows no raw keys
+            print(json.dumps(result), flush=True)
+            return 0
 
         pongs = threading.Condition()
         got = [0] * n
@@ -153,6 +168,33 @@ def robot_process(n: int, port: int, ticks: int) -> int:
 
 
 # ---------------------------------------------------------------------- controller side
+def measure_tls(n: int, ticks: int) -> dict:
+    """The bridge and the robots through a router with mutual TLS (module docstring)."""
+    registry = RobotRegistry(names(n))
+    port = free_tcp_port()
+    with tempfile.TemporaryDirectory() as certs:
+        make_certs(certs, [ROUTER, CONTROLLER, FLEET_SIM])
+        config = RouterConfig(FLEET, registry.names, NodeFiles.in_dir(certs, ROUTER),
+                              (f"tls/127.0.0.1:{port}",))
+        with Router(config):
+            transport = TransportConfig(connect=(f"tls/127.0.0.1:{port}",), mode="client",
+                                        tls=NodeFiles.in_dir(certs, CONTROLLER))
+            zeros = {r: np.zeros(2) for r in registry.names}
+            bridge = Bridge(FLEET, registry, transport, lambda s: -0.5 * s.velocities, targets=zeros,
+                            object_pose=np.zeros(3), config=BridgeConfig(ttl_ms=100))
+            loop = threading.Thread(target=bridge.run, daemon=True)
+            loop.start()
+            child = subprocess.run([sys.executable, __file__, "--robot-process", str(n), "--port",
+                                    str(port), "--ticks", str(ticks), "--certs", certs],
+                                   capture_output=True, text=True, timeout=60 + 3 * ticks * PERIOD_S)
+            bridge.stop()
+            loop.join(timeout=2)
+            bridge.close()
+    if child.returncode != 0:
+        raise RuntimeError(f"robot process failed: {child.stdout} {child.stderr[-2000:]}")
+    return json.loads(child.stdout.strip().splitlines()[-1])["ours"]
+
+
 def measure(n: int, ticks: int) -> dict:
     port = free_tcp_port()
     transport = TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))
@@ -200,26 +242,40 @@ def main(argv: list[str] | None = None) -> int:
                         help="robot counts, e.g. 5,20,50")
     parser.add_argument("--ticks", type=positive_int, default=1000, help="ticks per count")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
+    parser.add_argument("--tls", action=argparse.BooleanOptionalAction, default=True,
+                        help="also the bridge and robots through a router with mutual TLS (default on)")
     parser.add_argument("--robot-process", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--certs", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.robot_process is not None:
-        return robot_process(args.robot_process, args.port, args.ticks)
+        return robot_process(args.robot_process, args.port, args.ticks, args.certs)
     document: dict = {}
     peer: dict = {}
+    tls: dict = {}
     for n in args.robots:
         progress(f"fleet_loop: {n} robots, {args.ticks} ticks at {1 / PERIOD_S:.0f} Hz")
         result = measure(n, args.ticks)
         document[str(n)] = result["ours"]
         peer[str(n)] = result["raw"]
+        if args.tls:
+            progress(f"fleet_loop: {n} robots through a router, mutual TLS")
+            tls[str(n)] = measure_tls(n, args.ticks)
     document["peer_raw_zenoh"] = peer
+    if args.tls:
+        document["tls_router"] = tls
+        for n in args.robots:      # the cost of TLS and the router, as the p50 ratio to plain
+            tls[str(n)]["p50_vs_plain"] = round(tls[str(n)]["p50_ms"] / document[str(n)]["p50_ms"], 3)
     if args.json:
         print_json(document)
         return 0
     headers = ["robots", "path", "ticks", "p50 ms", "p99 ms", "max ms", "missed"]
     rows = []
     for n in args.robots:
-        for path, r in (("bridge+wire", document[str(n)]), ("raw zenoh", peer[str(n)])):
+        paths = [("bridge+wire", document[str(n)]), ("raw zenoh", peer[str(n)])]
+        if args.tls:
+            paths.append(("bridge+wire, TLS via router", tls[str(n)]))
+        for path, r in paths:
             rows.append([n, path, r["ticks"], r["p50_ms"], r["p99_ms"], r["max_ms"], r["missed"]])
     print_table(headers, rows)
     return 0

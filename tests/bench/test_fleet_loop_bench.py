@@ -20,8 +20,12 @@ def test_json_has_one_entry_per_robot_count_and_the_peer():
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1  # progress goes to stderr
     document = json.loads(lines[0])
-    assert set(document) == {"2", "3", "peer_raw_zenoh"}
-    for entry in (document["2"], document["3"], *document["peer_raw_zenoh"].values()):
+    assert set(document) == {"2", "3", "peer_raw_zenoh", "tls_router"}
+    tls = document["tls_router"]
+    assert set(tls) == {"2", "3"}
+    for n in ("2", "3"):    # the p50 ratio to the plain row of the same run
+        assert tls[n].pop("p50_vs_plain") == round(tls[n]["p50_ms"] / document[n]["p50_ms"], 3)
+    for entry in (document["2"], document["3"], *document["peer_raw_zenoh"].values(), *tls.values()):
         assert set(entry) == KEYS and entry["ticks"] == 15
         assert 0 <= entry["unanswered"] <= entry["missed"] <= 15
         assert all(math.isfinite(entry[k]) and entry[k] > 0 for k in ("p50_ms", "p99_ms", "max_ms"))
