@@ -47,8 +47,9 @@ from bench._common import (  # noqa: E402
 )
 from deploy.bridge import Bridge, BridgeConfig  # noqa: E402
 from deploy.certs import CONTROLLER, FLEET_SIM, ROUTER, NodeFiles, make_certs  # noqa: E402
+from deploy.network import TransportConfig, free_tcp_port  # noqa: E402
 from deploy.router import Router, RouterConfig  # noqa: E402
-from deploy.transport import RobotLink, TransportConfig, free_tcp_port  # noqa: E402
+from deploy.transport import RobotLink  # noqa: E402
 from deploy.wire import RobotRegistry  # noqa: E402
 
 PERIOD_S = 0.02

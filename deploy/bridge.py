@@ -83,8 +83,9 @@ from typing import Any
 
 import numpy as np
 
+from deploy.network import TransportConfig
 from deploy.reject_log import RejectLog
-from deploy.transport import FleetLink, ReceivedState, TransportConfig
+from deploy.transport import FleetLink, ReceivedState
 from deploy.wire import CmdFlags, CmdMsg, RobotRegistry, StateStatus
 from sim.fleet import FleetState, SilentRobots
 

@@ -51,7 +51,8 @@ next command without STOP. While latched, other commands are ignored and counted
 commands that arrive while the robot sees no controller liveliness token (``ctrl/alive``): a
 robot obeys the node that holds it, not any node that can publish on its key.
 
-Trace (``summary()["trace"]``, one entry per tick k, the true state at tick k): ``modes`` (each
+Trace (``summary()["trace"]``, one entry per tick k, the true state at tick k; a real-time run
+without ``max_ticks`` keeps the newest ``TRACE_TICKS``): ``modes`` (each
 robot's watchdog branch when it published its state), ``applied`` (the branch whose acceleration
 it applied), ``speeds`` [m/s], ``positions`` (N, 2) [m] and ``contacts`` (N, 3) (robot, object,
 wall; from the previous tick's motion).
@@ -81,12 +82,16 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from deploy.network import TransportConfig
 from deploy.reject_log import RejectLog
-from deploy.transport import RobotLink, TransportConfig
+from deploy.transport import RobotLink
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.files import atomic_write_text
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import Scenario
+
+TRACE_TICKS = 12_000
+"""Ticks of trace a real-time run without ``max_ticks`` keeps (10 minutes at 20 Hz)."""
 
 
 def robot_names(n: int) -> tuple[str, ...]:
@@ -191,7 +196,9 @@ class FleetSim:
         self.ignored_while_latched = 0
         self.ignored_without_controller = 0
         self.lockstep_timeouts = 0
-        self.trace: list[dict[str, Any]] = []
+        # real time without a tick limit may run for days: keep the newest TRACE_TICKS ticks
+        endless = config.rate_hz is not None and config.max_ticks is None
+        self.trace: deque[dict[str, Any]] = deque(maxlen=TRACE_TICKS if endless else None)
         self.on_episode = on_episode
         self.episode_ticks = sc.dynamics.episode_steps
         self.episodes: list[dict[str, Any]] = []
@@ -464,7 +471,7 @@ class FleetSim:
                 "ignored_without_controller": self.ignored_without_controller,
                 "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),
                 "lossless": self.lossless, "shared_clock": self.config.clock_is_shared(),
-                "episodes": self.episodes, "trace": self.trace}
+                "episodes": self.episodes, "trace": list(self.trace)}
 
 
 def write_json(path: str | Path, document: dict[str, Any]) -> None:

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import zenoh
 
 from deploy.certs import ROUTER, NodeFiles
+from deploy.network import ENDPOINT_RE
 from deploy.security import fleet_acl, tls_block
-from deploy.transport import _ENDPOINT_RE
 from deploy.wire import check_name
 
 
@@ -41,7 +41,7 @@ class RouterConfig:
         if not self.listen:
             raise ValueError("router: give at least one --listen endpoint, e.g. tls/0.0.0.0:7447")
         for endpoint in self.listen:
-            if not (_ENDPOINT_RE.fullmatch(endpoint) and endpoint.startswith("tls/")):
+            if not (ENDPOINT_RE.fullmatch(endpoint) and endpoint.startswith("tls/")):
                 raise ValueError(f"router: {endpoint!r} must be a tls/HOST:PORT endpoint "
                                  "(every link is mutual TLS)")
 

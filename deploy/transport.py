@@ -1,16 +1,10 @@
-"""Zenoh transport between one controller and a fleet of robots.
-
-Key layout (``<fleet>`` and ``<rid>`` follow :func:`deploy.wire.check_name`; never '@')::
-
-    formation/<fleet>/robot/<rid>/state   robot -> controller  STATE (deploy.wire)
-    formation/<fleet>/robot/<rid>/cmd     controller -> robot  CMD
-    formation/<fleet>/robot/<rid>/alive   liveliness token of the robot
-    formation/<fleet>/ctrl/alive          liveliness token of the controller
-    formation/<fleet>/estop               ESTOP, latched (see below)
+"""The links between one controller and a fleet of robots over Zenoh: :class:`FleetLink`
+(controller side) and :class:`RobotLink` (robot side), on the keys and the transport settings of
+:mod:`deploy.network`.
 
 Threads: Zenoh delivers into bounded :class:`zenoh.handlers.RingChannel` handlers (never a
 Python callback, so a Zenoh thread never waits on Python), and one driver thread per channel
-blocks in ``recv()``, validates with :class:`deploy.wire.WireDecoder` and updates the link's
+blocks in ``recv()``, validates with :class:`deploy.streams.WireDecoder` and updates the link's
 tables under one lock. A full ring drops its oldest sample (a robot's command ring holds
 ``COMMAND_RING`` samples, and a robot counts the valid commands it never saw, from the gaps in
 the controller's ``seq``: ``RobotLink.missed_commands``). Malformed, foreign or stale
@@ -40,10 +34,7 @@ The e-stop is always BLOCK.
 
 from __future__ import annotations
 
-import json
 import logging
-import re
-import socket
 import threading
 import time
 from collections import deque
@@ -53,8 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 import zenoh
 
-from deploy.certs import NodeFiles
-from deploy.security import tls_block
+from deploy.network import FleetKeys, TransportConfig, free_tcp_port
+from deploy.streams import RejectCounter, Stamper, WireDecoder
 from deploy.wire import (
     ROBOT_ALL,
     CmdFlags,
@@ -62,151 +53,21 @@ from deploy.wire import (
     EstopMsg,
     MsgType,
     Reason,
-    RejectCounter,
     Rejection,
     RobotRegistry,
-    Stamper,
     StateMsg,
     StateStatus,
-    WireDecoder,
     check_name,
     encode,
 )
 
 log = logging.getLogger(__name__)
 
-KEY_ROOT = "formation"
 NO_CMD_FLAGS = CmdFlags(0)
 NO_STATUS = StateStatus(0)
 COMMAND_RING = 1024
 """Ring size of a robot's command channel: a burst of this many junk messages still cannot push
 out a valid command before the driver thread has decoded it."""
-_ENDPOINT_RE = re.compile(r"[a-z][a-z0-9\-]*/\S+")
-_LOOPBACK_RE = re.compile(r"[a-z][a-z0-9\-]*/(127(\.\d{1,3}){3}|localhost|\[::1\]):\d+(#\S*)?")
-
-
-class FleetKeys:
-    """Key expressions of one fleet."""
-
-    def __init__(self, fleet: str):
-        self.fleet = check_name(fleet, "fleet name")
-        self.prefix = f"{KEY_ROOT}/{fleet}"
-        self.ctrl_alive = f"{self.prefix}/ctrl/alive"
-        self.estop = f"{self.prefix}/estop"
-        self.all_states = f"{self.prefix}/robot/*/state"
-        self.all_robot_alive = f"{self.prefix}/robot/*/alive"
-
-    def state(self, robot: str) -> str:
-        return f"{self.prefix}/robot/{check_name(robot)}/state"
-
-    def cmd(self, robot: str) -> str:
-        return f"{self.prefix}/robot/{check_name(robot)}/cmd"
-
-    def robot_alive(self, robot: str) -> str:
-        return f"{self.prefix}/robot/{check_name(robot)}/alive"
-
-    def robot_in(self, key: str, leaf: str) -> str | None:
-        """The robot name in ``formation/<fleet>/robot/<rid>/<leaf>``, or None if the key differs."""
-        head, tail = f"{self.prefix}/robot/", f"/{leaf}"
-        if not (key.startswith(head) and key.endswith(tail)):
-            return None
-        name = key[len(head):len(key) - len(tail)]
-        try:
-            return check_name(name)
-        except ValueError:
-            return None
-
-
-@dataclass(frozen=True)
-class TransportConfig:
-    """How a node joins the Zenoh network.
-
-    Attributes:
-        listen: endpoints to listen on, e.g. ``("tcp/127.0.0.1:7447",)``; empty = listen nowhere.
-        connect: endpoints of peers to connect to, e.g. the controller's listen endpoint.
-        multicast_scouting: discover peers by UDP multicast (off by default; off in tests).
-        gossip_scouting: learn further peers through connected ones (Zenoh's default: on).
-        lease_ms: link lease (``transport/link/tx/lease``). A frozen peer is declared gone,
-            and its liveliness tokens dropped, after about this long (Zenoh default 10000).
-        mode: ``"peer"`` (nodes link to each other, one host or a trusted network) or
-            ``"client"`` (through a router: ``formation router``, :mod:`deploy.security`).
-        tls: the node's certificate files (:class:`deploy.certs.NodeFiles`): every link is
-            mutual TLS with the fleet CA, and every endpoint must be ``tls/...``.
-        insecure: allow plain links to endpoints off this host's loopback. Without it such an
-            endpoint needs ``tls``: a fleet on a network is authenticated by default.
-    """
-
-    listen: tuple[str, ...] = ()
-    connect: tuple[str, ...] = ()
-    multicast_scouting: bool = False
-    gossip_scouting: bool = True
-    lease_ms: int | None = None
-    mode: str = "peer"
-    tls: NodeFiles | None = None
-    insecure: bool = False
-
-    def __post_init__(self) -> None:
-        for field in ("listen", "connect"):
-            endpoints = getattr(self, field)
-            if isinstance(endpoints, str):
-                raise ValueError(f"TransportConfig.{field} must be a tuple of endpoints, "
-                                 f"not the string {endpoints!r}: write ({endpoints!r},)")
-            object.__setattr__(self, field, tuple(endpoints))
-            for endpoint in endpoints:
-                if not isinstance(endpoint, str) or not _ENDPOINT_RE.fullmatch(endpoint):
-                    raise ValueError(f"TransportConfig.{field}: {endpoint!r} is not a Zenoh "
-                                     "endpoint; write e.g. 'tcp/127.0.0.1:7447'")
-        if self.lease_ms is not None and (not isinstance(self.lease_ms, int)
-                                          or self.lease_ms < 100):
-            raise ValueError(f"TransportConfig.lease_ms={self.lease_ms!r} must be an int >= 100 "
-                             "(milliseconds) or None for Zenoh's default")
-        if self.mode not in ("peer", "client"):
-            raise ValueError(f"TransportConfig.mode must be 'peer' or 'client', got {self.mode!r}")
-        if self.mode == "client" and not self.connect:
-            raise ValueError("TransportConfig: a client needs the router's endpoint in connect")
-        endpoints = self.listen + self.connect
-        if self.tls is not None:
-            plain = [e for e in endpoints if not e.startswith("tls/")]
-            if plain:
-                raise ValueError(f"TransportConfig: with certificates every endpoint is tls/...; "
-                                 f"got {plain}")
-        elif not self.insecure:
-            remote = [e for e in endpoints if not _LOOPBACK_RE.fullmatch(e)]
-            if remote:
-                raise ValueError(f"endpoints {remote} are off this host: give certificates "
-                                 "(--certs DIR, from `formation certs`) and tls/ endpoints, or "
-                                 "--insecure for a plain link on a trusted network")
-
-    def loopback_only(self) -> bool:
-        """Whether every endpoint (at least one) is on this host's loopback (127.0.0.0/8,
-        ``localhost``, ``[::1]``): then every peer runs on this host and shares its monotonic
-        clock, so a receiver can judge a message's age and refuse one from the future."""
-        endpoints = self.listen + self.connect
-        return bool(endpoints) and self.mode == "peer" and not self.multicast_scouting and all(
-            _LOOPBACK_RE.fullmatch(e) for e in endpoints)
-
-    def to_zenoh(self) -> zenoh.Config:
-        config = zenoh.Config()
-        config.insert_json5("mode", json.dumps(self.mode))
-        config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-        config.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip_scouting))
-        if self.lease_ms is not None:
-            config.insert_json5("transport/link/tx/lease", str(self.lease_ms))
-        if self.tls is not None:
-            config.insert_json5("transport/link/tls", json.dumps(tls_block(self.tls)))
-        return config
-
-    def open(self) -> zenoh.Session:
-        return zenoh.open(self.to_zenoh())
-
-
-def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago on ``host`` (for tests and local fleets)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind((host, 0))
-        return int(sock.getsockname()[1])
 
 
 @dataclass(frozen=True, slots=True)
@@ -365,6 +226,7 @@ class FleetLink(_Link):
         self._estop_stamper = first
         self._estop_bytes: bytes | None = None
         self._estop_engaged = False
+        self._estop_order = threading.Lock()
         try:
             self._open(queue_capacity)
         except BaseException:
@@ -506,13 +368,17 @@ class FleetLink(_Link):
         return self._publish_estop(False, 0)
 
     def _publish_estop(self, engaged: bool, reason_code: int) -> EstopMsg:
+        """Latch and publish one ESTOP. The put (BLOCK) may wait on the network: it runs under
+        its own lock, which keeps seq order on the wire, not under the lock every driver thread
+        needs (the latched bytes, which the queryable serves, are updated under that one first)."""
         self._check_open()
-        epoch, seq, now = self._estop_stamper.next()
-        msg = EstopMsg(epoch, seq, now, engaged, reason_code)
-        data = encode(msg)
-        with self._cond:
-            self._estop_bytes = data
-            self._estop_engaged = engaged
+        with self._estop_order:
+            epoch, seq, now = self._estop_stamper.next()
+            msg = EstopMsg(epoch, seq, now, engaged, reason_code)
+            data = encode(msg)
+            with self._cond:
+                self._estop_bytes = data
+                self._estop_engaged = engaged
             self._estop_publisher.put(data)
         return msg
 

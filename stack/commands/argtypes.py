@@ -86,9 +86,9 @@ def add_transport_flags(parser: argparse.ArgumentParser, identity: str) -> None:
 
 
 def transport_config(args: argparse.Namespace):
-    """The :class:`deploy.transport.TransportConfig` of :func:`add_transport_flags`' flags."""
+    """The :class:`deploy.network.TransportConfig` of :func:`add_transport_flags`' flags."""
     from deploy.certs import NodeFiles
-    from deploy.transport import TransportConfig
+    from deploy.network import TransportConfig
 
     if args.certs is None:
         return TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect),

@@ -87,7 +87,7 @@ def _pump(stream, log_path: Path, lines: queue.Queue) -> None:
 
 def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[str, Any]:
     """Run ``settings.fleet_episodes`` episodes over Zenoh; return the merged result."""
-    from deploy.transport import free_tcp_port
+    from deploy.network import free_tcp_port
     from sim.scenario import make_scenario
 
     folder = out / "fleet"

@@ -17,7 +17,7 @@ import numpy as np
 
 from deploy.bridge import Bridge
 from deploy.fleet_sim import robot_names
-from deploy.transport import TransportConfig
+from deploy.network import TransportConfig
 from deploy.wire import RobotRegistry
 from sim.scenario import make_scenario
 

@@ -19,7 +19,7 @@ import time
 import zenoh
 
 from deploy.certs import CONTROLLER, NodeFiles
-from deploy.transport import TransportConfig
+from deploy.network import TransportConfig
 from deploy.wire import CmdMsg, EstopMsg, StateMsg, encode
 
 

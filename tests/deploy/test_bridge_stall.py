@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.transport import free_tcp_port
+from deploy.network import free_tcp_port
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_fleet_sim_bridge import Proc  # noqa: E402

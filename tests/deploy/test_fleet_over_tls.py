@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from deploy.certs import CONTROLLER, make_certs
-from deploy.transport import free_tcp_port
+from deploy.network import free_tcp_port
 from tests.deploy.intruder_proc import intrude
 from tests.deploy.test_fleet_sim_bridge import ROOT, SCRIPTED, Proc, assert_task_done
 

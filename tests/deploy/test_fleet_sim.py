@@ -9,7 +9,7 @@ import numpy as np
 import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig
-from deploy.transport import FleetKeys, TransportConfig, free_tcp_port
+from deploy.network import FleetKeys, TransportConfig, free_tcp_port
 from deploy.wire import CmdMsg, encode
 from sim.scenario import make_scenario
 
@@ -40,3 +40,15 @@ def test_a_robot_obeys_no_command_while_no_controller_token_is_seen():
     assert report["ignored_without_controller"] >= 10
     assert max(report["speeds"]) == 0.0
     assert np.allclose(report["positions"], sim.world.scenario.starts, atol=0.02)
+
+
+def test_a_real_time_run_without_a_tick_limit_keeps_a_bounded_trace():
+    from deploy.fleet_sim import TRACE_TICKS
+
+    sc = make_scenario("paper-3")
+    endless = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=20.0))
+    for k in range(TRACE_TICKS + 5):
+        endless.trace.append({"tick": k})
+    assert len(endless.trace) == TRACE_TICKS and endless.trace[0]["tick"] == 5
+    bounded = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=None))
+    assert bounded.trace.maxlen is None              # lock-step (and --ticks) runs keep every tick

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from deploy.transport import TransportConfig, free_tcp_port
+from deploy.network import TransportConfig, free_tcp_port
 from deploy.wire import CMD_BODY, HEADER, MAGIC, STATE_BODY, WIRE_VERSION, MsgType
 from sim.scenario import make_scenario
 

@@ -9,9 +9,9 @@ import pytest
 import zenoh
 
 from deploy.certs import CONTROLLER, ROUTER, NodeFiles, common_name, make_certs
+from deploy.network import TransportConfig, free_tcp_port
 from deploy.router import Router, RouterConfig
 from deploy.security import fleet_acl
-from deploy.transport import TransportConfig, free_tcp_port
 
 FLEET, ROBOTS = "sec", ("r0", "r1", "r2")
 K = f"formation/{FLEET}"

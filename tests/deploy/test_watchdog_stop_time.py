@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from deploy.transport import TransportConfig, free_tcp_port
+from deploy.network import TransportConfig, free_tcp_port
 from deploy.wire import MsgType, StateMsg, decode
 from sim.scenario import make_scenario
 

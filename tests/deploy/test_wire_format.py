@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from deploy.streams import RejectCounter, Stamper, WireDecoder
 from deploy.wire import (
     HEADER_SIZE,
     MESSAGE_SIZE,
@@ -19,13 +20,10 @@ from deploy.wire import (
     EstopMsg,
     MsgType,
     Reason,
-    RejectCounter,
     Rejection,
     RobotRegistry,
-    Stamper,
     StateMsg,
     StateStatus,
-    WireDecoder,
     check_name,
     decode,
     encode,

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from deploy.transport import FleetKeys, FleetLink, RobotLink, TransportConfig, free_tcp_port
+from deploy.network import FleetKeys, TransportConfig, free_tcp_port
+from deploy.transport import FleetLink, RobotLink
 from deploy.wire import (
     CmdFlags,
     CmdMsg,

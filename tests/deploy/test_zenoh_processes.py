@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deploy.transport import FleetLink, TransportConfig, free_tcp_port
+from deploy.network import TransportConfig, free_tcp_port
+from deploy.transport import FleetLink
 from deploy.wire import RobotRegistry
 
 ROBOT_SCRIPT = Path(__file__).with_name("zenoh_robot_proc.py")

@@ -14,7 +14,8 @@ import json
 import sys
 import time
 
-from deploy.transport import RobotLink, TransportConfig
+from deploy.network import TransportConfig
+from deploy.transport import RobotLink
 from deploy.wire import RobotRegistry
 
 
