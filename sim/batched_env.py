@@ -23,10 +23,11 @@ from dataclasses import dataclass
 import torch
 
 from sim import observations
-from sim.geometry import DetourDistance, DetourField, Frame, Polygon
-from sim.metrics import episode_outcome, frame_collisions, optimal_assignment
-from sim.reward import RewardWeights, assignment_cost, proximity_ramp, reward_from_distances
+from sim.geometry import Frame, Polygon
+from sim.metrics import episode_outcome
+from sim.reward import RewardWeights
 from sim.scenario import Scenario
+from sim.step_reward import StepReward, frame_contacts
 
 
 @dataclass
@@ -106,8 +107,7 @@ class BatchedFormationEnv:
         self._frame: Frame | None = None
         self.start_slots = torch.as_tensor(scenario.starts, **kw)
         self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
-        self.detour = DetourField(DetourDistance(self.polygon, self.targets[0],
-                                                 scenario.robot_radius + reward_weights.detour_clearance), self.arena)
+        self.rewarder = StepReward(scenario, num_envs, reward_weights, self.polygon, self.device)
         e, n = num_envs, self.num_robots
         self.pos = torch.zeros(e, n, 2, **kw)
         self.vel = torch.zeros(e, n, 2, **kw)
@@ -116,18 +116,27 @@ class BatchedFormationEnv:
         self.ret = torch.zeros(e, **kw)
         self.counts = torch.zeros(e, 3, dtype=torch.long, device=self.device)
         self.prev_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
-        self.prev_near_contact = torch.zeros(e, n, 3, dtype=torch.bool, device=self.device)
-        self.assignment = torch.full((e, n), -1, dtype=torch.long, device=self.device)   # -1: not yet
         self._t_max = 0   # host-side upper bound of self.t, so most steps skip the done check
         self._not_done = torch.zeros(e, dtype=torch.bool, device=self.device)
         none = torch.zeros(0, dtype=torch.long, device=self.device)
         self._none_finished = EpisodeStats(none, none.bool(), none.to(dtype), none.to(dtype),
                                            none, none, none, none, none.bool())
-        self.penalty_scale = 1.0   # multiplies the reward's contact terms (a training curriculum sets it)
         self.generator = torch.Generator(device=self.device)
         self.seed(seed)
         self._lo = torch.tensor([self.radius, self.radius], **kw)
         self._hi = torch.tensor([self.arena[0] - self.radius, self.arena[1] - self.radius], **kw)
+
+    # the reward's remembered state and the curriculum's scale live in self.rewarder
+    prev_near_contact = property(lambda self: self.rewarder.prev_near_contact)
+    assignment = property(lambda self: self.rewarder.assignment)
+
+    @property
+    def penalty_scale(self) -> float:
+        return self.rewarder.penalty_scale
+
+    @penalty_scale.setter
+    def penalty_scale(self, value: float) -> None:
+        self.rewarder.penalty_scale = value
 
     # ----------------------------------------------------------------- set-up
     def seed(self, seed: int | None) -> None:
@@ -154,8 +163,7 @@ class BatchedFormationEnv:
         self.ret[ids] = 0
         self.counts[ids] = 0
         self.prev_contact[ids] = False
-        self.prev_near_contact[ids] = False
-        self.assignment[ids] = -1
+        self.rewarder.reset(ids)
         self._t_max = int(self.t.max())
 
     # ------------------------------------------------------------ observation
@@ -204,25 +212,12 @@ class BatchedFormationEnv:
 
         frame = Frame(self.pos, self.vel, self.targets, self.polygon)
         touched = (hit_wall_axis.any(-1), hit_object)
-        events, contact = self._contacts(frame, self.radius, touched)
+        events, contact = frame_contacts(frame, self.radius, self.arena, touched)
         new_contact = contact & ~self.prev_contact                               # (E,N,3)
         self.prev_contact = contact
         self.counts += new_contact.sum(1)
         self.collided |= contact.any(-1).any(-1)
-        margin = self.reward_weights.contact_margin
-        if margin > 0:   # the reward judges contact on discs grown by the margin (stats do not)
-            events, near_contact = self._contacts(frame, self.radius + margin, touched)
-            new_contact = near_contact & ~self.prev_near_contact
-            self.prev_near_contact = near_contact
-        w = self.reward_weights
-        d_detour = self.detour(self.pos)
-        reward = reward_from_distances(frame.d_rg, events, self.scenario.target_tolerance, w, d_detour,
-                                       new_contact.any(-1),
-                                       proximity_ramp(frame, self.radius, self.arena, w.near_margin)
-                                       if w.w_near else None,
-                                       self._sticky_assignment(d_detour)
-                                       if w.assignment_hysteresis and (w.w_assigned or w.w_own_arrive) else None,
-                                       self.penalty_scale)
+        reward = self.rewarder(frame, touched, events, new_contact)   # sim.step_reward
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1
@@ -241,29 +236,6 @@ class BatchedFormationEnv:
             final_obs = final_mask = None
         return StepResult(obs=obs, mask=mask, reward=reward, done=done, finished=finished,
                           final_obs=final_obs, final_mask=final_mask)
-
-    def _sticky_assignment(self, path: torch.Tensor) -> torch.Tensor:
-        """(E, N) assignment kept from the last step unless the optimal one for the (E, N, N)
-        distances ``path`` is cheaper in total by more than ``assignment_hysteresis``
-        (see :mod:`sim.reward`)."""
-        cost = assignment_cost(path, self.reward_weights.assignment_power)
-        best = optimal_assignment(cost)
-        current = self.assignment.clamp_min(0)
-        sigmas = torch.stack((best, current)).unsqueeze(-1)                            # (2, E, N, 1)
-        totals = torch.gather(cost.expand(2, *cost.shape), -1, sigmas).sum((-2, -1))   # (2, E)
-        fresh = self.assignment[:, 0] < 0
-        switch = fresh | (totals[0] < totals[1] - self.reward_weights.assignment_hysteresis)
-        self.assignment = torch.where(switch.unsqueeze(-1), best, current)
-        return self.assignment
-
-    def _contacts(self, frame: Frame, radius: float, touched: tuple[torch.Tensor, torch.Tensor]):
-        """Collision events of discs of ``radius`` plus the wall and object stops of this step
-        (``touched``: (E, N) wall, object); returns the events and their (E, N, 3) stack
-        (robot, object, wall)."""
-        events = frame_collisions(frame, radius, self.arena)
-        events.wall = events.wall | touched[0]
-        events.object = events.object | touched[1]
-        return events, torch.stack((events.robot, events.object, events.wall), -1)
 
     def _stop_at_object(self, pos: torch.Tensor, vel: torch.Tensor):
         """Stop at the object: centres closer than r to it go back to distance r along the

@@ -8,8 +8,11 @@ Agents are ``"robot_0" .. "robot_{N-1}"`` (row order of the world). Per agent:
   ``Box(-inf, inf)``.
 * action: the commanded acceleration ``Box(-accel_limit, accel_limit, (2,))`` [m/s^2]; the
   world then clips its norm to ``accel_limit`` (a box corner has norm ``sqrt(2) * accel_limit``).
-* reward: :func:`sim.reward.formation_reward` of the *true* positions and this tick's collision
-  events, the same function the batched training world uses.
+* reward: :class:`sim.step_reward.StepReward`, the object the batched training world rewards
+  with (detour distances, contact onsets, the contact margin, the sticky assignment), on the
+  *true* state, with pymunk's own contacts (a robot pushed by another, stopped by the object or
+  a wall) joined to the geometric ones: equal weights, equal rewards on equal states (tested).
+  ``reward_weights=RewardWeights(**controllers.mappo.config.TRAINING_REWARD)`` gives the trainer's.
 * termination: never. Truncation: every agent at ``dynamics.episode_steps`` steps, after which
   ``agents`` is empty until ``reset``.
 * info: ``collision_robot``, ``collision_object``, ``collision_wall`` (this robot, this tick) and
@@ -27,11 +30,11 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from sim import observations
-from sim.geometry import Polygon
-from sim.metrics import CollisionEvents
+from sim.geometry import Frame, Polygon
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.reward import RewardWeights, formation_reward
+from sim.reward import RewardWeights
 from sim.scenario import Scenario, make_scenario
+from sim.step_reward import StepReward, frame_contacts
 
 
 def agent_name(i: int) -> str:
@@ -71,6 +74,8 @@ class FormationParallelEnv(ParallelEnv):
         self.action_spaces = {a: spaces.Box(-limit, limit, (2,), np.float32) for a in self.possible_agents}
         self._polygon = Polygon(torch.as_tensor(sc.polygon, dtype=torch.float64))
         self._targets = torch.as_tensor(sc.targets).unsqueeze(0)
+        self.rewarder = StepReward(sc, 1, reward_weights, self._polygon)
+        self._prev_contact = torch.zeros(1, n, 3, dtype=torch.bool)
 
     def observation_space(self, agent: str) -> spaces.Box:
         return self.observation_spaces[agent]
@@ -82,6 +87,8 @@ class FormationParallelEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         """Start an episode; ``seed`` seeds the world (start jitter, gains, noise). ``options`` unused."""
         self.world.reset(seed=seed)
+        self.rewarder.reset()
+        self._prev_contact.zero_()
         self.agents = list(self.possible_agents)
         infos = self._infos(last=False)
         return self._observations(), infos
@@ -104,13 +111,7 @@ class FormationParallelEnv(ParallelEnv):
         self.world.send_accelerations(command)
         state = self.world.step()
 
-        c = self.world.contacts
-        events = CollisionEvents(robot=torch.from_numpy(c.robot).unsqueeze(0),
-                                 object=torch.from_numpy(c.object).unsqueeze(0),
-                                 wall=torch.from_numpy(c.wall).unsqueeze(0))
-        true_pos = torch.from_numpy(self.world.true_state().positions).unsqueeze(0)
-        reward = formation_reward(true_pos, self._targets, events, self.scenario.target_tolerance,
-                                  self.reward_weights)[0]
+        reward = self._reward()
         last = state.step >= self.scenario.dynamics.episode_steps
         obs = self._observations()
         rewards = {a: float(reward[i]) for i, a in enumerate(self.possible_agents)}
@@ -129,6 +130,18 @@ class FormationParallelEnv(ParallelEnv):
         pass
 
     # ---------------------------------------------------------------- helpers
+    def _reward(self) -> torch.Tensor:
+        """(N,) reward of the step just taken, on the true state (module docstring)."""
+        true, c = self.world.true_state(), self.world.contacts
+        frame = Frame(torch.from_numpy(true.positions).unsqueeze(0), torch.from_numpy(true.velocities).unsqueeze(0),
+                      self._targets, self._polygon)
+        touched = (torch.from_numpy(c.wall).unsqueeze(0), torch.from_numpy(c.object).unsqueeze(0))
+        events, contact = frame_contacts(frame, self.scenario.robot_radius, self.scenario.arena, touched)
+        events.robot = events.robot | torch.from_numpy(c.robot).unsqueeze(0)
+        contact[..., 0] = events.robot
+        onsets, self._prev_contact = contact & ~self._prev_contact, contact
+        return self.rewarder(frame, touched, events, onsets)[0]
+
     def _observations(self) -> dict[str, np.ndarray]:
         s = self.world.read_state()
         toks, _ = observations.tokens(torch.from_numpy(s.positions).unsqueeze(0),

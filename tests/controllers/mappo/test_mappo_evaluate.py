@@ -56,7 +56,7 @@ def test_evaluate_a_policy_that_stands_still_by_hand():
     outcome = episode_outcome(start, env.targets, torch.zeros(10, dtype=torch.bool), sc.target_tolerance)
     no_contact = torch.zeros(10, 3, dtype=torch.bool)
     per_step = formation_reward(start, env.targets, CollisionEvents(no_contact, no_contact, no_contact),
-                                sc.target_tolerance, detour=env.detour).mean(-1)  # (E,)
+                                sc.target_tolerance, detour=env.rewarder.detour).mean(-1)  # (E,)
     assert result.episodes == 10 and result.num_robots == 3
     assert result.success_rate == 0.0 and result.collision_rate == 0.0
     assert result.final_distance == pytest.approx(outcome.final_distance.mean().item(), abs=1e-6)
