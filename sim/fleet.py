@@ -1,8 +1,9 @@
 """The small fleet interface that every world implements: read state, send accelerations, step.
 
 The batched world (:class:`BatchedFleet`, one environment), the pymunk world
-(:class:`sim.pymunk_world.PymunkWorld`) and, later, a real fleet over Zenoh all present the same
-three calls, in the manner of the Robotarium's ``get_poses`` / ``set_velocities`` / ``step``::
+(:class:`sim.pymunk_world.PymunkWorld`) and a fleet over Zenoh (:class:`deploy.zenoh_fleet.ZenohFleet`)
+all present the same three calls, in the manner of the Robotarium's ``get_poses`` /
+``set_velocities`` / ``step``::
 
     state = fleet.reset(seed=0)
     while not done:

@@ -6,6 +6,16 @@
 * ``--world pymunk``: :func:`stack.pipeline.run_episode` with a :class:`stack.pipeline.ControlStack`
   (safety filter and MEC on by default) in :class:`sim.pymunk_world.PymunkWorld` with
   ``--model-error``.
+* ``--world zenoh``: the same stack and episodes driving a fleet over Zenoh
+  (:class:`deploy.zenoh_fleet.ZenohFleet`: a real one, or ``formation fleet-sim --episodes``),
+  judged on the states it reports; the episodes and seeds are the fleet's own. A fleet publishes
+  the states of ticks 0 .. T-1 of an episode (the state after its last command is the next
+  episode's reset), so an episode is judged on tick T-1 (fleet-sim's own report judges tick T),
+  and its last command is a brake::
+
+      formation fleet-sim --fleet lab --lockstep --episodes 3 --listen tcp/127.0.0.1:7447
+      formation eval --policy scripted --world zenoh --fleet lab --lockstep --episodes 3 \
+          --scenario paper-5 --connect tcp/127.0.0.1:7447
 """
 
 from __future__ import annotations
@@ -42,8 +52,9 @@ def register(sub) -> None:
     p.add_argument("--policy", choices=["scripted"], default=None,
                    help="evaluate a built-in controller instead of a file")
     p.add_argument("--scenario", default="paper-3", help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
-    p.add_argument("--world", choices=["batched", "pymunk"], default="batched",
-                   help="batched: training world, no safety/MEC; pymunk: ControlStack with model error")
+    p.add_argument("--world", choices=["batched", "pymunk", "zenoh"], default="batched",
+                   help="batched: training world, no safety/MEC; pymunk: ControlStack with model error; "
+                        "zenoh: ControlStack driving a fleet over Zenoh (--fleet and its endpoints)")
     p.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
     p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the first episode (default 0)")
     p.add_argument("--steps", type=int, default=None, help="ticks per episode (default: the scenario's)")
@@ -52,6 +63,11 @@ def register(sub) -> None:
                    help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
+    zenoh = p.add_argument_group("--world zenoh")
+    zenoh.add_argument("--fleet", default=None, help="the fleet's name (Zenoh key chunk)")
+    zenoh.add_argument("--lockstep", action="store_true",
+                       help="the fleet is lock-stepped (fleet-sim --lockstep): sim time, lossless")
+    argtypes.add_transport_flags(zenoh, "controller")
     p.set_defaults(func=run)
 
 
@@ -97,7 +113,7 @@ def evaluate_from_args(args) -> dict:
             notes.append(note)
         metrics = _batched(args, scenario)
     else:
-        metrics = _pymunk(args, scenario, parse_model_error(args.model_error))
+        metrics = _stack_episodes(args, scenario, parse_model_error(args.model_error))
     return {"scenario": scenario.name, "num_robots": scenario.num_robots, "world": args.world,
             "policy": args.policy or str(args.policy_path), "episodes": args.episodes,
             "seed": args.seed, **metrics, "notes": notes}
@@ -125,7 +141,7 @@ def _batched(args, scenario) -> dict:
         "safety": False, "mec": False, "model_error": None}
 
 
-def _pymunk(args, scenario, model_error: ModelError) -> dict:
+def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
     from controllers.docking import DockingConfig
     from stack.pipeline import ControlStack, StackConfig, load_policy
 
@@ -143,11 +159,44 @@ def _pymunk(args, scenario, model_error: ModelError) -> dict:
         raise EvalArgumentError(str(exc)) from None
     docking = DockingConfig(enabled=True if args.docking is None else args.docking)
     stack = ControlStack(scenario, policy, StackConfig(safety=safety, mec=mec, latency=latency, docking=docking))
+    if args.world == "zenoh":
+        last = scenario.dynamics.episode_steps - 1      # the fleet's last published state (module docstring)
+        if args.steps is not None and args.steps > last:
+            raise EvalArgumentError(f"--steps for --world zenoh is at most {last}: the fleet publishes "
+                                    f"{last + 1} states an episode")
+        args = _with(args, steps=args.steps or last)
+        with _zenoh_fleet(args, scenario) as fleet:
+            out = _episodes(args, fleet, stack, safety=safety, mec=mec)
+        out["model_error"] = None         # the fleet's own
+        out["command_delay_ms"] = args.command_delay_ms
+        return out
     world = PymunkWorld(scenario, model_error, seed=args.seed)
     out = _episodes(args, world, stack, safety=safety, mec=mec)
     out["model_error"] = dataclasses.asdict(model_error)
     out["command_delay_ms"] = args.command_delay_ms
     return out
+
+
+def _with(args, **changes):
+    import argparse
+
+    return argparse.Namespace(**{**vars(args), **changes})
+
+
+def _zenoh_fleet(args, scenario):
+    from deploy.bridge import BridgeConfig
+    from deploy.zenoh_fleet import ZenohFleet
+
+    if not args.fleet:
+        raise EvalArgumentError("--world zenoh needs --fleet NAME and the fleet's endpoint (--connect)")
+    if args.model_error is not None:
+        raise EvalArgumentError("--model-error applies to --world pymunk: a fleet over Zenoh has its own")
+    try:
+        transport = argtypes.transport_config(args)
+        config = BridgeConfig(lockstep=args.lockstep, period_s=scenario.dynamics.dt)
+        return ZenohFleet(scenario, args.fleet, transport, config)
+    except (ValueError, OSError) as exc:
+        raise EvalArgumentError(str(exc)) from None
 
 
 def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> dict:

@@ -1,0 +1,129 @@
+"""A fleet over Zenoh behind the :class:`sim.fleet.Fleet` interface: the same three calls as the
+simulated worlds, so :func:`stack.pipeline.run_episode` (and ``formation eval --world zenoh``)
+drives a real fleet, or ``formation fleet-sim``, with the same metrics::
+
+    fleet = ZenohFleet(scenario, "lab", TransportConfig(connect=("tcp/127.0.0.1:7447",)))
+    state = fleet.reset()
+    fleet.send_accelerations(controller(state)); state = fleet.step()
+
+Underneath runs a :class:`deploy.bridge.Bridge` in a thread, with every rule of the bridge (BRAKE
+for stale or non-finite rows, silent robots as obstacles, the fleet e-stop): its controller
+hands each picture to :meth:`step` and waits for the answer of :meth:`send_accelerations`
+(``answer_timeout_s``; then the bridge brakes every robot that tick, as for a failed controller).
+
+Episodes are the fleet's own: a fleet that resets its world every ``episode_steps`` ticks
+(``fleet-sim --episodes``) starts episode k at state ``seq`` k T + 1. :meth:`reset` waits for the
+first state of the next episode, answering the ticks in between with BRAKE (the first call takes
+the first state it gets); the seed is the fleet's (``fleet-sim --seed S`` plays S, S + 1, ...), so
+``seed`` is only recorded. The robots must stay the same N for the whole episode: a fleet whose
+robots join and leave is a job for ``formation bridge``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+
+import numpy as np
+
+from deploy.bridge import Bridge, BridgeConfig
+from deploy.fleet_sim import robot_names
+from deploy.network import TransportConfig
+from deploy.wire import RobotRegistry
+from sim.fleet import FleetState, check_accelerations
+from sim.scenario import Scenario
+
+
+class FleetTimeout(RuntimeError):
+    """The fleet sent no state in time; the message says what to check."""
+
+
+class ZenohFleet:
+    """A :class:`sim.fleet.Fleet` over Zenoh (module docstring). Close it, or use it as a
+    context manager."""
+
+    def __init__(self, scenario: Scenario, fleet: str, transport: TransportConfig,
+                 config: BridgeConfig | None = None, state_timeout_s: float = 30.0,
+                 answer_timeout_s: float = 5.0):
+        self.scenario = scenario
+        self.state_timeout_s, self.answer_timeout_s = state_timeout_s, answer_timeout_s
+        names = robot_names(scenario.num_robots)
+        config = dataclasses.replace(config or BridgeConfig(period_s=scenario.dynamics.dt),
+                                     episode_ticks=scenario.dynamics.episode_steps)
+        c = scenario.object_center
+        self._states: queue.Queue[tuple[FleetState, int | None]] = queue.Queue(maxsize=1)
+        self._answers: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=1)
+        self._state: FleetState | None = None      # the newest state, waiting for its answer
+        self._state_episode: int | None = None     # the fleet episode it belongs to
+        self._episode: int | None = None           # the episode being run
+        self.bridge = Bridge(fleet, RobotRegistry(names), transport, self._controller,
+                             targets=dict(zip(names, scenario.targets, strict=True)),
+                             object_pose=np.array([c[0], c[1], 0.0]), config=config)
+        self._thread = threading.Thread(target=self.bridge.run, name="ZenohFleet-bridge", daemon=True)
+        self._thread.start()
+
+    @property
+    def dt(self) -> float:
+        return self.scenario.dynamics.dt
+
+    # ------------------------------------------------------------ bridge thread
+    def _controller(self, state: FleetState) -> np.ndarray:
+        self._states.put((state, self.bridge.episode), timeout=self.answer_timeout_s)
+        answer = self._answers.get(timeout=self.answer_timeout_s)   # raises: the bridge brakes
+        if answer is None:
+            raise RuntimeError("between episodes: braking")
+        return answer
+
+    # ------------------------------------------------------------ Fleet
+    def _next_state(self) -> FleetState:
+        try:
+            state, episode = self._states.get(timeout=self.state_timeout_s)
+        except queue.Empty:
+            raise FleetTimeout(f"no state from fleet {self.bridge.link.keys.fleet!r} within "
+                               f"{self.state_timeout_s} s: is the fleet running, on the same "
+                               "endpoints, with these robot names?") from None
+        if state.num_robots != self.scenario.num_robots:
+            raise FleetTimeout(f"the fleet reports {state.num_robots} robots ({state.robot_ids}), the "
+                               f"scenario has {self.scenario.num_robots}: robots joined or left")
+        self._state, self._state_episode = state, episode
+        return state
+
+    def reset(self, seed: int | None = None) -> FleetState:
+        """The first state of the fleet's next episode (module docstring; ``seed`` is the fleet's)."""
+        if self._state is not None:
+            if self._state_episode != self._episode:    # the last step already began the next one
+                self._episode = self._state_episode
+                return self._state
+            self._answers.put(None)                     # its answer: brake
+        while True:
+            state = self._next_state()
+            if self._episode is None or self._state_episode != self._episode:
+                self._episode = self._state_episode
+                return state
+            self._answers.put(None)
+
+    def read_state(self) -> FleetState:
+        if self._state is None:
+            raise RuntimeError("ZenohFleet.read_state before reset: call reset() first")
+        return self._state
+
+    def send_accelerations(self, accelerations: np.ndarray) -> None:
+        self._answers.put(check_accelerations(accelerations, self.scenario.num_robots).copy())
+
+    def step(self) -> FleetState:
+        """The fleet's next state (the one that answers the accelerations just sent)."""
+        return self._next_state()
+
+    def close(self) -> None:
+        self.bridge.stop()
+        while not self._answers.full():             # release a controller call that waits
+            self._answers.put(None)
+        self._thread.join(timeout=5.0)
+        self.bridge.close()
+
+    def __enter__(self) -> ZenohFleet:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

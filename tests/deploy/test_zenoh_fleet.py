@@ -1,0 +1,44 @@
+"""deploy.zenoh_fleet: `formation eval --world zenoh` drives a fleet-sim process through the
+ControlStack (filter, MEC and docking on) over real Zenoh on 127.0.0.1."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from deploy.network import free_tcp_port
+from stack.cli import main
+from tests.deploy.test_fleet_sim_bridge import Proc
+
+
+@pytest.mark.slow
+def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path, capsys):
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    sim = Proc("fleet-sim", "--fleet", "ez", "--scenario", "paper-5", "--lockstep", "--episodes", "2",
+               "--listen", endpoint, "--report", str(tmp_path / "sim.json"))
+    try:
+        code = main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "ez", "--lockstep",
+                     "--episodes", "2", "--scenario", "paper-5", "--connect", endpoint,
+                     "--json", str(tmp_path / "eval.json")])
+        assert code == 0
+        assert sim.finish() == 0, "".join(sim.stderr)
+    finally:
+        if sim.proc.poll() is None:
+            sim.proc.kill()
+    ours = json.loads((tmp_path / "eval.json").read_text())
+    theirs = json.loads((tmp_path / "sim.json").read_text())["episodes"]
+    assert ours["world"] == "zenoh" and ours["episodes"] == 2 and ours["safety"] and ours["mec"]
+    assert ours["success_rate"] == 1.0 and ours["collision_rate"] == 0.0
+    assert [e["success"] for e in theirs] == [True, True]
+    # judged one tick before the fleet's own report (module docstring), both within a millimetre
+    assert ours["final_distance"] < 1e-3
+    assert max(e["final_distance"] for e in theirs) < 1e-3
+
+
+def test_eval_over_zenoh_names_what_is_missing(capsys):
+    assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--scenario", "paper-3"]) == 2
+    assert "--fleet" in capsys.readouterr().err
+    assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "x", "--steps", "500",
+                 "--connect", "tcp/127.0.0.1:1"]) == 2
+    assert "at most 127" in capsys.readouterr().err
