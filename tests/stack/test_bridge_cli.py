@@ -18,3 +18,30 @@ def test_the_scripted_fleet_controller_plans_afresh_each_episode():
     results = [run_episode(world, stack, seed) for seed in range(3)]
     assert [m.success for m in results] == [True, True, True]
     assert max(m.final_distance for m in results) < 0.005
+
+
+def test_the_transport_flags_make_the_nodes_transport_and_refuse_what_cannot_work(tmp_path):
+    import argparse
+
+    import pytest
+
+    from deploy.certs import make_certs
+    from stack.commands import argtypes
+
+    parser = argparse.ArgumentParser()
+    argtypes.add_transport_flags(parser, "controller")
+    plain = argtypes.transport_config(parser.parse_args(["--connect", "tcp/127.0.0.1:7447", "--lease-ms", "1000"]))
+    assert (plain.mode, plain.connect, plain.lease_ms, plain.tls) == ("peer", ("tcp/127.0.0.1:7447",), 1000, None)
+    make_certs(tmp_path, ["controller", "r0"])
+    tls = argtypes.transport_config(parser.parse_args(["--certs", str(tmp_path), "--connect", "tls/10.0.0.1:7447"]))
+    assert tls.mode == "client" and tls.tls.cert == tmp_path / "controller.pem"
+    robot = argtypes.transport_config(parser.parse_args(["--certs", str(tmp_path), "--identity", "r0",
+                                                         "--connect", "tls/10.0.0.1:7447"]))
+    assert robot.tls.key == tmp_path / "r0.key"
+    with pytest.raises(ValueError, match="listens nowhere"):
+        argtypes.transport_config(parser.parse_args(["--certs", str(tmp_path), "--listen", "tls/127.0.0.1:1",
+                                                     "--connect", "tls/10.0.0.1:7447"]))
+    with pytest.raises(ValueError, match="--insecure"):
+        argtypes.transport_config(parser.parse_args(["--connect", "tcp/10.0.0.1:7447"]))
+    insecure = argtypes.transport_config(parser.parse_args(["--connect", "tcp/10.0.0.1:7447", "--insecure"]))
+    assert insecure.connect == ("tcp/10.0.0.1:7447",)
