@@ -217,13 +217,13 @@ def test_sticky_assignment_switches_only_for_a_clear_gain():
     def cost(a, b, c, d):   # robots 0, 1 choose between targets 0, 1; robot 2 keeps target 2
         return torch.tensor([[[a, b, far], [c, d, far], [far, far, 0.0]]])
 
-    assert env._sticky_assignment(cost(0.1, 0.2, 0.2, 0.1))[0].tolist() == [0, 1, 2]   # fresh: optimal
+    assert env.rewarder._sticky_assignment(cost(0.1, 0.2, 0.2, 0.1))[0].tolist() == [0, 1, 2]   # fresh: optimal
     # swapping saves 0.41 - 0.2 = 0.21 > 0.05: switch
-    assert env._sticky_assignment(cost(0.2, 0.1, 0.1, 0.21))[0].tolist() == [1, 0, 2]
+    assert env.rewarder._sticky_assignment(cost(0.2, 0.1, 0.1, 0.21))[0].tolist() == [1, 0, 2]
     # the optimum flips back, but saves only 0.24 - 0.21 = 0.03 < 0.05: keep
-    assert env._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [1, 0, 2]
+    assert env.rewarder._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [1, 0, 2]
     env.reset()                                                                      # a new episode
-    assert env._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [0, 1, 2]
+    assert env.rewarder._sticky_assignment(cost(0.1, 0.12, 0.12, 0.11))[0].tolist() == [0, 1, 2]
 
 
 def test_sticky_assignment_changes_the_reward_of_a_flipping_optimum():
