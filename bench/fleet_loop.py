@@ -1,6 +1,6 @@
 """State -> command round trip over Zenoh between two processes, at 50 Hz, for N robots.
 
-Robot process (a child of this script): N :class:`deploy.transport.RobotLink` sharing one
+Robot process (a child of this script): N :class:`deploy.robot_link.RobotLink` sharing one
 session. Every 20 ms it publishes the N states and waits until each robot holds the command
 answering its state (``state_seq``); the round trip of a tick is the time from the first
 publish to the last answer, on the robot process's clock. A tick whose round trip exceeds the
@@ -48,8 +48,8 @@ from bench._common import (  # noqa: E402
 from deploy.bridge import Bridge, BridgeConfig  # noqa: E402
 from deploy.certs import CONTROLLER, FLEET_SIM, ROUTER, NodeFiles, make_certs  # noqa: E402
 from deploy.network import TransportConfig, free_tcp_port  # noqa: E402
+from deploy.robot_link import RobotLink  # noqa: E402
 from deploy.router import Router, RouterConfig  # noqa: E402
-from deploy.transport import RobotLink  # noqa: E402
 from deploy.wire import RobotRegistry  # noqa: E402
 
 PERIOD_S = 0.02

@@ -1,6 +1,6 @@
 """A simulated fleet over Zenoh: :class:`sim.pymunk_world.PymunkWorld` as N robots.
 
-One process, one Zenoh session, one :class:`deploy.transport.RobotLink` per robot (robot
+One process, one Zenoh session, one :class:`deploy.robot_link.RobotLink` per robot (robot
 ``r<i>`` is row i of the scenario). Each tick every online robot publishes its measured
 state (position [m], velocity [m/s]); the world then advances one ``dt`` with, per robot,
 the acceleration chosen by its own watchdog (below).
@@ -84,7 +84,7 @@ import zenoh
 
 from deploy.network import TransportConfig
 from deploy.reject_log import RejectLog
-from deploy.transport import RobotLink
+from deploy.robot_link import RobotLink
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.files import atomic_write_text
 from sim.pymunk_world import ModelError, PymunkWorld

@@ -15,7 +15,7 @@ from controllers.scripted import ScriptedController
 from deploy.bridge import ESTOP_STALE_PICTURE, Bridge, BridgeConfig, row_flags
 from deploy.fleet_sim import FleetSim, FleetSimConfig, robot_names
 from deploy.network import TransportConfig, free_tcp_port
-from deploy.transport import RobotLink
+from deploy.robot_link import RobotLink
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.pymunk_world import ModelError
 from sim.scenario import make_scenario

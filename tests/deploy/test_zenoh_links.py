@@ -12,7 +12,8 @@ import pytest
 import zenoh
 
 from deploy.network import FleetKeys, TransportConfig, free_tcp_port
-from deploy.transport import FleetLink, RobotLink
+from deploy.robot_link import RobotLink
+from deploy.transport import FleetLink
 from deploy.wire import (
     CmdFlags,
     CmdMsg,

@@ -15,7 +15,7 @@ import sys
 import time
 
 from deploy.network import TransportConfig
-from deploy.transport import RobotLink
+from deploy.robot_link import RobotLink
 from deploy.wire import RobotRegistry
 
 
