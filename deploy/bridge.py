@@ -93,6 +93,7 @@ log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
 ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
+ESTOP_OPERATOR = 2       # reason code of an e-stop an operator engaged (formation estop)
 DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
 MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
 NO_FLAGS = CmdFlags(0)
@@ -332,6 +333,8 @@ class Bridge:
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
         self._reject_log = RejectLog(f"bridge {fleet}", self.link.rejects.snapshot)
+        self._silence: tuple[str, float] | None = None   # the longest-silent live robot, last tick
+        self.link.on_operator = self.operator_request
         self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
         self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
         self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
@@ -414,6 +417,7 @@ class Bridge:
         return view
 
     def _check_estop(self, view: _View) -> None:
+        self._silence = view.silence
         if view.silence is None or view.silence[1] <= self.config.estop_after_s \
                 or self.link.estop_engaged:
             return
@@ -422,6 +426,32 @@ class Bridge:
         self.link.raise_estop(ESTOP_STALE_PICTURE)
         self.stats.estops += 1
         self.stats.estop_robot, self.stats.estop_silence_s = robot, float(silence)
+
+    def operator_request(self, request: str) -> dict:
+        """An operator's e-stop request (``formation estop``): ``engage`` latches it at once;
+        ``release`` clears it only while no live robot is silent past ``estop_after_s`` (the rule
+        that raises it would raise it again); ``status`` reports. Returns the JSON-able answer."""
+        silence = self._silence
+        status = {"estop": "engaged" if self.link.estop_engaged else "released",
+                  "silent_robot": None if silence is None else silence[0],
+                  "silence_s": None if silence is None else round(float(silence[1]), 3)}
+        if request == "engage":
+            log.warning("operator: raising the fleet e-stop")
+            self.link.raise_estop(ESTOP_OPERATOR)
+            self.stats.estops += 1
+            return {"ok": True, **status, "estop": "engaged"}
+        if request == "release":
+            if silence is not None and silence[1] > self.config.estop_after_s:
+                return {"ok": False, **status, "reason": f"robot {silence[0]} has been silent for "
+                        f"{silence[1]:.2f} s (> estop_after_s {self.config.estop_after_s} s): bring it "
+                        "back or take it off the link first"}
+            if self.link.estop_engaged:
+                log.warning("operator: releasing the fleet e-stop")
+                self.link.clear_estop()
+            return {"ok": True, **status, "estop": "released"}
+        if request == "status":
+            return {"ok": True, **status}
+        return {"ok": False, **status, "reason": f"unknown request {request!r}: engage, release or status"}
 
     def _fleet_state(self, view: _View) -> FleetState:
         rows = [rs.msg for rs in view.rows]

@@ -5,6 +5,7 @@
     ca.pem, ca.key              the fleet CA (keep ca.key off the robots: it signs new nodes)
     controller.pem/.key         the controller (bridge)
     fleet-sim.pem/.key          a simulated fleet (one process holding every robot's rights)
+    operator.pem/.key           an operator (``formation estop``: engage, release, status)
     router.pem/.key             the Zenoh router
     r0.pem/.key, ...            one per robot
 
@@ -34,7 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from sim.files import atomic_path
 
-CONTROLLER, FLEET_SIM, ROUTER = "controller", "fleet-sim", "router"
+CONTROLLER, FLEET_SIM, ROUTER, OPERATOR = "controller", "fleet-sim", "router", "operator"
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_\-]{0,62}")
 
 

@@ -6,6 +6,7 @@ Key layout (``<fleet>`` and ``<rid>`` follow :func:`deploy.wire.check_name`; nev
     formation/<fleet>/robot/<rid>/cmd     controller -> robot  CMD
     formation/<fleet>/robot/<rid>/alive   liveliness token of the robot
     formation/<fleet>/ctrl/alive          liveliness token of the controller
+    formation/<fleet>/ctrl/operator       an operator's e-stop requests (queries; deploy.bridge)
     formation/<fleet>/estop               ESTOP, latched (deploy.transport)
 
 :class:`TransportConfig` is a node's Zenoh configuration: peer or client of a router, endpoints,
@@ -37,6 +38,7 @@ class FleetKeys:
         self.fleet = check_name(fleet, "fleet name")
         self.prefix = f"{KEY_ROOT}/{fleet}"
         self.ctrl_alive = f"{self.prefix}/ctrl/alive"
+        self.operator = f"{self.prefix}/ctrl/operator"     # an operator's requests to the controller
         self.estop = f"{self.prefix}/estop"
         self.all_states = f"{self.prefix}/robot/*/state"
         self.all_robot_alive = f"{self.prefix}/robot/*/alive"

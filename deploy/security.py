@@ -14,6 +14,7 @@ only (keys under ``formation/<fleet>/``)::
                    declares  its token robot/<rid>/alive; subscribers on robot/<rid>/cmd and
                              estop, a liveliness subscriber on ctrl/alive; queries estop
     fleet-sim      the rights of every robot             (one process simulating the fleet)
+    operator       queries ctrl/operator                 (formation estop: engage, release, status)
 
 and towards each node (egress) only what it may read: the controller everything under the fleet,
 a robot its own command, the e-stop and the controller's token. A robot's certificate can
@@ -28,7 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from deploy.certs import CONTROLLER, FLEET_SIM, NodeFiles
+from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, NodeFiles
 
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
@@ -74,10 +75,14 @@ def fleet_acl(fleet: str, robots: Iterable[str]) -> dict:
                "declare_queryable", "reply", "liveliness_query"), (f"{prefix}/**",)),
         _rule("controller-receive", "egress", ALL_MESSAGES, (f"{prefix}/**",)),
     ]
+    rules += [_rule("operator-ask", "ingress", ("query",), (f"{prefix}/ctrl/operator",)),
+              _rule("operator-answer", "egress", ("reply", "declare_queryable"), (f"{prefix}/ctrl/operator",))]
     subjects = [{"id": CONTROLLER, "cert_common_names": [CONTROLLER]},
-                {"id": FLEET_SIM, "cert_common_names": [FLEET_SIM]}]
+                {"id": FLEET_SIM, "cert_common_names": [FLEET_SIM]},
+                {"id": OPERATOR, "cert_common_names": [OPERATOR]}]
     policies = [{"rules": ["controller-put", "controller-declare", "controller-receive"],
-                 "subjects": [CONTROLLER]}]
+                 "subjects": [CONTROLLER]},
+                {"rules": ["operator-ask", "operator-answer"], "subjects": [OPERATOR]}]
     sim_rules = _robot_rules(prefix, "*", FLEET_SIM)
     rules += sim_rules
     policies.append({"rules": [r["id"] for r in sim_rules], "subjects": [FLEET_SIM]})

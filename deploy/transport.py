@@ -34,6 +34,7 @@ The e-stop is always BLOCK.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -221,6 +222,7 @@ class FleetLink(_Link):
         self._estop_bytes: bytes | None = None
         self._estop_engaged = False
         self._estop_order = threading.Lock()
+        self.on_operator: Callable[[str], dict] | None = None
         try:
             self._open(queue_capacity)
         except BaseException:
@@ -235,6 +237,8 @@ class FleetLink(_Link):
         self._subscribe(s.liveliness().declare_subscriber(
             self.keys.all_robot_alive, zenoh.handlers.RingChannel(capacity), history=True),
             self._on_liveliness, "alive")
+        self._subscribe(s.declare_queryable(self.keys.operator, zenoh.handlers.RingChannel(8)),
+                        self._on_operator_query, "operator")
         self._subscribe(s.declare_queryable(self.keys.estop, zenoh.handlers.RingChannel(64)),
                         self._on_estop_query, "estop-query")
         self._cmd_publishers = {
@@ -276,6 +280,18 @@ class FleetLink(_Link):
             (self._alive.add if joined else self._alive.discard)(robot)
             self._events.append(LivelinessEvent(robot, joined, self.clock_ns()))
             self._cond.notify_all()
+
+    def _on_operator_query(self, query: zenoh.Query) -> None:
+        """An operator's request (the query's payload: ``engage``, ``release`` or ``status``),
+        answered with the JSON of ``on_operator(request)`` (set by the controller; none: refused)."""
+        try:
+            request = query.payload.to_bytes().decode("utf-8", "replace").strip() if query.payload else "status"
+            handler = self.on_operator
+            answer = ({"ok": False, "reason": "this controller takes no operator requests"}
+                      if handler is None else handler(request))
+            query.reply(self.keys.operator, json.dumps(answer).encode())
+        finally:
+            query.drop()
 
     def _on_estop_query(self, query: zenoh.Query) -> None:
         with self._cond:

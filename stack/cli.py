@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "stack.commands.fleet_sim",
     "stack.commands.bridge",
     "stack.commands.certs",
+    "stack.commands.estop",
     "stack.commands.router",
     "stack.commands.eval",
     "stack.commands.train",

@@ -4,6 +4,7 @@ per-robot e-stop, the stall rule, measured command delay, bad controllers."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import threading
 import time
@@ -38,6 +39,7 @@ def _fleet(config: BridgeConfig):
     bridge = Bridge("bf", REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)), controller,
                     targets=TARGETS, object_pose=np.zeros(3), config=config)
     robot_cfg = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
+    bridge.test_endpoint = f"tcp/127.0.0.1:{port}"   # for tests that reach the bridge themselves
     links = []
     try:   # close every session even when set-up fails, or the process aborts at exit
         links.extend(RobotLink("bf", r, REGISTRY, robot_cfg) for r in ROBOTS)
@@ -332,3 +334,41 @@ def test_a_lockstep_bridge_counts_ages_in_fleet_ticks_not_wall_time(lockstep):
             assert bridge.summary()["lockstep"] and bridge.link.lossless
         else:
             assert silent.age_s[0] > 0.75
+
+
+def test_an_operator_engages_and_releases_the_estop_but_not_while_a_robot_is_silent(fleet, capsys):
+    """`formation estop` over Zenoh: a release is refused while r1 is silent past estop_after_s
+    (the rule would raise the e-stop again), carried out once r1 is back; an engage latches it
+    at once with the operator's reason code. Exit codes: 0 done, 1 refused."""
+    from deploy.bridge import ESTOP_OPERATOR
+    from stack.cli import main
+
+    bridge, links, _ = fleet
+
+    def operator(request: str) -> tuple[int, dict]:
+        code = main(["estop", "--fleet", "bf", f"--{request}", "--connect", bridge.test_endpoint])
+        return code, json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+    silent_from = time.monotonic()
+    while not bridge.link.estop_engaged and time.monotonic() - silent_from < 5.0:
+        _tick(bridge, links, links[:1])                     # r1 silent: the bridge raises it
+        time.sleep(0.02)
+    assert bridge.link.estop_engaged
+    code, answer = operator("release")
+    assert code == 1 and not answer["ok"] and answer["silent_robot"] == "r1"
+    assert "silent" in answer["reason"] and bridge.link.estop_engaged
+    for _ in range(3):
+        _tick(bridge, links, links)                         # r1 is back
+    code, answer = operator("release")
+    assert code == 0 and answer == {"ok": True, "estop": "released", "silent_robot": answer["silent_robot"],
+                                    "silence_s": answer["silence_s"]}
+    assert answer["silence_s"] < 0.6 and not bridge.link.estop_engaged
+    for link in links:
+        assert link.wait_for(lambda lk=link: not lk.estopped, 5.0)
+    code, answer = operator("engage")
+    assert code == 0 and answer["estop"] == "engaged" and bridge.link.estop_engaged
+    for link in links:
+        assert link.wait_for(lambda lk=link: lk.estopped, 5.0)
+        assert link.estop_reason == ESTOP_OPERATOR
+    code, answer = operator("status")
+    assert code == 0 and answer["estop"] == "engaged"

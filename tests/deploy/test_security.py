@@ -20,7 +20,7 @@ K = f"formation/{FLEET}"
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
     folder = tmp_path_factory.mktemp("certs")
-    make_certs(folder, [ROUTER, CONTROLLER, "fleet-sim", *ROBOTS])
+    make_certs(folder, [ROUTER, CONTROLLER, "fleet-sim", "operator", *ROBOTS])
     rogue = tmp_path_factory.mktemp("rogue")       # a CA of its own: a self-signed "controller"
     make_certs(rogue, [CONTROLLER])
     return folder, rogue
@@ -105,3 +105,24 @@ def test_certificates_name_their_node_and_bad_requests_name_the_fix(tmp_path, ce
         TransportConfig(connect=("tcp/127.0.0.1:7447",), mode="client", tls=NodeFiles.in_dir(folder, "r0"))
     with pytest.raises(ValueError, match="tls/HOST:PORT"):
         RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), ("tcp/127.0.0.1:7447",))
+
+
+def test_only_the_operator_and_the_controller_reach_the_operator_channel(certs):
+    """The controller answers on ctrl/operator; the operator's query gets the answer, a robot's
+    certificate gets none."""
+    folder, _ = certs
+    port = free_tcp_port()
+    config = RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), (f"tls/127.0.0.1:{port}",))
+    with Router(config), client(folder, CONTROLLER, port) as ctrl:
+        queryable = ctrl.declare_queryable(f"{K}/ctrl/operator",
+                                           lambda q: q.reply(f"{K}/ctrl/operator", b"answered"))
+        time.sleep(0.5)
+
+        def ask(node: str) -> list[bytes]:
+            with client(folder, node, port) as s:
+                return [r.ok.payload.to_bytes() for r in s.get(f"{K}/ctrl/operator", timeout=1.0)
+                        if r.ok is not None]
+
+        assert ask("operator") == [b"answered"]
+        assert ask("r1") == []
+        del queryable
