@@ -508,6 +508,9 @@ class Bridge:
         self._wait_burst(timeout_s)
         now = self.link.clock_ns()
         states = self.link.latest_states()
+        if not self.link.lossless and any(rs.msg.status & StateStatus.LOCKSTEP for rs in states.values()):
+            log.warning("the fleet is lock-stepped (STATE flag LOCKSTEP): sending commands lossless")
+            self.link.make_lossless()
         self._check_stall(now, states, timeout_s)
         view = self._classify(now, states)
         self._check_estop(view)

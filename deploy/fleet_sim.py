@@ -10,8 +10,9 @@ Pacing:
     * lock-step (tests): after publishing the states of tick k, wait until every online robot
       holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
       then advance. Deterministic when the controller is. States are published lossless
-      (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none;
-      run the controller lock-stepped too (``bridge --lockstep``: sim time, lossless).
+      (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none, and
+      carry the STATE flag LOCKSTEP, so a bridge sends its commands lossless too; run the
+      controller lock-stepped as well (``bridge --lockstep``: sim time).
 
 Episodes (``episodes=K``): the world is reset with seed ``seed + k`` at the start of episode
 k and runs the scenario's ``episode_steps`` ticks T; the run ends after K episodes. Global
@@ -416,6 +417,8 @@ class FleetSim:
                     modes.append(robot.mode if robot.link is not None else "offline")
                     if robot.link is not None:
                         published_ns = published_ns or time.perf_counter_ns()
+                        if self.lossless:   # the wire says so: the controller then sends lossless
+                            status |= StateStatus.LOCKSTEP
                         msg = robot.link.publish_state(state.positions[i], state.velocities[i], status,
                                                        last_cmd_seq=int(self._acted[i]))
                         answered[robot.name] = msg.seq

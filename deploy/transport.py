@@ -241,11 +241,7 @@ class FleetLink(_Link):
                         self._on_operator_query, "operator")
         self._subscribe(s.declare_queryable(self.keys.estop, zenoh.handlers.RingChannel(64)),
                         self._on_estop_query, "estop-query")
-        self._cmd_publishers = {
-            robot: s.declare_publisher(self.keys.cmd(robot),
-                                       congestion_control=self.data_congestion_control,
-                                       priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
-            for robot in self.registry.names}
+        self._cmd_publishers = {robot: self._cmd_publisher(robot) for robot in self.registry.names}
         self._entities.extend(self._cmd_publishers.values())
         self._estop_publisher = s.declare_publisher(
             self.keys.estop, congestion_control=zenoh.CongestionControl.BLOCK,
@@ -363,6 +359,23 @@ class FleetLink(_Link):
         return [self.send_command(r, acc[i], ttl_ms, flags,
                                   states[r].msg.seq if r in states else 0)
                 for i, r in enumerate(robots)]
+
+    def _cmd_publisher(self, robot: str) -> zenoh.Publisher:
+        return self.session.declare_publisher(self.keys.cmd(robot), congestion_control=self.data_congestion_control,
+                                              priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+
+    def make_lossless(self) -> None:
+        """Publish commands with BLOCK from now on (a lock-stepped fleet awaits every answer):
+        the command publishers are declared again. Call it from the thread that sends commands."""
+        if self.lossless:
+            return
+        self.lossless = True
+        for robot, old in list(self._cmd_publishers.items()):
+            new = self._cmd_publisher(robot)
+            self._cmd_publishers[robot] = new
+            self._entities.append(new)
+            self._entities.remove(old)
+            old.undeclare()
 
     @property
     def estop_engaged(self) -> bool:

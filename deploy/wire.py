@@ -30,7 +30,9 @@ from enum import IntEnum, IntFlag
 from typing import ClassVar, NamedTuple
 
 MAGIC = b"FS"
-WIRE_VERSION = 1
+WIRE_VERSION = 2
+ACCEPTED_VERSIONS = (1, 2)
+"""Version 2 adds the STATE flag LOCKSTEP (same layout); version 1 messages are still decoded."""
 ROBOT_ALL = 0xFFFF  # robot_id of fleet-wide messages (ESTOP); never a robot's own id
 U32_MAX = 0xFFFF_FFFF
 U64_MAX = 0xFFFF_FFFF_FFFF_FFFF
@@ -65,6 +67,7 @@ class StateStatus(IntFlag):
     WATCHDOG_BRAKING = 2  # no fresh command (ttl expired): the robot brakes on its own
     CONTROLLER_LOST = 4  # the controller's liveliness token is gone
     FAULT = 8  # robot-local fault (drives, localisation)
+    LOCKSTEP = 16  # version 2: a lock-stepped simulation, it waits for every answer (send lossless)
 
 
 class CmdFlags(IntFlag):
@@ -82,7 +85,7 @@ class EstopFlags(IntFlag):
 
 ALLOWED_FLAGS = {
     MsgType.STATE: int(StateStatus.ESTOPPED | StateStatus.WATCHDOG_BRAKING
-                       | StateStatus.CONTROLLER_LOST | StateStatus.FAULT),
+                       | StateStatus.CONTROLLER_LOST | StateStatus.FAULT | StateStatus.LOCKSTEP),
     MsgType.CMD: int(CmdFlags.BRAKE | CmdFlags.STOP),
     MsgType.ESTOP: int(EstopFlags.ENGAGED),
 }
@@ -93,7 +96,7 @@ class Reason(IntEnum):
 
     BAD_SIZE = 1  # shorter than the header, or not the size of its message type
     BAD_MAGIC = 2  # bytes 0..1 are not b"FS"
-    BAD_VERSION = 3  # byte 2 is not WIRE_VERSION
+    BAD_VERSION = 3  # byte 2 is not one of ACCEPTED_VERSIONS
     UNKNOWN_TYPE = 4  # byte 3 is not a MsgType
     UNEXPECTED_TYPE = 5  # a known type on a key meant for another (e.g. CMD on a state key)
     BAD_SEQUENCE = 6  # epoch or seq is 0
@@ -334,8 +337,9 @@ def decode(data: bytes | bytearray | memoryview,
     magic, version, type_byte, robot_id, flags, epoch, seq, send_time_ns = HEADER.unpack_from(buf)
     if magic != MAGIC:
         return Rejection(Reason.BAD_MAGIC, f"magic {magic!r} is not {MAGIC!r}")
-    if version != WIRE_VERSION:
-        return Rejection(Reason.BAD_VERSION, f"version {version} is not {WIRE_VERSION}")
+    if version not in ACCEPTED_VERSIONS:
+        return Rejection(Reason.BAD_VERSION, f"version {version} is not one of {ACCEPTED_VERSIONS}: "
+                         "sender and receiver speak different wire formats")
     if type_byte not in MsgType._value2member_map_:
         return Rejection(Reason.UNKNOWN_TYPE, f"message type {type_byte} is not defined")
     t = MsgType(type_byte)
@@ -344,9 +348,10 @@ def decode(data: bytes | bytearray | memoryview,
     if len(buf) != MESSAGE_SIZE[t]:
         return Rejection(Reason.BAD_SIZE, f"{t.name} must be {MESSAGE_SIZE[t]} bytes, "
                          f"got {len(buf)}")
-    if flags & ~ALLOWED_FLAGS[t]:  # before building IntFlag values from untrusted bits
+    allowed = ALLOWED_FLAGS[t] & ~(int(StateStatus.LOCKSTEP) if version == 1 and t is MsgType.STATE else 0)
+    if flags & ~allowed:  # before building IntFlag values from untrusted bits
         return Rejection(Reason.BAD_FLAGS, f"{t.name} flags=0x{flags:04x} sets undefined bits "
-                         f"(allowed mask 0x{ALLOWED_FLAGS[t]:04x})")
+                         f"(allowed mask 0x{allowed:04x} in version {version})")
     msg: Message
     if t is MsgType.STATE:
         px, py, vx, vy, last_cmd_seq, reserved = STATE_BODY.unpack_from(buf, HEADER_SIZE)

@@ -372,3 +372,23 @@ def test_an_operator_engages_and_releases_the_estop_but_not_while_a_robot_is_sil
         assert link.estop_reason == ESTOP_OPERATOR
     code, answer = operator("status")
     assert code == 0 and answer["estop"] == "engaged"
+
+
+def test_a_bridge_sends_lossless_once_the_fleet_says_it_is_lock_stepped(fleet):
+    """A bridge started without --lossless, a fleet whose STATEs carry LOCKSTEP (fleet-sim
+    --lockstep): from that tick on every command goes out with congestion control BLOCK (with
+    DROP a starved machine lost answers the lock-stepped fleet then waited for)."""
+    import zenoh
+
+    bridge, links, _ = fleet
+    assert not bridge.link.lossless
+    _tick(bridge, links, links)
+    assert all(p.congestion_control == zenoh.CongestionControl.DROP for p in bridge.link._cmd_publishers.values())
+    for link in links:
+        link.publish_state((0.3, 0.4), (0.0, 0.1), StateStatus.LOCKSTEP)
+    assert bridge.step(timeout_s=0.5) is not None
+    assert bridge.link.lossless and bridge.summary()["lossless"]
+    assert all(p.congestion_control == zenoh.CongestionControl.BLOCK for p in bridge.link._cmd_publishers.values())
+    seq = links[0].latest_command.msg.seq
+    _tick(bridge, links, links)                      # the new publishers reach the robots
+    assert links[0].wait_for(lambda: links[0].latest_command.msg.seq > seq, 5.0)

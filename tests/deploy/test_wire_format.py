@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 
@@ -63,7 +64,7 @@ def test_command_bytes_match_the_documented_layout():
     msg = CmdMsg(robot_id=2, epoch=0x01020304, seq=5, send_time_ns=1_000_000_000,
                  acceleration=(1.0, -0.5), ttl_ms=100, flags=CmdFlags.BRAKE, state_seq=4)
     expected = bytes.fromhex(
-        "4653" "01" "02" "0200" "0100" "04030201" "05000000" "00ca9a3b00000000"
+        "4653" "02" "02" "0200" "0100" "04030201" "05000000" "00ca9a3b00000000"
         "000000000000f03f" "000000000000e0bf" "04000000" "6400" "0000")
     assert encode(msg) == expected
     assert decode(expected) == msg
@@ -73,12 +74,12 @@ def test_state_and_estop_bytes_match_the_documented_layout():
     state = StateMsg(robot_id=1, epoch=7, seq=1, send_time_ns=123, position=(0.5, 0.25),
                      velocity=(0.0, -1.0), status=StateStatus.ESTOPPED, last_cmd_seq=4)
     assert encode(state) == bytes.fromhex(
-        "4653" "01" "01" "0100" "0100" "07000000" "01000000" "7b00000000000000"
+        "4653" "02" "01" "0100" "0100" "07000000" "01000000" "7b00000000000000"
         "000000000000e03f" "000000000000d03f" "0000000000000000" "000000000000f0bf"
         "04000000" "00000000")
     estop = EstopMsg(epoch=9, seq=2, send_time_ns=5, engaged=True, reason_code=42)
     assert encode(estop) == bytes.fromhex(
-        "4653" "01" "03" "ffff" "0100" "09000000" "02000000" "0500000000000000"
+        "4653" "02" "03" "ffff" "0100" "09000000" "02000000" "0500000000000000"
         "2a000000" "00000000")
     assert [MESSAGE_SIZE[t] for t in MsgType] == [64, 48, 32]
 
@@ -264,3 +265,17 @@ def test_reject_counter():
     assert counter.total == 3
     assert counter.snapshot() == {"BAD_MAGIC": 1, "STALE": 2}
     assert HEADER_SIZE == 24
+
+
+def test_version_1_is_still_decoded_without_the_lockstep_flag_and_others_are_refused():
+    """Version 2 adds the STATE flag LOCKSTEP (0x10) to the same layout: a version-1 message
+    decodes as before, a version-1 STATE may not set LOCKSTEP, and version 3 is refused."""
+    state = StateMsg(robot_id=1, epoch=7, seq=1, send_time_ns=123, position=(0.5, 0.25),
+                     velocity=(0.0, -1.0), status=StateStatus.ESTOPPED, last_cmd_seq=4)
+    v2 = encode(state)
+    v1 = v2[:2] + b"\x01" + v2[3:]
+    assert decode(v1) == state
+    lockstep = encode(dataclasses.replace(state, status=StateStatus.LOCKSTEP))
+    assert decode(lockstep).status == StateStatus.LOCKSTEP
+    assert reason_of(decode(lockstep[:2] + b"\x01" + lockstep[3:])) is Reason.BAD_FLAGS
+    assert reason_of(decode(v2[:2] + b"\x03" + v2[3:])) is Reason.BAD_VERSION

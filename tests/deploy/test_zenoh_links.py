@@ -203,7 +203,7 @@ def test_bad_states_are_rejected_counted_and_the_controller_keeps_running(contro
                      bytes(nan_state),  # NON_FINITE
                      encode(StateMsg(1, 9, 1, 0, (0.0, 0.0), (0.0, 0.0))),  # r1's id: MISMATCH
                      encode(CmdMsg(0, 9, 1, 0, (0.0, 0.0), 10)),  # UNEXPECTED_TYPE
-                     b"FS\x02" + encode(good)[3:]],  # BAD_VERSION
+                     b"FS\x03" + encode(good)[3:]],  # BAD_VERSION (1 and 2 are spoken)
             "formation/testfleet/robot/zz/state": [encode(good)],  # UNKNOWN_ROBOT
         }
         for key, payloads in injected.items():
