@@ -80,6 +80,9 @@ class TransportConfig:
             mutual TLS with the fleet CA, and every endpoint must be ``tls/...``.
         insecure: allow plain links to endpoints off this host's loopback. Without it such an
             endpoint needs ``tls``: a fleet on a network is authenticated by default.
+        zenoh_config: a Zenoh configuration file (JSON5) for any Zenoh setting. It is the base:
+            the fields above are written over it only where they say something (endpoints
+            given, ``lease_ms``, ``tls``, client mode); scouting is then the file's.
     """
 
     listen: tuple[str, ...] = ()
@@ -90,6 +93,7 @@ class TransportConfig:
     mode: str = "peer"
     tls: NodeFiles | None = None
     insecure: bool = False
+    zenoh_config: str | None = None
 
     def __post_init__(self) -> None:
         for field in ("listen", "connect"):
@@ -110,7 +114,10 @@ class TransportConfig:
             raise ValueError(f"TransportConfig.mode must be 'peer' or 'client', got {self.mode!r}")
         if self.mode == "client" and not self.connect:
             raise ValueError("TransportConfig: a client needs the router's endpoint in connect")
-        endpoints = self.listen + self.connect
+        self._check_plain(self.listen + self.connect)
+
+    def _check_plain(self, endpoints: tuple[str, ...] | list[str]) -> None:
+        """With certificates every endpoint is tls/; without, none off loopback unless insecure."""
         if self.tls is not None:
             plain = [e for e in endpoints if not e.startswith("tls/")]
             if plain:
@@ -132,12 +139,25 @@ class TransportConfig:
             LOOPBACK_RE.fullmatch(e) for e in endpoints)
 
     def to_zenoh(self) -> zenoh.Config:
-        config = zenoh.Config()
-        config.insert_json5("mode", json.dumps(self.mode))
-        config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-        config.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip_scouting))
+        if self.zenoh_config is None:
+            config = zenoh.Config()
+            config.insert_json5("mode", json.dumps(self.mode))
+            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+            config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+            config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+            config.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip_scouting))
+        else:
+            try:
+                config = zenoh.Config.from_file(str(self.zenoh_config))
+            except zenoh.ZError as err:
+                raise ValueError(f"--zenoh-config {self.zenoh_config}: not a Zenoh configuration "
+                                 f"file: {err}") from None
+            if self.mode != "peer":
+                config.insert_json5("mode", json.dumps(self.mode))
+            for key, endpoints in (("listen/endpoints", self.listen), ("connect/endpoints", self.connect)):
+                if endpoints:
+                    config.insert_json5(key, json.dumps(list(endpoints)))
+            self._check_plain(_endpoints_of(config))
         if self.lease_ms is not None:
             config.insert_json5("transport/link/tx/lease", str(self.lease_ms))
         if self.tls is not None:
@@ -146,6 +166,16 @@ class TransportConfig:
 
     def open(self) -> zenoh.Session:
         return zenoh.open(self.to_zenoh())
+
+
+def _endpoints_of(config: zenoh.Config) -> list[str]:
+    """Every listen and connect endpoint of a Zenoh configuration (lists, or lists per mode)."""
+    out: list[str] = []
+    for key in ("listen/endpoints", "connect/endpoints"):
+        value = json.loads(config.get_json(key))
+        for item in (value.values() if isinstance(value, dict) else [value]):
+            out.extend(item if isinstance(item, list) else [])
+    return out
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:

@@ -83,6 +83,9 @@ def add_transport_flags(parser: argparse.ArgumentParser, identity: str) -> None:
                         help=f"whose certificate of --certs this node presents (default {identity})")
     parser.add_argument("--insecure", action="store_true",
                         help="allow plain tcp links to endpoints off this host (a trusted network)")
+    parser.add_argument("--zenoh-config", default=None, metavar="FILE",
+                        help="a Zenoh configuration file (JSON5) as the base for any Zenoh setting; "
+                             "the flags above are written over it where given")
     parser.add_argument("--lease-ms", type=int, default=None, metavar="MS",
                         help="Zenoh link lease: a frozen peer counts as gone after about this long "
                              "(default Zenoh's 10000)")
@@ -95,9 +98,10 @@ def transport_config(args: argparse.Namespace):
 
     if args.certs is None:
         return TransportConfig(listen=tuple(args.listen), connect=tuple(args.connect),
-                               insecure=args.insecure, lease_ms=args.lease_ms)
+                               insecure=args.insecure, lease_ms=args.lease_ms,
+                               zenoh_config=args.zenoh_config)
     if args.listen:
         raise ValueError("--listen with --certs: a client of the router listens nowhere; "
                          "give the router's endpoint with --connect tls/HOST:PORT")
     return TransportConfig(connect=tuple(args.connect), mode="client", lease_ms=args.lease_ms,
-                           tls=NodeFiles.in_dir(args.certs, args.identity))
+                           tls=NodeFiles.in_dir(args.certs, args.identity), zenoh_config=args.zenoh_config)

@@ -359,3 +359,28 @@ def test_a_clock_is_shared_when_every_endpoint_is_on_loopback():
     assert not FleetSimConfig(fleet="f", scenario=sc, transport=local, shared_clock=False).clock_is_shared()
     remote = TransportConfig(connect=("tcp/10.0.0.2:7447",), insecure=True)
     assert FleetSimConfig(fleet="f", scenario=sc, transport=remote, shared_clock=True).clock_is_shared()
+
+
+def test_a_zenoh_config_file_is_the_base_and_the_flags_are_written_over_it(tmp_path, port):
+    """--zenoh-config FILE: its settings hold (a lease, its endpoints) unless a flag says
+    otherwise; a link opened from it talks; a plain endpoint off loopback in the file is refused
+    as on the command line; a broken file names itself."""
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:%d"] },\n'
+                    '  scouting: { multicast: { enabled: false } },  // comments are JSON5\n'
+                    '  transport: { link: { tx: { lease: 2500 } } } }' % port)
+    config = TransportConfig(zenoh_config=str(path)).to_zenoh()
+    assert json.loads(config.get_json("listen/endpoints")) == [f"tcp/127.0.0.1:{port}"]
+    assert json.loads(config.get_json("transport/link/tx/lease")) == 2500
+    other = free_tcp_port()
+    flags = TransportConfig(listen=(f"tcp/127.0.0.1:{other}",), zenoh_config=str(path)).to_zenoh()
+    assert json.loads(flags.get_json("listen/endpoints")) == [f"tcp/127.0.0.1:{other}"]
+    with FleetLink(FLEET, REGISTRY, TransportConfig(zenoh_config=str(path))) as controller, \
+            robot_link(port) as robot:
+        connected(controller, robot)
+    path.write_text('{ connect: { endpoints: ["tcp/10.0.0.9:7447"] } }')
+    with pytest.raises(ValueError, match="off this host"):
+        TransportConfig(zenoh_config=str(path)).to_zenoh()
+    path.write_text("{ this is not json5")
+    with pytest.raises(ValueError, match="zenoh.json5"):
+        TransportConfig(zenoh_config=str(path)).to_zenoh()
