@@ -17,7 +17,7 @@ from sim.scenario import make_scenario
 def test_a_robot_obeys_no_command_while_no_controller_token_is_seen():
     """A node that publishes well-formed, fresh commands on r0's key but holds no controller
     liveliness token moves no robot: every command is ignored and counted (before the rule the
-    robot drove off at 1 m/s^2)."""
+    robot drove 0.29 m, into the wall)."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     sim = FleetSim(FleetSimConfig(fleet="nc", scenario=make_scenario("paper-3"), rate_hz=20.0, max_ticks=30,
                                   start_timeout_s=0.1, transport=TransportConfig(listen=(endpoint,))))
