@@ -366,9 +366,10 @@ def test_a_zenoh_config_file_is_the_base_and_the_flags_are_written_over_it(tmp_p
     otherwise; a link opened from it talks; a plain endpoint off loopback in the file is refused
     as on the command line; a broken file names itself."""
     path = tmp_path / "zenoh.json5"
-    path.write_text('{ mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:%d"] },\n'
+    endpoint = json.dumps([f"tcp/127.0.0.1:{port}"])
+    path.write_text('{ mode: "peer", listen: { endpoints: ' + endpoint + ' },\n'
                     '  scouting: { multicast: { enabled: false } },  // comments are JSON5\n'
-                    '  transport: { link: { tx: { lease: 2500 } } } }' % port)
+                    '  transport: { link: { tx: { lease: 2500 } } } }')
     config = TransportConfig(zenoh_config=str(path)).to_zenoh()
     assert json.loads(config.get_json("listen/endpoints")) == [f"tcp/127.0.0.1:{port}"]
     assert json.loads(config.get_json("transport/link/tx/lease")) == 2500
