@@ -75,11 +75,7 @@ class RobotLink(_Link):
         self._estop_synced = False
         self._controller_alive = False
         self._cancel_queries = zenoh.CancellationToken()
-        try:
-            self._open(queue_capacity)
-        except BaseException:
-            self.close()
-            raise
+        self._open_or_close(queue_capacity)
 
     def _open(self, capacity: int) -> None:
         s = self.session

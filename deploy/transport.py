@@ -122,6 +122,14 @@ class _Link:
         self._threads.append(thread)
         thread.start()
 
+    def _open_or_close(self, capacity: int) -> None:
+        """Declare the link's entities (``_open``); on any failure close what is open, then raise."""
+        try:
+            self._open(capacity)
+        except BaseException:
+            self.close()
+            raise
+
     def _drive(self, handler, on_item: Callable) -> None:
         while True:
             try:
@@ -223,11 +231,7 @@ class FleetLink(_Link):
         self._estop_engaged = False
         self._estop_order = threading.Lock()
         self.on_operator: Callable[[str], dict] | None = None
-        try:
-            self._open(queue_capacity)
-        except BaseException:
-            self.close()
-            raise
+        self._open_or_close(queue_capacity)
 
     def _open(self, capacity: int) -> None:
         s = self.session

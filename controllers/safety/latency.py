@@ -338,9 +338,9 @@ class LatencyPredictor:
             p[fixed], v[fixed] = centre, centre_vel
             grow[fixed] = radius + (sigma_p[fixed] if np.ndim(sigma_p) else sigma_p)
             closing[fixed] = rate + cfg.velocity_noise
-        brake_vel = v
-        if cfg.jitter_brake_measured and (jittering & ~fixed).any():
-            brake_vel = np.where((jittering & ~fixed)[:, None], vel, v)
+        brake_vel, measured = v, jittering & ~fixed
+        if cfg.jitter_brake_measured and measured.any():
+            brake_vel = np.where(measured[:, None], vel, v)
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
                           brake_vel=brake_vel)
 

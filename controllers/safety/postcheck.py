@@ -44,7 +44,9 @@ def braking_acceleration(vel: np.ndarray, dynamics: Dynamics,
     """(N, 2) maximum-braking command for (N, 2) velocities [m/s]: :meth:`Dynamics.brake`, the
     one braking law of the robots and the filter; non-finite velocities give 0.
 
-    With a latency ``prediction`` the velocity is a prediction ``h`` ticks ahead, and the command
+    With a latency ``prediction`` the velocity braked is ``prediction.braking_velocity()`` (the
+    predicted one, or the measured one of a robot whose delay jitters), and ``vel`` (which the
+    callers pass as ``prediction.vel``) is not read. It is a prediction ``h`` ticks ahead, and the command
     may act up to ``h`` ticks earlier, on a robot that has already braked: stopping in one tick
     from the predicted velocity then overshoots and the next tick brakes back (robots at a
     standstill chattered into contact). So a robot slow enough to stop within one tick

@@ -193,8 +193,9 @@ def test_velocity_noise_is_measured_and_not_compensated_as_a_disturbance():
 def test_pure_noise_passes_the_threshold_about_once_in_a_million_robot_ticks(monkeypatch):
     """20 robots x 3000 ticks at rest under 2 cm/s of velocity noise, nothing to compensate: the
     norm of ``d_hat``'s wander is Rayleigh, so the 5.26-sigma threshold lets almost none of it
-    through (0 of 60,000 robot-ticks here); the former 4 sigma (exp(-8) = 3e-4 a tick, and the
-    estimate wanders in runs) let through about 1e-3 of them."""
+    through (2 of 59,000 robot-ticks here, 3.4e-5: early ticks, before a robot's noise is known);
+    the former 4 sigma (exp(-8) = 3e-4 a tick, and the estimate wanders in runs) let through 64,
+    1.1e-3."""
     def compensated_fraction() -> float:
         mec, rng, hits = ModelErrorCompensator(DYN), np.random.default_rng(0), 0
         for t in range(3000):
