@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from deploy.streams import RejectCounter, Stamper, WireDecoder
 from deploy.wire import (
+    ACCEPTED_VERSIONS,
     HEADER_SIZE,
     MESSAGE_SIZE,
     ROBOT_ALL,
@@ -127,7 +128,7 @@ def test_every_header_corruption_is_rejected_for_its_reason(msg, data):
     t = msg.TYPE
     bad_magic = data.draw(st.binary(min_size=2, max_size=2).filter(lambda m: m != b"FS"))
     assert reason_of(decode(patch(good, 0, "2s", bad_magic))) is Reason.BAD_MAGIC
-    version = data.draw(st.integers(0, 255).filter(lambda v: v != 1))
+    version = data.draw(st.integers(0, 255).filter(lambda v: v not in ACCEPTED_VERSIONS))
     assert reason_of(decode(patch(good, 2, "B", version))) is Reason.BAD_VERSION
     unknown = data.draw(st.integers(0, 255).filter(lambda v: v not in (1, 2, 3)))
     assert reason_of(decode(patch(good, 3, "B", unknown))) is Reason.UNKNOWN_TYPE
@@ -138,7 +139,7 @@ def test_every_header_corruption_is_rejected_for_its_reason(msg, data):
     assert reason_of(decode(good[:cut])) is Reason.BAD_SIZE
     extra = data.draw(st.binary(min_size=1, max_size=16))
     assert reason_of(decode(good + extra)) is Reason.BAD_SIZE
-    allowed = {MsgType.STATE: 0xF, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1}[t]
+    allowed = {MsgType.STATE: 0x1F, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1}[t]  # 0x10: LOCKSTEP, v2
     flags = data.draw(st.integers(0, 0xFFFF).filter(lambda f: f & ~allowed))
     assert reason_of(decode(patch(good, 6, "<H", flags))) is Reason.BAD_FLAGS
     assert reason_of(decode(patch(good, 8, "<I", 0))) is Reason.BAD_SEQUENCE  # epoch
