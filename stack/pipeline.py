@@ -483,6 +483,7 @@ class ControlStack:
         latency; ``position_std`` (N,) [m], the position estimator's error, grows their discs."""
         silent = state.silent if state.silent is not None and len(state.silent) else None
         ids = state.robot_ids
+        velocity_std = None if self.mec is None else np.sqrt(self.mec.noise_var)
         if silent is not None:
             ids = ids + tuple(silent.ids)
             pos, vel = np.vstack([pos, silent.positions]), np.vstack([vel, silent.velocities])
@@ -491,6 +492,8 @@ class ControlStack:
             a_nom = np.vstack([a_nom, np.zeros((len(silent), 2))])
             if position_std is not None:
                 position_std = np.concatenate([position_std, np.zeros(len(silent))])
+            if velocity_std is not None:
+                velocity_std = np.concatenate([velocity_std, np.zeros(len(silent))])
         prediction = None
         if self.predictor is not None:
             pending = state.pending()
@@ -498,7 +501,7 @@ class ControlStack:
                 pending = np.concatenate([pending, np.full(len(silent), -1)])
             prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
                                                 state.command_delay_s, fixed=unknown, pending=pending,
-                                                position_noise=position_std)
+                                                position_noise=position_std, velocity_noise=velocity_std)
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

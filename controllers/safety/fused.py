@@ -56,7 +56,12 @@ import numpy as np
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
 from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
 from controllers.safety.latency import Prediction
-from controllers.safety.postcheck import PostcheckResult, SweepChecker, braking_acceleration
+from controllers.safety.postcheck import (
+    PostcheckResult,
+    SweepChecker,
+    braking_acceleration,
+    excuses,
+)
 from sim.scenario import Dynamics
 
 _SLACK = 1e-9
@@ -263,18 +268,20 @@ class FusedScene:
 
     # ------------------------------------------------------------------ sweep
     def failing(self, checker: SweepChecker, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                terms: FusedTerms, grow: np.ndarray | None = None) -> np.ndarray:
+                terms: FusedTerms, grow: np.ndarray | None = None,
+                vel_error: np.ndarray | None = None, brake: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: robots whose one-tick sweep touches something; the checks and maths of
-        :meth:`controllers.safety.postcheck.SweepChecker.failing` (same end points and widening,
-        bit for bit), with the start-of-tick geometry taken from ``terms``, and one shortcut:
-        with ``T = max_i (|p'_i - p_i| + e_i)``, every check passes when each static row has
-        ``s >= T + m`` and each pair row ``s >= 2 T + m`` (a chord end moves at most
+        :meth:`controllers.safety.postcheck.SweepChecker.failing` (same end points, widening and
+        excuses, bit for bit), with the start-of-tick geometry taken from ``terms``, and one
+        shortcut: with ``T = max_i (|p'_i - p_i| + e_i)``, every check passes when each static
+        row has ``s >= T + m`` and each pair row ``s >= 2 T + m`` (a chord end moves at most
         ``|p' - p|`` from its start, a relative chord at most the sum of two), so none runs.
         Object: the FCL capsule test wherever the travel bound cannot rule out contact.
         ``grow`` (N,) [m] widens each robot's disc (a prediction's; ``terms`` already hold the
-        grown start distances)."""
+        grown start distances); ``vel_error`` (N,) [m/s] bounds the error of ``vel``; ``brake``
+        (N, 2), what failing robots would get (None: no excuses)."""
         dyn, r, m, p, n = self.dynamics, self.radius, checker.margin, self.p, self.n
-        grow = np.zeros(n) if grow is None else grow
+        widen = np.zeros(n) if grow is None else grow
         a = _clip_rows(acc, dyn.accel_limit)[0]
         a_eff = a - dyn.damping * vel
         bulge = (0.5 * dyn.dt**2) * np.hypot(a_eff[:, 0], a_eff[:, 1])
@@ -285,6 +292,7 @@ class FusedScene:
         reach = travel.max() + m + _SLACK         # start distances in terms are grown already
         if terms.distance[p:].min() >= reach and (not p or terms.distance[:p].min() >= 2.0 * reach):
             return bad
+        hit = np.zeros(p, dtype=bool)
         if p:
             start = terms.pair_delta                                          # (2, P)
             chord = end.T @ self.pair_gather_t - start
@@ -292,18 +300,23 @@ class FusedScene:
             along = -(start[0] * chord[0] + start[1] * chord[1]) / np.where(dd > 0, dd, 1.0)
             t = np.minimum(np.maximum(along, 0.0), 1.0)
             gap = np.hypot(start[0] + t * chord[0], start[1] + t * chord[1])
-            hit = gap < 2 * r + (bulge + grow) @ self.pair_both_t + m
-            if hit.any():
-                bad[self.pair_i[hit]] = True
-                bad[self.pair_j[hit]] = True
+            hit = gap < 2 * r + (bulge + widen) @ self.pair_both_t + m
         # walls: s of both chord ends against the widening (s + r < r + e + m)
         start_walls = terms.distance[p + n:].reshape(n, 4)
-        end_walls = end @ self.wall_map + self.wall_offset - grow[:, None]
-        bad |= (np.minimum(start_walls, end_walls) < (bulge + m)[:, None]).any(axis=1)
+        end_walls = end @ self.wall_map + self.wall_offset - widen[:, None]
+        wall_hit = np.minimum(start_walls, end_walls) < (bulge + m)[:, None]
+        if brake is not None and (hit.any() or wall_hit.any()):
+            pair_ok, wall_ok = excuses(pos, vel, acc, brake, self.pair_i, self.pair_j, grow,
+                                       vel_error, dyn)
+            hit &= ~pair_ok
+            wall_hit &= ~wall_ok
+        bad[self.pair_i[hit]] = True
+        bad[self.pair_j[hit]] = True
+        bad |= wall_hit.any(axis=1)
         near = terms.object_distance() - m <= travel + _SLACK
         if near.any():
             for i in np.flatnonzero(near):
-                bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + grow[i]) < m
+                bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m
         return bad
 
     def check(self, checker: SweepChecker, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
@@ -312,19 +325,21 @@ class FusedScene:
         fixed robots of a ``prediction`` are never braked here (they are not listening)."""
         n = self.n
         grow = None if prediction is None else prediction.grow
+        vel_error = None if prediction is None else prediction.velocity_error
         mine = np.ones(n, dtype=bool) if prediction is None else ~prediction.fixed
         braked = np.zeros(n, dtype=bool)
-        bad = self.failing(checker, pos, vel, acc, terms, grow)
-        if not bad.any():
+        bad = self.failing(checker, pos, vel, acc, terms, grow, vel_error)
+        if not bad.any():                     # excuses only ever clear failures
             return PostcheckResult(acc=acc, braked=braked, contact=bad)
         acc = acc.copy()
-        brake = braking_acceleration(vel, self.dynamics, prediction)
+        brake = np.where(mine[:, None], braking_acceleration(vel, self.dynamics, prediction), acc)
+        bad = self.failing(checker, pos, vel, acc, terms, grow, vel_error, brake)
         for _ in range(n):
             new = bad & ~braked & mine
             if not new.any():
                 break
             braked |= new
             acc[new] = brake[new]
-            bad = self.failing(checker, pos, vel, acc, terms, grow)
+            bad = self.failing(checker, pos, vel, acc, terms, grow, vel_error, brake)
         return PostcheckResult(acc=acc, braked=braked, contact=bad)
 

@@ -199,6 +199,10 @@ def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarra
     return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
 
 
+VELOCITY_NOISE_BOUND = 3.0
+"""A measured velocity noise of standard deviation sigma counts as an error bound of 3 sigma."""
+
+
 @dataclass
 class Prediction:
     """The filter's picture of N robots at the moment the new command acts.
@@ -213,6 +217,9 @@ class Prediction:
         brake_vel: (N, 2) the velocity a braking command aims to stop [m/s]: ``vel``, or the
             measured velocity of a robot whose delay jitters (module docstring, Braking);
             None: ``vel``.
+        velocity_error: (N,) bound on the error of ``vel`` [m/s]: ``closing`` plus
+            ``VELOCITY_NOISE_BOUND`` times the velocity noise the caller measured; read by the
+            post-check's rule that excuses commands no worse than braking. None: 0.
     """
 
     pos: np.ndarray
@@ -222,6 +229,7 @@ class Prediction:
     fixed: np.ndarray
     horizon: np.ndarray
     brake_vel: np.ndarray | None = None
+    velocity_error: np.ndarray | None = None
 
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
@@ -293,7 +301,8 @@ class LatencyPredictor:
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
                 fixed: np.ndarray | None = None, pending: np.ndarray | None = None,
-                position_noise: np.ndarray | None = None) -> Prediction:
+                position_noise: np.ndarray | None = None,
+                velocity_noise: np.ndarray | None = None) -> Prediction:
         """Prediction of (N, 2) measured states of ``ages`` (N,) [s] (module docstring).
 
         ``a_nom`` (N, 2) joins the window whose spread bounds the unknown order of commands;
@@ -302,7 +311,9 @@ class LatencyPredictor:
         ``pending`` (N,) int: commands sent after the newest one each robot had acted on when
         measured (-1: unknown; :attr:`sim.fleet.FleetState.commands_pending`).
         ``position_noise`` (N,) [m]: a per-robot position error (an estimator's) added to
-        ``position_noise`` of the config.
+        ``position_noise`` of the config. ``velocity_noise`` (N,) [m/s]: the standard deviation
+        of each robot's velocity measurement (the compensator's), for
+        :attr:`Prediction.velocity_error`.
         """
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
@@ -341,8 +352,10 @@ class LatencyPredictor:
         brake_vel, measured = v, jittering & ~fixed
         if cfg.jitter_brake_measured and measured.any():
             brake_vel = np.where(measured[:, None], vel, v)
+        velocity_error = closing + (0.0 if velocity_noise is None else
+                                    VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
-                          brake_vel=brake_vel)
+                          brake_vel=brake_vel, velocity_error=np.broadcast_to(velocity_error, (len(p),)))
 
     def _roll_forward(self, pos: np.ndarray, vel: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each robot ``i`` through the newest ``m_i`` recorded commands, oldest first (module

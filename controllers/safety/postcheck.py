@@ -20,6 +20,28 @@ the discrete step and the continuous motion are covered. Checks:
   the swept capsule (radius ``r + e_i``, the chord as its axis) to the object. FCL's
   ``continuousCollide`` is not used: it misses real contacts.
 
+A pair or wall that fails is excused when its command is *no worse than the brake* that
+failing would give it, at every instant of the tick and for every state the prediction allows.
+Without this, robots stopped inside their grown or margin distance (by an earlier brake) were
+braked in place for good, even while the QP pushed them apart: a deadlock. Both commands start
+from the same state, so the brake's relative path is ``x(t) = d' + delta t + D_b(t)`` (true
+relative position ``d'`` within ``g = grow_i + grow_j`` of the predicted ``d = p_i - p_j``, a
+velocity error ``|delta| <= u = u_i + u_j``, :attr:`~controllers.safety.latency.Prediction.velocity_error`;
+``D_b(t) = w_0 t + b t^2 / 2`` with the brake's relative effective acceleration ``b``), and the
+command's is ``x(t) + Delta t^2 / 2``, with ``Delta = (a'_i - a^b_i) - (a'_j - a^b_j)`` the
+relative difference of the clipped commands (the damping ``c v`` cancels; below the speed limit,
+where the velocity stays affine in ``t``; the discrete end differs by ``Delta dt^2``, the same
+direction). ``|x + y|^2 = |x|^2 + 2 x . y + |y|^2 >= |x|^2`` whenever ``x . y >= 0``, and::
+
+    x(t) . Delta >= d . Delta + min(0, w_0 . Delta) dt + min(0, b . Delta) dt^2 / 2 - (g + u dt) |Delta|
+
+so a pair whose right-hand side is >= 0 (and ``Delta != 0``) keeps at least the brake's distance
+throughout (:func:`no_worse_than_braking`). A wall is a plane: the command's distance minus the
+brake's is ``n . Delta_i t^2 / 2`` exactly, so ``n . Delta_i >= 0`` suffices, whatever the
+errors (:func:`no_worse_walls`). Robots that are not the post-check's to brake (fixed ones)
+keep their command in both. The object is not excused (its nearest direction is not one
+vector).
+
 A robot that fails a check gets the maximum-braking command (both robots of a failing pair), and
 the check repeats until nothing changes, because a braking robot can block one behind it.
 Robots that still fail are reported in ``contact``: even braking cannot avoid the touch.
@@ -74,6 +96,57 @@ def predict_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
     return pos + dynamics.dt * v1, bulge
 
 
+def no_worse_than_braking(start: np.ndarray, w0: np.ndarray, diff: np.ndarray, brake_rel: np.ndarray,
+                          slack: np.ndarray, unclipped: np.ndarray, dt: float) -> np.ndarray:
+    """(K,) bool: pairs whose commands keep them at least as far apart as braking both would,
+    all tick long (module docstring).
+
+    ``start`` (K, 2) relative positions ``d = p_i - p_j`` [m]; ``w0`` (K, 2) relative velocities
+    [m/s]; ``diff`` (K, 2) ``Delta``, the relative command minus the relative brake (clipped)
+    [m/s^2]; ``brake_rel`` (K, 2) ``b``, the relative effective brake acceleration [m/s^2];
+    ``slack`` (K,) ``g + u dt`` [m]; ``unclipped`` (K,) bool, no speed clip for either robot."""
+    def dot(x, y):
+        return x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1]
+    norm = np.hypot(diff[:, 0], diff[:, 1])
+    lhs = (dot(start, diff) + np.minimum(dot(w0, diff), 0.0) * dt
+           + np.minimum(dot(brake_rel, diff), 0.0) * (0.5 * dt * dt))
+    return unclipped & (norm > 1e-12) & (lhs >= slack * norm)
+
+
+def no_worse_walls(diff: np.ndarray) -> np.ndarray:
+    """(N, 4) bool: robots whose command minus brake ``Delta_i`` (N, 2) [m/s^2] is nonzero and
+    does not point into the walls ``x = 0, x = W, y = 0, y = H`` (in that order)."""
+    moved = (np.abs(diff) > 1e-12).any(axis=1)[:, None]
+    return moved & (np.stack([diff[:, 0], -diff[:, 0], diff[:, 1], -diff[:, 1]], axis=1) >= 0.0)
+
+
+def excuses(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, brake: np.ndarray, pi: np.ndarray,
+            pj: np.ndarray, grow: np.ndarray | None, vel_error: np.ndarray | None,
+            dynamics: Dynamics) -> tuple[np.ndarray, np.ndarray]:
+    """``(pair_ok (P,), wall_ok (N, 4))``: the pairs ``pi, pj`` and robot-walls whose command
+    ``acc`` is no worse than ``brake`` (module docstring); shared by both sweep paths."""
+    dt = dynamics.dt
+    diff = clip_norm(acc, dynamics.accel_limit) - clip_norm(brake, dynamics.accel_limit)
+    free = below_speed_limit(vel, acc, dynamics) & below_speed_limit(vel, brake, dynamics)
+    wall_ok = no_worse_walls(diff) & free[:, None]
+    if not len(pi):
+        return np.zeros(0, dtype=bool), wall_ok
+    b = clip_norm(brake, dynamics.accel_limit) - dynamics.damping * vel
+    g = 0.0 if grow is None else grow[pi] + grow[pj]
+    u = 0.0 if vel_error is None else vel_error[pi] + vel_error[pj]
+    slack = np.broadcast_to(g + u * dt, (len(pi),))
+    pair_ok = no_worse_than_braking(pos[pi] - pos[pj], vel[pi] - vel[pj], diff[pi] - diff[pj],
+                                    b[pi] - b[pj], slack, free[pi] & free[pj], dt)
+    return pair_ok, wall_ok
+
+
+def below_speed_limit(vel: np.ndarray, acc: np.ndarray, dynamics: Dynamics) -> np.ndarray:
+    """(N,) bool: robots whose end-of-tick velocity needs no speed clip (module docstring)."""
+    a_eff = clip_norm(acc, dynamics.accel_limit) - dynamics.damping * vel
+    raw = vel + dynamics.dt * a_eff
+    return np.hypot(raw[:, 0], raw[:, 1]) <= dynamics.speed_limit
+
+
 def segment_origin_distance(start: np.ndarray, end: np.ndarray) -> np.ndarray:
     """(K,) distance from the origin to the segments ``[start_k, end_k]`` given as (K, 2) ends."""
     d = end - start
@@ -118,12 +191,15 @@ class SweepChecker:
         self._pairs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def failing(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                object_clearance: np.ndarray, grow: np.ndarray | None = None) -> np.ndarray:
+                object_clearance: np.ndarray, grow: np.ndarray | None = None,
+                vel_error: np.ndarray | None = None, brake: np.ndarray | None = None) -> np.ndarray:
         """(N,) bool: robots whose one-tick sweep touches something.
 
         ``object_clearance`` (N,) is each disc's signed distance to the object at ``pos`` [m];
-        ``grow`` (N,) [m] widens each disc (a latency prediction's, see
-        :mod:`controllers.safety.latency`).
+        ``grow`` (N,) [m] widens each disc and ``vel_error`` (N,) [m/s] bounds the error of
+        ``vel`` (a latency prediction's, see :mod:`controllers.safety.latency`). ``brake``
+        (N, 2): what failing robots would get; pairs and walls no worse than it are excused
+        (module docstring). None: no excuses.
         """
         n, r, m = len(pos), self.radius, self.margin
         end, bulge = predict_step(pos, vel, acc, self.dynamics)
@@ -131,19 +207,25 @@ class SweepChecker:
             bulge = bulge + grow
             object_clearance = object_clearance - grow
         bad = np.zeros(n, dtype=bool)
-        if n > 1:
-            if n not in self._pairs:
-                self._pairs[n] = np.triu_indices(n, 1)
-            pi, pj = self._pairs[n]
-            gap = segment_origin_distance(pos[pi] - pos[pj], end[pi] - end[pj])
-            hit = gap < 2 * r + bulge[pi] + bulge[pj] + m
-            bad[pi[hit]] = True
-            bad[pj[hit]] = True
+        if n not in self._pairs:
+            self._pairs[n] = np.triu_indices(n, 1)
+        pi, pj = self._pairs[n]
         w, h = self.arena
         reach = (r + bulge + m)[:, None]
         ends = np.stack([pos, end])                                           # (2, N, 2)
         wall_gap = np.stack([ends[..., 0], w - ends[..., 0], ends[..., 1], h - ends[..., 1]], -1)
-        bad |= np.any(wall_gap.min(axis=0) < reach, axis=1)
+        wall_hit = wall_gap.min(axis=0) < reach
+        hit = np.zeros(len(pi), dtype=bool)
+        if n > 1:
+            gap = segment_origin_distance(pos[pi] - pos[pj], end[pi] - end[pj])
+            hit = gap < 2 * r + bulge[pi] + bulge[pj] + m
+        if brake is not None and (hit.any() or wall_hit.any()):
+            pair_ok, wall_ok = excuses(pos, vel, acc, brake, pi, pj, grow, vel_error, self.dynamics)
+            hit &= ~pair_ok
+            wall_hit &= ~wall_ok
+        bad[pi[hit]] = True
+        bad[pj[hit]] = True
+        bad |= np.any(wall_hit, axis=1)
         travel = np.hypot(*(end - pos).T) + bulge
         for i in np.flatnonzero(object_clearance - m <= travel):
             bad[i] |= self.capsule_clearance(pos[i], end[i], r + bulge[i]) < m
@@ -172,14 +254,15 @@ class SweepChecker:
         acc = acc.copy()
         braked = np.zeros(len(pos), dtype=bool)
         grow = None if prediction is None else prediction.grow
+        vel_error = None if prediction is None else prediction.velocity_error
         mine = np.ones(len(pos), dtype=bool) if prediction is None else ~prediction.fixed
-        brake = braking_acceleration(vel, self.dynamics, prediction)
-        bad = self.failing(pos, vel, acc, object_clearance, grow)
+        brake = np.where(mine[:, None], braking_acceleration(vel, self.dynamics, prediction), acc)
+        bad = self.failing(pos, vel, acc, object_clearance, grow, vel_error, brake)
         for _ in range(len(pos)):
             new = bad & ~braked & mine
             if not new.any():
                 break
             braked |= new
             acc[new] = brake[new]
-            bad = self.failing(pos, vel, acc, object_clearance, grow)
+            bad = self.failing(pos, vel, acc, object_clearance, grow, vel_error, brake)
         return PostcheckResult(acc=acc, braked=braked, contact=bad)

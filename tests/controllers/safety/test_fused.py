@@ -135,14 +135,16 @@ def checker_and_terms(pos, vel, n):
 
 @settings(max_examples=80, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 6), speed=st.floats(0.0, 0.6),
-       spread=st.sampled_from([0.4, 1.0]))
-def test_fused_sweep_check_equals_the_sweep_checker(seed, n, speed, spread):
+       spread=st.sampled_from([0.4, 1.0]), noisy=st.booleans())
+def test_fused_sweep_check_equals_the_sweep_checker(seed, n, speed, spread, noisy):
+    """Also with velocity error bounds, which narrow the receding rule in both paths."""
     rng = np.random.default_rng(seed)
     pos, vel, _ = scene(rng, n, speed, spread)
     acc = rng.uniform(-1.5, 1.5, (n, 2))
     checker, fused, terms, clearance = checker_and_terms(pos, vel, n)
-    np.testing.assert_array_equal(fused.failing(checker, pos, vel, acc, terms),
-                                  checker.failing(pos, vel, acc, clearance))
+    vel_error = rng.uniform(0.0, 0.05, n) if noisy else None
+    np.testing.assert_array_equal(fused.failing(checker, pos, vel, acc, terms, vel_error=vel_error),
+                                  checker.failing(pos, vel, acc, clearance, vel_error=vel_error))
     got, want = fused.check(checker, pos, vel, acc, terms), checker.check(pos, vel, acc, clearance)
     np.testing.assert_array_equal(got.braked, want.braked)
     np.testing.assert_array_equal(got.contact, want.contact)

@@ -7,11 +7,15 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from controllers.safety import CollisionScene, analytic_distances, predict_step
+from controllers.safety import CollisionScene, analytic_distances, postcheck, predict_step
+from controllers.safety.latency import Prediction
 from controllers.safety.postcheck import (
     SweepChecker,
     braking_acceleration,
+    no_worse_than_braking,
     segment_origin_distance,
 )
 from sim.batched_env import BatchedFormationEnv
@@ -140,3 +144,87 @@ def test_passing_the_check_means_no_contact_along_the_tick():
             assert not np.any(touching & ~bad)
         passed += int((~bad).sum())
     assert passed > 100 and flagged > 20                 # both outcomes were exercised
+
+
+def grown(pos, grow, vel_error=0.0):
+    """A latency prediction of robots at rest with discs grown by ``grow`` [m]."""
+    n = len(pos)
+    return Prediction(pos=pos, vel=np.zeros((n, 2)), grow=np.full(n, grow), closing=np.zeros(n),
+                      fixed=np.zeros(n, dtype=bool), horizon=np.zeros(n, dtype=np.int64),
+                      velocity_error=np.full(n, vel_error))
+
+
+def test_a_pair_inside_its_grown_distance_may_move_apart_but_not_closer_or_past():
+    """Robots at rest 0.09 m apart (centres), discs grown by 6 mm each: the start already breaks
+    ``2 r + g = 0.092 m``, and braking (0 at rest) fails for good. Pushed apart at 1 m/s^2 each,
+    ``Delta = (-2, 0)``: ``d . Delta = 0.18 >= g |Delta| = 0.024``, accepted. Sliding past
+    (``d . Delta = 0``) and closing are braked. Apart at an angle (``Delta = (-1.2, 1.6)``,
+    ``d . Delta = 0.108``) passes with exact velocities (``0.012 * 2``) and is braked when each
+    velocity may be off by 0.5 m/s (``(0.012 + 1.0 * 0.05) * 2 = 0.124``)."""
+    pos = np.array([[0.30, 0.2], [0.39, 0.2], [0.8, 0.9]])
+    vel = np.zeros((3, 2))
+    checker, clearance = checker_for(pos)
+    apart = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, 0.0]])
+    past = np.array([[0.0, 1.0], [0.0, -1.0], [0.0, 0.0]])
+    slanted = np.array([[-0.6, 0.8], [0.6, -0.8], [0.0, 0.0]])
+    prediction = grown(pos, 0.006)
+    for acc in (apart, slanted):
+        assert not checker.check(pos, vel, acc, clearance, prediction).braked.any()
+    for acc in (past, -apart):
+        np.testing.assert_array_equal(checker.check(pos, vel, acc, clearance, prediction).braked,
+                                      [True, True, False])
+    unsure = grown(pos, 0.006, vel_error=0.5)
+    assert not checker.check(pos, vel, apart, clearance, unsure).braked.any()
+    np.testing.assert_array_equal(checker.check(pos, vel, slanted, clearance, unsure).braked,
+                                  [True, True, False])
+
+
+def test_without_the_excuse_the_pair_moving_apart_is_braked(monkeypatch):
+    """Teeth of the case above: the same command, the rule switched off."""
+    pos = np.array([[0.30, 0.2], [0.39, 0.2], [0.8, 0.9]])
+    checker, clearance = checker_for(pos)
+    monkeypatch.setattr(postcheck, "excuses", lambda pos, *rest: (np.zeros(3, dtype=bool),
+                                                                  np.zeros((3, 4), dtype=bool)))
+    apart = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, 0.0]])
+    out = checker.check(pos, np.zeros((3, 2)), apart, clearance, grown(pos, 0.006))
+    np.testing.assert_array_equal(out.braked, [True, True, False])
+
+
+def test_a_robot_inside_its_wall_margin_may_leave_but_not_go_further_in():
+    pos = np.array([[0.045, 0.5], [0.5, 0.9], [0.9, 0.1]])       # 5 mm from x = 0, grown by 6
+    checker, clearance = checker_for(pos)
+    vel = np.zeros((3, 2))
+    prediction = grown(pos, 0.006)
+    away = np.array([[1.0, 0.0], [0, 0], [0, 0]])
+    assert not checker.check(pos, vel, away, clearance, prediction).braked.any()
+    out = checker.check(pos, vel, -away, clearance, prediction)
+    np.testing.assert_array_equal(out.braked, [True, False, False])
+
+
+vec = st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
+
+
+@settings(max_examples=300, deadline=None)
+@given(d=vec, w0=vec, diff=vec, brake=vec, g=st.floats(0.0, 0.03), u=st.floats(0.0, 0.5),
+       seed=st.integers(0, 2**31))
+def test_an_excused_pair_stays_as_far_apart_as_braking_from_any_state_it_may_truly_be_in(
+        d, w0, diff, brake, g, u, seed):
+    """Whenever :func:`no_worse_than_braking` accepts, every true relative position ``d'`` within
+    ``g`` of ``d`` and velocity offset ``delta`` within ``u`` keep the command's relative path at
+    least as far from contact as the brake's along the tick: ``|x(t) + Delta t^2 / 2| >= |x(t)|``,
+    ``x(t) = d' + (w0 + delta) t + b t^2 / 2``."""
+    d, w0, diff, b = 0.2 * np.array(d), 0.8 * np.array(w0), 3.0 * np.array(diff), 3.0 * np.array(brake)
+    dt = DYN.dt
+    if not no_worse_than_braking(d[None], w0[None], diff[None], b[None], np.array([g + u * dt]),
+                                 np.array([True]), dt)[0]:
+        return
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, dt, 26)[:, None]
+    for _ in range(20):
+        off = rng.normal(size=2)
+        off *= g * rng.uniform() ** 0.5 / max(np.hypot(*off), 1e-12)
+        delta = rng.normal(size=2)
+        delta *= u / max(np.hypot(*delta), 1e-12)
+        braking = d + off + (w0 + delta) * t + 0.5 * b * t**2
+        command = braking + 0.5 * diff * t**2
+        assert (np.hypot(*command.T) >= np.hypot(*braking.T) - 1e-12).all()
