@@ -84,6 +84,7 @@ import numpy as np
 
 from deploy.bridge_timing import MIN_ROUND_TRIPS, RoundTrips, TickClock, UplinkExcess
 from deploy.network import TransportConfig
+from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
 from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
@@ -93,7 +94,6 @@ log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
 ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
-ESTOP_OPERATOR = 2       # reason code of an e-stop an operator engaged (formation estop)
 NO_FLAGS = CmdFlags(0)
 LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
 
@@ -324,30 +324,11 @@ class Bridge:
         self.stats.estop_robot, self.stats.estop_silence_s = robot, float(silence)
 
     def operator_request(self, request: str) -> dict:
-        """An operator's e-stop request (``formation estop``): ``engage`` latches it at once;
-        ``release`` clears it only while no live robot is silent past ``estop_after_s`` (the rule
-        that raises it would raise it again); ``status`` reports. Returns the JSON-able answer."""
-        silence = self._silence
-        status = {"estop": "engaged" if self.link.estop_engaged else "released",
-                  "silent_robot": None if silence is None else silence[0],
-                  "silence_s": None if silence is None else round(float(silence[1]), 3)}
+        """An operator's e-stop request (``formation estop``), answered on a Zenoh thread by
+        :func:`deploy.operator_channel.operator_answer` with the silence seen last tick."""
         if request == "engage":
-            log.warning("operator: raising the fleet e-stop")
-            self.link.raise_estop(ESTOP_OPERATOR)
             self.stats.estops += 1
-            return {"ok": True, **status, "estop": "engaged"}
-        if request == "release":
-            if silence is not None and silence[1] > self.config.estop_after_s:
-                return {"ok": False, **status, "reason": f"robot {silence[0]} has been silent for "
-                        f"{silence[1]:.2f} s (> estop_after_s {self.config.estop_after_s} s): bring it "
-                        "back or take it off the link first"}
-            if self.link.estop_engaged:
-                log.warning("operator: releasing the fleet e-stop")
-                self.link.clear_estop()
-            return {"ok": True, **status, "estop": "released"}
-        if request == "status":
-            return {"ok": True, **status}
-        return {"ok": False, **status, "reason": f"unknown request {request!r}: engage, release or status"}
+        return operator_answer(request, self.link, self._silence, self.config.estop_after_s)
 
     def _fleet_state(self, view: _View) -> FleetState:
         rows = [rs.msg for rs in view.rows]
@@ -480,5 +461,5 @@ class Bridge:
         self.close()
 
 
-__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "RoundTrips", "TickClock",
-           "TickRecord", "UplinkExcess", "row_flags"]
+__all__ = ["ESTOP_OPERATOR", "ESTOP_STALE_PICTURE", "Bridge", "BridgeConfig", "BridgeStats",
+           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "row_flags"]
