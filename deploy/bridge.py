@@ -23,7 +23,9 @@ own fresh velocity) when its state is older than ``stale_after_s`` when the comm
 (the controller's own time counts) or not finite, whatever the controller said; otherwise the controller's row, or BRAKE for every row when the controller
 raises, returns a wrong shape or a non-finite value (counted). A fresh row whose robot reports
 FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at rest until a
-command without STOP).
+command without STOP). A robot that leaves ``rearm_alarm_after`` re-arms in a row unanswered
+refuses its commands (:mod:`deploy.rearm_watch`: an alarm is logged): not a row but silent, an
+obstacle, its STATEs answered with STOP until one comes without FAULT.
 
 Fleet e-stop (latched, reason 1 = ``ESTOP_STALE_PICTURE``; an operator clears it): raised when
 any single live robot has been silent longer than ``estop_after_s`` while the bridge runs,
@@ -85,6 +87,7 @@ import numpy as np
 from deploy.bridge_timing import MIN_ROUND_TRIPS, RoundTrips, TickClock, UplinkExcess
 from deploy.network import TransportConfig
 from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
+from deploy.rearm_watch import REARM_ALARM_AFTER, RearmWatch, check_threshold
 from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
@@ -110,7 +113,9 @@ class BridgeConfig:
     (module docstring) and lossless; delay_percentile, delay_window: the command delay
     bound is this percentile of the last delay_window round trips; shared_clock: the robots
     stamp their STATEs on this host's monotonic clock, so one sent more than 100 ms ahead of it
-    is refused (FROM_FUTURE); None: when every endpoint of the transport is on loopback."""
+    is refused (FROM_FUTURE); None: when every endpoint of the transport is on loopback;
+    rearm_alarm_after: re-arms in a row a robot leaves unanswered (its STATEs still FAULT) before
+    it counts as refusing its commands (:mod:`deploy.rearm_watch`)."""
 
     ttl_ms: int = 150
     stale_after_s: float = 0.15
@@ -123,8 +128,10 @@ class BridgeConfig:
     delay_percentile: float = 99.0
     delay_window: int = 256
     shared_clock: bool | None = None
+    rearm_alarm_after: int = REARM_ALARM_AFTER
 
     def __post_init__(self) -> None:
+        check_threshold(self.rearm_alarm_after)
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
                 self.episode_ticks, int) or self.episode_ticks < 1):
             raise ValueError(f"episode_ticks must be a positive integer or None, got {self.episode_ticks!r}")
@@ -229,6 +236,7 @@ class Bridge:
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
         self._reject_log = RejectLog(f"bridge {fleet}", self.link.rejects.snapshot)
+        self.rearm = RearmWatch(f"bridge {fleet}", config.rearm_alarm_after)
         self._silence: tuple[str, float] | None = None   # the longest-silent live robot, last tick
         self.link.on_operator = self.operator_request
         self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
@@ -302,8 +310,11 @@ class Bridge:
             silence = min(age, (now - since) / 1e9)
             if view.silence is None or silence > view.silence[1]:
                 view.silence = (robot, silence)
-            if rs is not None and _key(rs) != self._discard.get(robot):
+            usable = rs is not None and _key(rs) != self._discard.get(robot)
+            if usable:
                 self._discard.pop(robot, None)
+                self.rearm.state(robot, rs.msg.status)
+            if usable and not self.rearm.refusing(robot):
                 view.rows.append(rs)
                 view.ages.append(age)
             else:
@@ -379,6 +390,20 @@ class Bridge:
             if self.on_episode is not None:
                 self.on_episode(episode)
 
+    def _rearm(self, rs: ReceivedState) -> None:
+        self.stats.rearms += 1
+        self.rearm.rearmed(rs.robot, rs.msg.last_cmd_seq)
+
+    def _rearm_refusing(self, view: _View, states: Mapping[str, ReceivedState]) -> None:
+        """Answer each new STATE of a robot that refuses its commands with STOP, its re-arm."""
+        for robot in view.unknown:
+            if self.rearm.refusing(robot) and self._unanswered(states, robot):
+                rs = states[robot]
+                self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.STOP,
+                                       state_seq=rs.msg.seq)
+                self._answered[robot] = _key(rs)
+                self._rearm(rs)
+
     # ------------------------------------------------------------------ one tick
     def step(self, timeout_s: float = 0.1) -> TickRecord | None:
         """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
@@ -391,12 +416,15 @@ class Bridge:
         self._check_stall(now, states, timeout_s)
         view = self._classify(now, states)
         self._check_estop(view)
+        self._rearm_refusing(view, states)
+        self.rearm.poll()
         if not any(self._unanswered(states, rs.robot) for rs in view.rows):
             return None
         self._count(view)
         for robot in view.unknown:
-            self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.BRAKE)
-            self.stats.unknown_brakes += 1
+            if not self.rearm.refusing(robot):
+                self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.BRAKE)
+                self.stats.unknown_brakes += 1
         self._new_episode(view)
         for rs in view.rows:
             self.round_trips.observe(rs)
@@ -411,7 +439,8 @@ class Bridge:
             flags = row_flags(controller_flags, view.ages[i] + late_s, bool(finite[i]),
                               rs.msg.status, self.config.stale_after_s)
             self.stats.nonfinite_brakes += not finite[i]
-            self.stats.rearms += bool(flags & CmdFlags.STOP)
+            if flags & CmdFlags.STOP:
+                self._rearm(rs)
             if flags & (CmdFlags.BRAKE | CmdFlags.STOP):
                 commands[i] = 0.0
             msg = self.link.send_command(rs.robot, commands[i], self.config.ttl_ms, flags,
@@ -449,7 +478,7 @@ class Bridge:
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,
                 "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
                 "command_delay_s": self.round_trips.bound_s(),
-                "round_trip_ms": self.round_trips.summary()}
+                "round_trip_ms": self.round_trips.summary(), **self.rearm.summary()}
 
     def close(self) -> None:
         self.link.close()

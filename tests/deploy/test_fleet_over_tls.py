@@ -75,6 +75,7 @@ def check(report: dict, controller: dict, router: dict, attempts: dict) -> None:
     assert report["rejects"] == {} and report["ignored_without_controller"] == 0
     assert controller["rejects"] == {} and controller["estops"] == 0
     assert controller["robot_counts"] == [[0, ROBOTS]]
+    assert controller["rearm_alarms"] == 0 and controller["refusing"] == []
     assert router["counting"] and list(router["denied"]) == ["r1"]   # the intruder, no one else
     denied = router["denied"]["r1"]     # measured: all 140, 20 on each key
     keys = [f"robot/r{i}/cmd" for i in range(ROBOTS)] + ["estop", "robot/r0/state"]
