@@ -15,7 +15,7 @@ own ``print``, Zenoh's other targets) through to where fd 1 pointed before. Zeno
 subscriber is process-wide and installed once (:func:`install_log`, without colour codes); one
 tap at a time. Cost: each line costs Zenoh a format and a pipe write and the reader a Python
 call; a reader that falls behind fills the pipe (1 MiB) and Zenoh's threads then wait on it
-(measured under a flood: README, fleet security).
+(measured under a flood: README, *What the router refuses is counted*).
 """
 
 from __future__ import annotations
