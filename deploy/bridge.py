@@ -23,7 +23,9 @@ own fresh velocity) when its state is older than ``stale_after_s`` when the comm
 (the controller's own time counts) or not finite, whatever the controller said; otherwise the controller's row, or BRAKE for every row when the controller
 raises, returns a wrong shape or a non-finite value (counted). A fresh row whose robot reports
 FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at rest until a
-command without STOP).
+command without STOP). A robot that leaves ``rearm_alarm_after`` re-arms in a row unanswered
+refuses its commands (:mod:`deploy.rearm_watch`: an alarm is logged): not a row but silent, an
+obstacle, its STATEs answered with STOP until one comes without FAULT.
 
 Fleet e-stop (latched, reason 1 = ``ESTOP_STALE_PICTURE``; an operator clears it): raised when
 any single live robot has been silent longer than ``estop_after_s`` while the bridge runs,
@@ -76,46 +78,27 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from deploy.bridge_timing import MIN_ROUND_TRIPS, RoundTrips, TickClock, UplinkExcess
 from deploy.network import TransportConfig
+from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
+from deploy.rearm_watch import REARM_ALARM_AFTER, RearmWatch, check_threshold
 from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState
-from deploy.wire import CmdFlags, CmdMsg, RobotRegistry, StateStatus
+from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.fleet import FleetState, SilentRobots
 
 log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
 ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
-ESTOP_OPERATOR = 2       # reason code of an e-stop an operator engaged (formation estop)
-DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
-MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
 NO_FLAGS = CmdFlags(0)
 LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
-
-
-class TickClock:
-    """Sim time of a lock-stepped fleet [ns]: ``period_s`` per :meth:`advance` (one answered
-    burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``."""
-
-    def __init__(self, period_s: float):
-        self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s
-        self._ticks = 1
-        self._lock = threading.Lock()
-
-    def __call__(self) -> int:
-        with self._lock:
-            return self._ticks * self.period_ns
-
-    def advance(self) -> None:
-        with self._lock:
-            self._ticks += 1
 
 
 @dataclass(frozen=True)
@@ -130,7 +113,9 @@ class BridgeConfig:
     (module docstring) and lossless; delay_percentile, delay_window: the command delay
     bound is this percentile of the last delay_window round trips; shared_clock: the robots
     stamp their STATEs on this host's monotonic clock, so one sent more than 100 ms ahead of it
-    is refused (FROM_FUTURE); None: when every endpoint of the transport is on loopback."""
+    is refused (FROM_FUTURE); None: when every endpoint of the transport is on loopback;
+    rearm_alarm_after: re-arms in a row a robot leaves unanswered (its STATEs still FAULT) before
+    it counts as refusing its commands (:mod:`deploy.rearm_watch`)."""
 
     ttl_ms: int = 150
     stale_after_s: float = 0.15
@@ -143,8 +128,10 @@ class BridgeConfig:
     delay_percentile: float = 99.0
     delay_window: int = 256
     shared_clock: bool | None = None
+    rearm_alarm_after: int = REARM_ALARM_AFTER
 
     def __post_init__(self) -> None:
+        check_threshold(self.rearm_alarm_after)
         if self.episode_ticks is not None and (isinstance(self.episode_ticks, bool) or not isinstance(
                 self.episode_ticks, int) or self.episode_ticks < 1):
             raise ValueError(f"episode_ticks must be a positive integer or None, got {self.episode_ticks!r}")
@@ -175,90 +162,6 @@ def row_flags(controller_flags: CmdFlags, age_s: float, finite: bool, status: St
     if status & StateStatus.FAULT:
         return controller_flags | CmdFlags.STOP
     return controller_flags
-
-
-class UplinkExcess:
-    """Per robot, how much longer a state took than the fastest transfer seen [ns].
-
-    ``receive - send_time_ns`` is the uplink delay plus the (unknown, constant) offset between
-    the robot's clock and ours; its running minimum, allowed to creep up by DRIFT_ALLOWANCE for
-    clocks that run at different rates, estimates the offset plus the fastest transfer. A new
-    epoch (the robot restarted, maybe its clock too) starts over."""
-
-    def __init__(self) -> None:
-        self._floor: dict[str, tuple[int, float, int]] = {}  # robot -> (epoch, floor, when)
-
-    def excess_ns(self, rs: ReceivedState) -> float:
-        offset = rs.receive_time_ns - rs.msg.send_time_ns
-        prev = self._floor.get(rs.robot)
-        if prev is None or prev[0] != rs.msg.epoch:
-            floor = float(offset)
-        else:
-            floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, rs.receive_time_ns - prev[2]), offset)
-        self._floor[rs.robot] = (rs.msg.epoch, floor, rs.receive_time_ns)
-        return offset - floor
-
-
-class RoundTrips:
-    """Command round trips on the bridge's clock: CMD sent -> first STATE whose ``last_cmd_seq``
-    names it [ns]; :meth:`bound_s` is the configured percentile of the recent ones."""
-
-    KEEP = 64  # send times kept per robot
-
-    def __init__(self, window: int, percentile: float):
-        self.percentile = percentile
-        self.samples: deque[int] = deque(maxlen=window)
-        self._sent: dict[str, dict[int, int]] = {}
-        self._matched: dict[str, int] = {}
-        self._bound: float | None = None
-
-    def sent(self, robot: str, msg: CmdMsg) -> None:
-        sent = self._sent.setdefault(robot, {})
-        sent[msg.seq] = msg.send_time_ns
-        if len(sent) > self.KEEP:
-            del sent[next(iter(sent))]
-
-    def observe(self, rs: ReceivedState) -> None:
-        seq = rs.msg.last_cmd_seq
-        if not seq or self._matched.get(rs.robot) == seq:
-            return
-        self._matched[rs.robot] = seq
-        sent = self._sent.get(rs.robot, {}).get(seq)
-        if sent is not None and rs.receive_time_ns >= sent:
-            self.samples.append(rs.receive_time_ns - sent)
-            self._bound = None
-
-    def pending(self, robot: str, last_cmd_seq: int) -> int:
-        """Commands sent to ``robot`` after the one its state says it acted on (the
-        ``FleetState.commands_pending`` of its row); -1 when that one is not among the kept
-        send times (none yet, forgotten after a stall, or older than ``KEEP`` commands)."""
-        sent = self._sent.get(robot)
-        if not last_cmd_seq or not sent or last_cmd_seq not in sent:
-            return -1
-        count = 0
-        for seq in reversed(sent):
-            if seq <= last_cmd_seq:
-                return count
-            count += 1
-        return count
-
-    def forget_sent(self) -> None:
-        """Commands sent before a stall cannot time a round trip: drop their send times."""
-        self._sent.clear()
-
-    def bound_s(self) -> float | None:
-        if len(self.samples) < MIN_ROUND_TRIPS:
-            return None
-        if self._bound is None:
-            self._bound = float(np.percentile(self.samples, self.percentile)) / 1e9
-        return self._bound
-
-    def summary(self) -> dict[str, float] | None:
-        if not self.samples:
-            return None
-        ms = np.asarray(self.samples, dtype=np.float64) / 1e6
-        return {"count": len(ms), "p50": float(np.percentile(ms, 50)),
-                "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
 
 @dataclass
@@ -333,6 +236,7 @@ class Bridge:
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
         self._reject_log = RejectLog(f"bridge {fleet}", self.link.rejects.snapshot)
+        self.rearm = RearmWatch(f"bridge {fleet}", config.rearm_alarm_after)
         self._silence: tuple[str, float] | None = None   # the longest-silent live robot, last tick
         self.link.on_operator = self.operator_request
         self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
@@ -406,8 +310,11 @@ class Bridge:
             silence = min(age, (now - since) / 1e9)
             if view.silence is None or silence > view.silence[1]:
                 view.silence = (robot, silence)
-            if rs is not None and _key(rs) != self._discard.get(robot):
+            usable = rs is not None and _key(rs) != self._discard.get(robot)
+            if usable:
                 self._discard.pop(robot, None)
+                self.rearm.state(robot, rs.msg.status)
+            if usable and not self.rearm.refusing(robot):
                 view.rows.append(rs)
                 view.ages.append(age)
             else:
@@ -428,30 +335,11 @@ class Bridge:
         self.stats.estop_robot, self.stats.estop_silence_s = robot, float(silence)
 
     def operator_request(self, request: str) -> dict:
-        """An operator's e-stop request (``formation estop``): ``engage`` latches it at once;
-        ``release`` clears it only while no live robot is silent past ``estop_after_s`` (the rule
-        that raises it would raise it again); ``status`` reports. Returns the JSON-able answer."""
-        silence = self._silence
-        status = {"estop": "engaged" if self.link.estop_engaged else "released",
-                  "silent_robot": None if silence is None else silence[0],
-                  "silence_s": None if silence is None else round(float(silence[1]), 3)}
+        """An operator's e-stop request (``formation estop``), answered on a Zenoh thread by
+        :func:`deploy.operator_channel.operator_answer` with the silence seen last tick."""
         if request == "engage":
-            log.warning("operator: raising the fleet e-stop")
-            self.link.raise_estop(ESTOP_OPERATOR)
             self.stats.estops += 1
-            return {"ok": True, **status, "estop": "engaged"}
-        if request == "release":
-            if silence is not None and silence[1] > self.config.estop_after_s:
-                return {"ok": False, **status, "reason": f"robot {silence[0]} has been silent for "
-                        f"{silence[1]:.2f} s (> estop_after_s {self.config.estop_after_s} s): bring it "
-                        "back or take it off the link first"}
-            if self.link.estop_engaged:
-                log.warning("operator: releasing the fleet e-stop")
-                self.link.clear_estop()
-            return {"ok": True, **status, "estop": "released"}
-        if request == "status":
-            return {"ok": True, **status}
-        return {"ok": False, **status, "reason": f"unknown request {request!r}: engage, release or status"}
+        return operator_answer(request, self.link, self._silence, self.config.estop_after_s)
 
     def _fleet_state(self, view: _View) -> FleetState:
         rows = [rs.msg for rs in view.rows]
@@ -502,6 +390,20 @@ class Bridge:
             if self.on_episode is not None:
                 self.on_episode(episode)
 
+    def _rearm(self, rs: ReceivedState) -> None:
+        self.stats.rearms += 1
+        self.rearm.rearmed(rs.robot, rs.msg.last_cmd_seq)
+
+    def _rearm_refusing(self, view: _View, states: Mapping[str, ReceivedState]) -> None:
+        """Answer each new STATE of a robot that refuses its commands with STOP, its re-arm."""
+        for robot in view.unknown:
+            if self.rearm.refusing(robot) and self._unanswered(states, robot):
+                rs = states[robot]
+                self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.STOP,
+                                       state_seq=rs.msg.seq)
+                self._answered[robot] = _key(rs)
+                self._rearm(rs)
+
     # ------------------------------------------------------------------ one tick
     def step(self, timeout_s: float = 0.1) -> TickRecord | None:
         """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
@@ -514,12 +416,15 @@ class Bridge:
         self._check_stall(now, states, timeout_s)
         view = self._classify(now, states)
         self._check_estop(view)
+        self._rearm_refusing(view, states)
+        self.rearm.poll()
         if not any(self._unanswered(states, rs.robot) for rs in view.rows):
             return None
         self._count(view)
         for robot in view.unknown:
-            self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.BRAKE)
-            self.stats.unknown_brakes += 1
+            if not self.rearm.refusing(robot):
+                self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.BRAKE)
+                self.stats.unknown_brakes += 1
         self._new_episode(view)
         for rs in view.rows:
             self.round_trips.observe(rs)
@@ -534,7 +439,8 @@ class Bridge:
             flags = row_flags(controller_flags, view.ages[i] + late_s, bool(finite[i]),
                               rs.msg.status, self.config.stale_after_s)
             self.stats.nonfinite_brakes += not finite[i]
-            self.stats.rearms += bool(flags & CmdFlags.STOP)
+            if flags & CmdFlags.STOP:
+                self._rearm(rs)
             if flags & (CmdFlags.BRAKE | CmdFlags.STOP):
                 commands[i] = 0.0
             msg = self.link.send_command(rs.robot, commands[i], self.config.ttl_ms, flags,
@@ -572,7 +478,7 @@ class Bridge:
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,
                 "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
                 "command_delay_s": self.round_trips.bound_s(),
-                "round_trip_ms": self.round_trips.summary()}
+                "round_trip_ms": self.round_trips.summary(), **self.rearm.summary()}
 
     def close(self) -> None:
         self.link.close()
@@ -584,5 +490,5 @@ class Bridge:
         self.close()
 
 
-__all__ = ["Bridge", "BridgeConfig", "BridgeStats", "Controller", "RoundTrips", "TickClock",
-           "TickRecord", "UplinkExcess", "row_flags"]
+__all__ = ["ESTOP_OPERATOR", "ESTOP_STALE_PICTURE", "Bridge", "BridgeConfig", "BridgeStats",
+           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "row_flags"]

@@ -21,8 +21,9 @@ a robot its own command, the e-stop and the controller's token. A robot's certif
 therefore neither command another robot, nor forge another robot's state, nor raise or release
 the e-stop, nor pose as the controller (the controller's token is the controller's). The
 enforcement is on the router: clients do not route for each other, so no link bypasses it.
-Zenoh logs what its access control denies (``RUST_LOG=zenoh=debug``); the nodes themselves count
-what still arrives malformed or stale (``rejects``).
+The router counts what its access control denies and the links TLS refuses, from Zenoh's own log
+(:mod:`deploy.access_log`; the denials are TRACE lines); the nodes themselves count what still
+arrives malformed or stale (``rejects``).
 """
 
 from __future__ import annotations

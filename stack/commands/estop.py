@@ -1,5 +1,5 @@
 """`formation estop`: an operator engages, releases or queries the fleet e-stop of a running
-`formation bridge` (deploy/bridge.py ``operator_request``).
+`formation bridge` (deploy/operator_channel.py ``operator_answer``).
 
     formation estop --fleet lab --engage  --connect tcp/127.0.0.1:7447
     formation estop --fleet lab --release --connect tcp/127.0.0.1:7447

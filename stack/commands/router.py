@@ -4,17 +4,26 @@ Only the controller's certificate may command robots or touch the e-stop; robot 
 publish only its own state and token (deploy/security.py). Runs until Ctrl-C / SIGTERM.
 
     formation router --fleet f1 --scenario paper-5 --certs certs --listen tls/0.0.0.0:7447
+
+What it refuses is counted from Zenoh's own log (deploy/access_log.py): messages its access
+control denied, by sender, kind and key, and TLS links it refused, by reason; new ones are logged
+at most once a second on stderr, and the totals printed as JSON on exit (and written to --report):
+"denied" and "withheld" {identity: {"<kind> <key>": n}}, "refused_links" {reason: n}, "counting".
+--no-count turns the counting off (it routes this process's stdout through a pipe and costs a
+log line per routed message; README, fleet security).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
+from pathlib import Path
 
 import zenoh
 
-from deploy.fleet_sim import robot_names
+from deploy.fleet_sim import robot_names, write_json
 from deploy.router import Router, router_config
 from sim.scenario import make_scenario
 
@@ -29,6 +38,9 @@ def register(sub) -> None:
     p.add_argument("--listen", action="append", default=[], metavar="tls/HOST:PORT",
                    help="endpoint to listen on (default tls/127.0.0.1:7447); repeat for several")
     p.add_argument("--lease-ms", type=int, default=None, help="link lease [ms] (Zenoh default 10000)")
+    p.add_argument("--report", type=Path, default=None, help="write the JSON exit report here too")
+    p.add_argument("--no-count", dest="count", action="store_false",
+                   help="do not count denied messages and refused links")
     p.set_defaults(func=run)
 
 
@@ -37,7 +49,7 @@ def run(args) -> int:
         robots = (args.robots.split(",") if args.robots
                   else robot_names(make_scenario(args.scenario).num_robots))
         config = router_config(args.fleet, robots, args.certs, args.listen or ["tls/127.0.0.1:7447"],
-                               args.lease_ms)
+                               args.lease_ms, args.count)
         router = Router(config)
     except (ValueError, OSError, zenoh.ZError) as err:
         print(f"error: {err}", file=sys.stderr)
@@ -48,4 +60,8 @@ def run(args) -> int:
           file=sys.stderr, flush=True)
     with router:
         router.serve()
+    summary = router.summary()      # after close: the tap has given stdout back
+    if args.report:
+        write_json(args.report, summary)
+    print(json.dumps(summary), flush=True)
     return 0

@@ -266,6 +266,8 @@ def test_a_starved_bridge_discards_its_old_picture_and_rearms_without_an_estop(t
     assert summary["stalls"] == 1 and len(stalls) == 1 and summary["longest_stall_s"] > 1.0
     assert summary["estops"] == 0 and not summary["estop_engaged"]
     assert summary["rearms"] >= 3
+    assert summary["rearm_alarms"] == 0 and summary["refusing"] == []   # each re-arm answered
+    assert max(summary["rearms_in_a_row"].values()) < summary["rearm_alarm_after"]
     modes = [t["modes"] for t in result["trace"]]
     latched = next(i for i, m in enumerate(modes) if m == ["latched"] * 3)
     assert any(m == ["run"] * 3 for m in modes[latched:])   # driving again after the re-arm

@@ -8,7 +8,8 @@ robot, an e-stop and a forged state of r0; one with a self-signed "controller" c
 with none try to link. None gets a message to a node: the fleet completes with nothing rejected
 (a forged command with a fresh epoch that reached a robot would have retired the controller's
 epoch, and every genuine command after it would read STALE; a forged e-stop would have stopped
-the fleet).
+the fleet). The router's exit report counts what it refused: the intruder's puts under r1, the two
+links by reason, nothing of the controller or the fleet.
 """
 
 from __future__ import annotations
@@ -35,11 +36,12 @@ ROBOTS = 5
 def run_fleet(tmp_path: Path, listen: str, sim_to: str, bridge_to: str, intruders, prefix=None) -> tuple:
     """Router (listening on ``listen``), fleet-sim and bridge (connecting to ``sim_to`` and
     ``bridge_to``), each under ``prefix(role)`` (e.g. ``ip netns exec``); ``intruders()`` runs
-    once the bridge has answered 10 ticks. Returns (fleet-sim report, bridge report, attempts)."""
+    once the bridge has answered 10 ticks. Returns (fleet-sim report, bridge report, router
+    report, attempts)."""
     certs = tmp_path / "certs"
     wrap = prefix or (lambda role: ())
     router = Proc("router", "--fleet", "t", "--scenario", "paper-5", "--certs", str(certs),
-                  "--listen", listen, prefix=wrap("router"))
+                  "--listen", listen, "--report", str(tmp_path / "router.json"), prefix=wrap("router"))
     time.sleep(1.0)
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--ticks", "150",
                "--report", str(tmp_path / "sim.json"), "--certs", str(certs), "--connect", sim_to,
@@ -53,6 +55,8 @@ def run_fleet(tmp_path: Path, listen: str, sim_to: str, bridge_to: str, intruder
         assert sim.finish() == 0, "".join(sim.stderr)
         bridge.proc.send_signal(signal.SIGTERM)      # the fleet is done: the clean shutdown path
         bridge.finish()
+        router.proc.send_signal(signal.SIGTERM)
+        assert router.finish() == 0, "".join(router.stderr)
     finally:
         for p in (sim, bridge, router):
             if p.proc.poll() is None:
@@ -61,16 +65,23 @@ def run_fleet(tmp_path: Path, listen: str, sim_to: str, bridge_to: str, intruder
                     p.proc.wait(timeout=10)
                 except subprocess.TimeoutExpired:
                     p.proc.kill()
-    reports = [json.loads((tmp_path / f"{n}.json").read_text()) for n in ("sim", "bridge")]
+    reports = [json.loads((tmp_path / f"{n}.json").read_text()) for n in ("sim", "bridge", "router")]
     return (*reports, attempts)
 
 
-def check(report: dict, controller: dict, attempts: dict) -> None:
+def check(report: dict, controller: dict, router: dict, attempts: dict) -> None:
     assert attempts == {"messages": 20 * (ROBOTS + 2), "links_refused": 2}
     assert_task_done(report)
     assert report["rejects"] == {} and report["ignored_without_controller"] == 0
     assert controller["rejects"] == {} and controller["estops"] == 0
     assert controller["robot_counts"] == [[0, ROBOTS]]
+    assert controller["rearm_alarms"] == 0 and controller["refusing"] == []
+    assert router["counting"] and list(router["denied"]) == ["r1"]   # the intruder, no one else
+    denied = router["denied"]["r1"]     # measured: all 140, 20 on each key
+    keys = [f"robot/r{i}/cmd" for i in range(ROBOTS)] + ["estop", "robot/r0/state"]
+    assert sorted(denied) == sorted(f"Put formation/t/{k}" for k in keys)
+    assert sum(denied.values()) <= attempts["messages"]
+    assert sum(router["refused_links"].values()) == 2
 
 
 def make_fleet_certs(tmp_path: Path, *hosts: str) -> None:
@@ -83,10 +94,10 @@ def make_fleet_certs(tmp_path: Path, *hosts: str) -> None:
 def test_the_fleet_completes_through_the_router_while_intruders_try_to_command_it(tmp_path):
     make_fleet_certs(tmp_path)
     endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
-    report, controller, attempts = run_fleet(
+    *reports, attempts = run_fleet(
         tmp_path, endpoint, endpoint, endpoint,
         lambda: intrude("t", ROBOTS, endpoint, str(tmp_path / "certs"), str(tmp_path / "rogue")))
-    check(report, controller, attempts)
+    check(*reports, attempts)
 
 
 # one namespace per host, each joined to the router's by a veth pair (a /30 of its own)
@@ -153,7 +164,7 @@ def test_across_hosts_the_fleet_completes_through_the_router_and_intruders_move_
         assert out.returncode == 0, out.stderr
         return json.loads(out.stdout.strip().splitlines()[-1])
 
-    report, controller, attempts = run_fleet(
+    *reports, attempts = run_fleet(
         tmp_path, f"tls/0.0.0.0:{port}", endpoint["sim"], endpoint["ctrl"], intruders,
         prefix=lambda role: ("ip", "netns", "exec", hosts[role]))
-    check(report, controller, attempts)
+    check(*reports, attempts)

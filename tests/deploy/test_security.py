@@ -126,3 +126,45 @@ def test_only_the_operator_and_the_controller_reach_the_operator_channel(certs):
         assert ask("operator") == [b"answered"]
         assert ask("r1") == []
         del queryable
+
+
+def _refused_links(router, at_least: int, timeout_s: float = 5.0) -> dict:
+    """The router's report once it counts ``at_least`` refused links (the TLS warning follows the
+    client's error by a moment), or after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while sum(router.summary()["refused_links"].values()) < at_least and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return router.summary()
+
+
+def test_the_router_counts_what_it_refuses_and_nothing_of_the_controller(certs):
+    """A forged command, state and e-stop from robot r1's (valid) certificate are denied and
+    counted under r1 with their keys; a self-signed "controller" and a client without a
+    certificate are refused links, counted by reason; the genuine controller counts nothing."""
+    folder, rogue = certs
+    port = free_tcp_port()
+    config = RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), (f"tls/127.0.0.1:{port}",))
+    with Router(config) as router:
+        assert router.counting
+        got = exchange(folder, port)
+        before = router.summary()
+        with pytest.raises(zenoh.ZError):                 # does not trust the router
+            client(rogue, CONTROLLER, port)
+        forged = NodeFiles(folder / "ca.pem", rogue / "controller.pem", rogue / "controller.key")
+        with pytest.raises(zenoh.ZError):                 # trusts it, but the router not it
+            TransportConfig(connect=(f"tls/127.0.0.1:{port}",), mode="client", tls=forged).open()
+        plain = zenoh.Config()
+        plain.insert_json5("mode", '"client"')
+        plain.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(plain)
+        after = _refused_links(router, 3)
+    assert got["r0_cmd"] == [b"genuine"]
+    assert before["refused_links"] == {}
+    assert after["denied"] == before["denied"]            # a refused link sends no message
+    assert set(after["denied"]) == {"r1"}                 # nothing of the controller, nor of r0
+    assert after["denied"]["r1"]["Put formation/sec/robot/r0/cmd"] == 1
+    assert after["denied"]["r1"]["Put formation/sec/estop"] == 1
+    assert after["withheld"] == {}
+    assert sum(after["refused_links"].values()) == 3        # one line each, by reason
+    assert after["refused_links"].get("invalid peer certificate: BadSignature") == 1

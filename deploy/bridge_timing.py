@@ -1,0 +1,123 @@
+"""How the bridge (:mod:`deploy.bridge`) keeps time: lock-step sim time (:class:`TickClock`), how
+much longer a state took than the fastest transfer (:class:`UplinkExcess`, part of its state age)
+and command round trips from the wire (:class:`RoundTrips`, the command delay bound and the
+commands in flight). The rules they serve are in :mod:`deploy.bridge`'s docstring.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+import numpy as np
+
+from deploy.transport import ReceivedState
+from deploy.wire import CmdMsg
+
+DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
+MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
+
+
+class TickClock:
+    """Sim time of a lock-stepped fleet [ns]: ``period_s`` per :meth:`advance` (one answered
+    burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``."""
+
+    def __init__(self, period_s: float):
+        self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s
+        self._ticks = 1
+        self._lock = threading.Lock()
+
+    def __call__(self) -> int:
+        with self._lock:
+            return self._ticks * self.period_ns
+
+    def advance(self) -> None:
+        with self._lock:
+            self._ticks += 1
+
+
+class UplinkExcess:
+    """Per robot, how much longer a state took than the fastest transfer seen [ns].
+
+    ``receive - send_time_ns`` is the uplink delay plus the (unknown, constant) offset between
+    the robot's clock and ours; its running minimum, allowed to creep up by DRIFT_ALLOWANCE for
+    clocks that run at different rates, estimates the offset plus the fastest transfer. A new
+    epoch (the robot restarted, maybe its clock too) starts over."""
+
+    def __init__(self) -> None:
+        self._floor: dict[str, tuple[int, float, int]] = {}  # robot -> (epoch, floor, when)
+
+    def excess_ns(self, rs: ReceivedState) -> float:
+        offset = rs.receive_time_ns - rs.msg.send_time_ns
+        prev = self._floor.get(rs.robot)
+        if prev is None or prev[0] != rs.msg.epoch:
+            floor = float(offset)
+        else:
+            floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, rs.receive_time_ns - prev[2]), offset)
+        self._floor[rs.robot] = (rs.msg.epoch, floor, rs.receive_time_ns)
+        return offset - floor
+
+
+class RoundTrips:
+    """Command round trips on the bridge's clock: CMD sent -> first STATE whose ``last_cmd_seq``
+    names it [ns]; :meth:`bound_s` is the configured percentile of the recent ones."""
+
+    KEEP = 64  # send times kept per robot
+
+    def __init__(self, window: int, percentile: float):
+        self.percentile = percentile
+        self.samples: deque[int] = deque(maxlen=window)
+        self._sent: dict[str, dict[int, int]] = {}
+        self._matched: dict[str, int] = {}
+        self._bound: float | None = None
+
+    def sent(self, robot: str, msg: CmdMsg) -> None:
+        sent = self._sent.setdefault(robot, {})
+        sent[msg.seq] = msg.send_time_ns
+        if len(sent) > self.KEEP:
+            del sent[next(iter(sent))]
+
+    def observe(self, rs: ReceivedState) -> None:
+        seq = rs.msg.last_cmd_seq
+        if not seq or self._matched.get(rs.robot) == seq:
+            return
+        self._matched[rs.robot] = seq
+        sent = self._sent.get(rs.robot, {}).get(seq)
+        if sent is not None and rs.receive_time_ns >= sent:
+            self.samples.append(rs.receive_time_ns - sent)
+            self._bound = None
+
+    def pending(self, robot: str, last_cmd_seq: int) -> int:
+        """Commands sent to ``robot`` after the one its state says it acted on (the
+        ``FleetState.commands_pending`` of its row); -1 when that one is not among the kept
+        send times (none yet, forgotten after a stall, or older than ``KEEP`` commands)."""
+        sent = self._sent.get(robot)
+        if not last_cmd_seq or not sent or last_cmd_seq not in sent:
+            return -1
+        count = 0
+        for seq in reversed(sent):
+            if seq <= last_cmd_seq:
+                return count
+            count += 1
+        return count
+
+    def forget_sent(self) -> None:
+        """Commands sent before a stall cannot time a round trip: drop their send times."""
+        self._sent.clear()
+
+    def bound_s(self) -> float | None:
+        if len(self.samples) < MIN_ROUND_TRIPS:
+            return None
+        if self._bound is None:
+            self._bound = float(np.percentile(self.samples, self.percentile)) / 1e9
+        return self._bound
+
+    def summary(self) -> dict[str, float] | None:
+        if not self.samples:
+            return None
+        ms = np.asarray(self.samples, dtype=np.float64) / 1e6
+        return {"count": len(ms), "p50": float(np.percentile(ms, 50)),
+                "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
+
+
+__all__ = ["DRIFT_ALLOWANCE", "MIN_ROUND_TRIPS", "RoundTrips", "TickClock", "UplinkExcess"]
