@@ -43,14 +43,17 @@ ACL_SEEN_TIMEOUT_S = 2.0  # [s] how long the router waits to see Zenoh's log rep
 class RouterConfig:
     """fleet: fleet name; robots: robot ids the access control knows; certs: the router's
     files; listen: ``tls/...`` endpoints; lease_ms: link lease (None: Zenoh's 10 s); count: count
-    what the router refuses (module docstring; this process's fd 1 then passes through a pipe)."""
+    what the router refuses (module docstring; this process's fd 1 then passes through a pipe,
+    and Zenoh's log formatter stays installed for the rest of the process, writing to fd 1: off
+    by default here, where the process is someone else's; ``formation router``, a process of its
+    own, turns it on)."""
 
     fleet: str
     robots: tuple[str, ...]
     certs: NodeFiles
     listen: tuple[str, ...] = ("tls/127.0.0.1:7447",)
     lease_ms: int | None = None
-    count: bool = True
+    count: bool = False
 
     def __post_init__(self) -> None:
         check_name(self.fleet)

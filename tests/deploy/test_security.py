@@ -143,7 +143,8 @@ def test_the_router_counts_what_it_refuses_and_nothing_of_the_controller(certs):
     certificate are refused links, counted by reason; the genuine controller counts nothing."""
     folder, rogue = certs
     port = free_tcp_port()
-    config = RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), (f"tls/127.0.0.1:{port}",))
+    config = RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), (f"tls/127.0.0.1:{port}",),
+                          count=True)
     with Router(config) as router:
         assert router.counting
         got = exchange(folder, port)
