@@ -91,6 +91,9 @@ class Docking:
             self._docking.clear()
             return a_nom, docking
         dist = np.linalg.norm(pos[:, None] - targets[None], axis=-1)           # (robot, target)
+        if (dist.min(axis=1) >= cfg.release_radius).all():   # no robot near any target: the
+            self._docking.clear()                            # assignment cannot make one dock
+            return a_nom, docking
         _, match = linear_sum_assignment(dist)                                 # rows come sorted
         gap = dist[np.arange(n), match]
         near = dist[:, match].T < 2 * self.radius + cfg.free_margin            # (target of i, robot)
