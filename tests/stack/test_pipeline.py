@@ -172,7 +172,7 @@ def test_a_robot_that_acts_on_no_new_command_is_braked_though_its_state_is_fresh
 def test_a_repeated_state_is_no_news_and_a_robot_away_keeps_its_last_state():
     """A dropped update repeats the old measurement with a larger age: the MEC must not take it
     again; a robot missing from a tick and back with a non-finite state stands in at its last one."""
-    from stack.pipeline import LastKnown
+    from stack.last_known import LastKnown
 
     known = LastKnown()
     ids, pos, vel = ("a", "b"), np.array([[0.1, 0.2], [0.3, 0.4]]), np.array([[0.1, 0.0], [0.0, 0.1]])
