@@ -391,6 +391,7 @@ def test_a_bridge_sends_lossless_once_the_fleet_says_it_is_lock_stepped(fleet):
     assert bridge.step(timeout_s=0.5) is not None
     assert bridge.link.lossless and bridge.summary()["lossless"]
     assert all(p.congestion_control == zenoh.CongestionControl.BLOCK for p in bridge.link._cmd_publishers.values())
+    assert links[0].wait_for(lambda: links[0].latest_command is not None, 5.0)  # arrives async
     seq = links[0].latest_command.msg.seq
     _tick(bridge, links, links)                      # the new publishers reach the robots
     assert links[0].wait_for(lambda: links[0].latest_command.msg.seq > seq, 5.0)
