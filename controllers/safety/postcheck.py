@@ -125,13 +125,14 @@ def excuses(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, brake: np.ndarray
             dynamics: Dynamics) -> tuple[np.ndarray, np.ndarray]:
     """``(pair_ok (P,), wall_ok (N, 4))``: the pairs ``pi, pj`` and robot-walls whose command
     ``acc`` is no worse than ``brake`` (module docstring); shared by both sweep paths."""
-    dt = dynamics.dt
-    diff = clip_norm(acc, dynamics.accel_limit) - clip_norm(brake, dynamics.accel_limit)
-    free = below_speed_limit(vel, acc, dynamics) & below_speed_limit(vel, brake, dynamics)
+    dt, limit = dynamics.dt, dynamics.accel_limit
+    a_cmd, a_brake = clip_norm(acc, limit), clip_norm(brake, limit)
+    diff = a_cmd - a_brake
+    free = _below_speed_limit(vel, a_cmd, dynamics) & _below_speed_limit(vel, a_brake, dynamics)
     wall_ok = no_worse_walls(diff) & free[:, None]
     if not len(pi):
         return np.zeros(0, dtype=bool), wall_ok
-    b = clip_norm(brake, dynamics.accel_limit) - dynamics.damping * vel
+    b = a_brake - dynamics.damping * vel
     g = 0.0 if grow is None else grow[pi] + grow[pj]
     u = 0.0 if vel_error is None else vel_error[pi] + vel_error[pj]
     slack = np.broadcast_to(g + u * dt, (len(pi),))
@@ -140,10 +141,10 @@ def excuses(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, brake: np.ndarray
     return pair_ok, wall_ok
 
 
-def below_speed_limit(vel: np.ndarray, acc: np.ndarray, dynamics: Dynamics) -> np.ndarray:
-    """(N,) bool: robots whose end-of-tick velocity needs no speed clip (module docstring)."""
-    a_eff = clip_norm(acc, dynamics.accel_limit) - dynamics.damping * vel
-    raw = vel + dynamics.dt * a_eff
+def _below_speed_limit(vel: np.ndarray, clipped_acc: np.ndarray, dynamics: Dynamics) -> np.ndarray:
+    """(N,) bool: robots whose end-of-tick velocity needs no speed clip under the (N, 2)
+    commands already clipped to the actuator limit (module docstring)."""
+    raw = vel + dynamics.dt * (clipped_acc - dynamics.damping * vel)
     return np.hypot(raw[:, 0], raw[:, 1]) <= dynamics.speed_limit
 
 

@@ -137,7 +137,7 @@ def checker_and_terms(pos, vel, n):
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 6), speed=st.floats(0.0, 0.6),
        spread=st.sampled_from([0.4, 1.0]), noisy=st.booleans())
 def test_fused_sweep_check_equals_the_sweep_checker(seed, n, speed, spread, noisy):
-    """Also with velocity error bounds, which narrow the receding rule in both paths."""
+    """Also with velocity error bounds, which narrow the post-check's no-worse-than-braking rule in both paths."""
     rng = np.random.default_rng(seed)
     pos, vel, _ = scene(rng, n, speed, spread)
     acc = rng.uniform(-1.5, 1.5, (n, 2))
