@@ -20,9 +20,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from sim import observations
+from sim.actuator import BatchedActuators
+from sim.distribution import MAX_DELAY_TICKS, ScenarioDistribution
 from sim.geometry import Frame, Polygon
 from sim.metrics import episode_outcome
 from sim.reward import RewardWeights
@@ -81,16 +84,25 @@ class BatchedFormationEnv:
         device: torch device.
         obs: ``"tokens"`` (entity tokens, any N) or ``"flat"`` (the paper's fixed-size vector).
         reward_weights: see :mod:`sim.reward`.
+        distribution: ranges to draw each episode's layout and actuator from
+            (:mod:`sim.distribution`); None: ``scenario`` as it is, a perfect actuator. The layout
+            (object, slots, direction, jitter) is one for all ``num_envs`` environments and is
+            drawn again whenever all of them restart together (their episodes run in step, so
+            at every episode's end unless some were reset alone); the actuator is drawn per
+            environment at each of its resets (:mod:`sim.actuator`). ``scenario`` gives the
+            arena, radius, tolerance, dynamics and N.
     """
 
     def __init__(self, scenario: Scenario, num_envs: int, *, seed: int | None = None,
                  device: str | torch.device = "cpu", obs: str = "tokens",
-                 reward_weights: RewardWeights = RewardWeights(), dtype: torch.dtype = torch.float32):
+                 reward_weights: RewardWeights = RewardWeights(), dtype: torch.dtype = torch.float32,
+                 distribution: ScenarioDistribution | None = None):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if obs not in ("tokens", "flat"):
             raise ValueError(f"obs must be 'tokens' or 'flat', got {obs!r}")
-        self.scenario = scenario
+        self.base_scenario = scenario
+        self.distribution = distribution
         self.num_envs = num_envs
         self.num_robots = scenario.num_robots
         self.device = torch.device(device)
@@ -102,12 +114,14 @@ class BatchedFormationEnv:
         self.arena = scenario.arena
         self.radius = scenario.robot_radius
         kw = dict(dtype=dtype, device=self.device)
-        self.polygon = Polygon(torch.as_tensor(scenario.polygon, **kw))
-        self.centroid = observations._centroid(self.polygon.vertices)
-        self._frame: Frame | None = None
-        self.start_slots = torch.as_tensor(scenario.starts, **kw)
-        self.targets = torch.as_tensor(scenario.targets, **kw).expand(num_envs, -1, -1)
-        self.rewarder = StepReward(scenario, num_envs, reward_weights, self.polygon, self.device)
+        self.rewarder: StepReward | None = None
+        self.generator = torch.Generator(device=self.device)
+        self.seed(seed)
+        self._set_layout(scenario)             # with a distribution, every reset of all draws one
+        self.actuators = None
+        if distribution is not None and distribution.varies_dynamics:
+            self.actuators = BatchedActuators(num_envs, self.num_robots, MAX_DELAY_TICKS, dtype=dtype,
+                                              device=self.device)
         e, n = num_envs, self.num_robots
         self.pos = torch.zeros(e, n, 2, **kw)
         self.vel = torch.zeros(e, n, 2, **kw)
@@ -121,10 +135,22 @@ class BatchedFormationEnv:
         none = torch.zeros(0, dtype=torch.long, device=self.device)
         self._none_finished = EpisodeStats(none, none.bool(), none.to(dtype), none.to(dtype),
                                            none, none, none, none, none.bool())
-        self.generator = torch.Generator(device=self.device)
-        self.seed(seed)
         self._lo = torch.tensor([self.radius, self.radius], **kw)
         self._hi = torch.tensor([self.arena[0] - self.radius, self.arena[1] - self.radius], **kw)
+
+    def _set_layout(self, scenario: Scenario) -> None:
+        """Object, slots and the reward's field of ``scenario`` (same N); the reward's remembered
+        state is cleared (every environment restarts) and its curriculum scale kept."""
+        kw = dict(dtype=self.dtype, device=self.device)
+        self.scenario = scenario
+        self.polygon = Polygon(torch.as_tensor(scenario.polygon, **kw))
+        self.centroid = observations._centroid(self.polygon.vertices)
+        self._frame: Frame | None = None
+        self.start_slots = torch.as_tensor(scenario.starts, **kw)
+        self.targets = torch.as_tensor(scenario.targets, **kw).expand(self.num_envs, -1, -1)
+        scale = self.rewarder.penalty_scale if self.rewarder is not None else 1.0
+        self.rewarder = StepReward(scenario, self.num_envs, self.reward_weights, self.polygon, self.device)
+        self.rewarder.penalty_scale = scale
 
     # the reward's remembered state and the curriculum's scale live in self.rewarder
     prev_near_contact = property(lambda self: self.rewarder.prev_near_contact)
@@ -140,7 +166,11 @@ class BatchedFormationEnv:
 
     # ----------------------------------------------------------------- set-up
     def seed(self, seed: int | None) -> None:
-        self.generator.manual_seed(int(seed) if seed is not None else torch.seed() % (2**63))
+        """Seed the start jitter and (with a distribution) the layout and actuator draws."""
+        seed = int(seed) if seed is not None else torch.seed() % (2**63)
+        self.generator.manual_seed(seed)
+        self._layout_rng = np.random.default_rng([seed, 1])
+        self._actuator_rng = np.random.default_rng([seed, 2])
 
     def reset(self, seed: int | None = None, env_ids: torch.Tensor | None = None):
         """Restart all (or ``env_ids``) environments; returns ``(obs, mask)`` of all environments."""
@@ -152,6 +182,11 @@ class BatchedFormationEnv:
 
     def _reset_ids(self, ids: torch.Tensor) -> None:
         k = ids.numel()
+        if self.distribution is not None and self.distribution.varies_layout and k == self.num_envs:
+            self._set_layout(self.distribution.layout(self.base_scenario, self.num_robots, self._layout_rng))
+        if self.actuators is not None:
+            self.actuators.reset(ids, *self.distribution.actuator_draw(k, self.num_robots, self.dt,
+                                                                       self._actuator_rng))
         jitter = self.scenario.start_jitter
         noise = (torch.rand(k, self.num_robots, 2, generator=self.generator, device=self.device,
                             dtype=self.dtype) * 2 - 1) * jitter
@@ -202,6 +237,8 @@ class BatchedFormationEnv:
             raise ValueError("actions contain NaN or inf; the policy output must be finite")
         dyn = self.scenario.dynamics
         a = _clip_norm(a, dyn.accel_limit)
+        if self.actuators is not None:
+            a = self.actuators(a)
         vel = _clip_norm(self.vel + self.dt * (a - dyn.damping * self.vel), dyn.speed_limit)
         pos = self.pos + self.dt * vel
         pos, vel, hit_object = self._stop_at_object(pos, vel)

@@ -61,7 +61,7 @@ def read_config(source: str | Path, what: str) -> dict:
     if not path.is_file():
         if not text.startswith("{"):
             raise ConfigFileError(f"{what}: {text!r} is neither a file nor inline JSON; give a "
-                                  ".json/.toml file or a JSON object such as '{{\"lr\": 5e-4}}'")
+                                  ".json/.toml file or a JSON object such as '{\"lr\": 5e-4}'")
         try:
             data = json.loads(text)
         except json.JSONDecodeError as err:

@@ -11,7 +11,8 @@ A checkpoint is a dict of tensors and plain Python values only::
     counters                        iteration, episodes, env_steps, last_eval_episodes, ...
     convergence                     evaluation history (ConvergenceTracker.state_dict())
     rng                             sampler and environment generator states (uint8 tensors)
-    env_state                       the training world mid-episode (so a resume is exact)
+    env_state                       the training world mid-episode (so a resume is exact), with a
+                                    distribution its layout, draw streams and actuators too
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from controllers.policy import (
 from sim.batched_env import BatchedFormationEnv
 from sim.files import atomic_path
 from sim.observations import LAYOUT_VERSION
+from sim.scenario import Scenario
 
 CHECKPOINT_FORMAT = "formation-stack/mappo"
 CHECKPOINT_VERSION = 1
@@ -156,11 +158,23 @@ def env_state_dict(env: BatchedFormationEnv) -> dict[str, torch.Tensor]:
     """Everything that defines where each episode of ``env`` stands, plus its generator state."""
     state = {name: getattr(env, name).detach().cpu().clone() for name in _ENV_TENSORS}
     state["generator"] = env.generator.get_state()
+    if env.distribution is not None:      # the layout drawn, the draws to come, the actuators
+        state["layout"] = env.scenario.to_dict()
+        state["draws"] = {"layout": env._layout_rng.bit_generator.state,
+                          "actuator": env._actuator_rng.bit_generator.state}
+        if env.actuators is not None:
+            state["actuators"] = env.actuators.state_dict()
     return state
 
 
 def load_env_state(env: BatchedFormationEnv, state: dict[str, torch.Tensor]) -> None:
     """Put ``env`` back into the state saved by :func:`env_state_dict`."""
+    if "layout" in state:                 # first: a new layout clears the reward's memory
+        env._set_layout(Scenario.from_dict(state["layout"]))
+        env._layout_rng.bit_generator.state = state["draws"]["layout"]
+        env._actuator_rng.bit_generator.state = state["draws"]["actuator"]
+        if "actuators" in state and env.actuators is not None:
+            env.actuators.load_state_dict(state["actuators"])
     for name in _ENV_TENSORS:
         current = getattr(env, name)
         if name not in state and name == "prev_near_contact":   # checkpoints from before the margin

@@ -62,6 +62,14 @@ class MAPPOConfig:
             every evaluation runs ``eval_episodes`` per size, its success rate the worst
             size's. Needs networks that run any N (``actor.variant`` typed, ``critic.variant``
             attention). ``[]``: the scenario's own N only.
+        distribution: ranges each training episode's layout and actuator are drawn from
+            (:class:`sim.distribution.ScenarioDistribution`: object size, offset and shape, the
+            formation's direction, start jitter, actuator gain, lag and command delay): a name of
+            :data:`sim.distribution.DISTRIBUTIONS` (``"broad"``), a .json/.toml file or a dict,
+            stored resolved (a dict). Each group of ``num_envs`` environments (one per team
+            size) draws a layout whenever its episodes restart, each environment its actuator.
+            Evaluations (and so convergence) stay on the scenario's own layouts.
+            None: the scenario as it is.
         num_envs: parallel environments E of the training world (per team size).
         rollout_steps: steps per environment between updates (S); a rollout holds S * E * N
             robot transitions.
@@ -141,6 +149,7 @@ class MAPPOConfig:
     critic: CriticConfig = field(default_factory=CriticConfig)
     reward_weights: dict = field(default_factory=lambda: dict(TRAINING_REWARD))
     team_sizes: list = field(default_factory=list)
+    distribution: str | dict | None = None
     num_envs: int = 16
     rollout_steps: int = 32
     gamma: float = 0.99
@@ -186,6 +195,8 @@ class MAPPOConfig:
             object.__setattr__(self, "scenario", self.build_scenario().to_dict())   # the file's content
         if isinstance(self.scenario, dict):   # stored in its JSON form, so resumes compare equal
             object.__setattr__(self, "scenario", _jsonable(self.build_scenario().to_dict()))
+        if self.distribution is not None:     # the ranges themselves, not a name or a path
+            object.__setattr__(self, "distribution", self.build_distribution().to_dict())
         self.validate()
 
     def build_scenario(self):
@@ -207,6 +218,20 @@ class MAPPOConfig:
         scenario = self.build_scenario()
         return [scenario if n == scenario.num_robots else scenario.with_robots(n)
                 for n in (self.team_sizes or [scenario.num_robots])]
+
+    def build_distribution(self):
+        """The :class:`sim.distribution.ScenarioDistribution` of this run, or None."""
+        from sim.distribution import DistributionError, load_distribution
+
+        if self.distribution is None:
+            return None
+        if not isinstance(self.distribution, str | dict):
+            raise TrainConfigError(f"distribution must be a name, a .json/.toml file or a mapping of "
+                                   f"ScenarioDistribution fields, got {self.distribution!r}")
+        try:
+            return load_distribution(self.distribution)
+        except DistributionError as exc:
+            raise TrainConfigError(str(exc)) from None
 
     def build_reward_weights(self):
         """The :class:`sim.reward.RewardWeights` of this run (defaults plus ``reward_weights``)."""
@@ -269,11 +294,28 @@ class MAPPOConfig:
             raise TrainConfigError(f"torch_threads must be an integer >= 0 (0 = leave as is), "
                                    f"got {self.torch_threads!r}")
         self._validate_team_sizes()
+        self._validate_distribution()
         if self.actor.obs_kind != self.critic.obs_kind:
             raise TrainConfigError(
                 f"actor.variant {self.actor.variant!r} reads {self.actor.obs_kind} observations but "
                 f"critic.variant {self.critic.variant!r} reads {self.critic.obs_kind}; use "
                 "critic.variant='mlp' with actor.variant='mlp', else critic.variant='attention'")
+
+    def _validate_distribution(self) -> None:
+        """Every team size must fit the distribution's layouts (one draw each, seeded)."""
+        import numpy as np
+
+        from sim.distribution import DistributionError
+
+        dist = self.build_distribution()
+        if dist is None:
+            return
+        base = self.build_scenario()
+        for n in self.team_sizes or [base.num_robots]:
+            try:
+                dist.layout(base, n, np.random.default_rng(0))
+            except DistributionError as exc:
+                raise TrainConfigError(f"distribution: {exc}") from None
 
     def _validate_team_sizes(self) -> None:
         from sim.scenario import MAX_ROBOTS

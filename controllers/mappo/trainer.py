@@ -128,9 +128,11 @@ class MAPPOTrainer:
 
         self.reward_weights = cfg.build_reward_weights()
         self.scenarios = cfg.build_team_scenarios()        # one per team size trained on
+        distribution = cfg.build_distribution()
         self.groups = [TeamGroup.start(BatchedFormationEnv(sc, cfg.num_envs, seed=cfg.seed + 7919 * k,
                                                            device=self.device, obs=cfg.obs_kind,
-                                                           reward_weights=self.reward_weights))
+                                                           reward_weights=self.reward_weights,
+                                                           distribution=distribution))
                        for k, sc in enumerate(self.scenarios)]
         self.arrival_rate = 0.0     # running fraction of training episodes ending on target
         self.iteration = self.episodes = self.env_steps = self.eval_count = self.last_eval_episodes = 0

@@ -44,6 +44,9 @@ def register(sub) -> None:
     p.add_argument("--team-sizes", type=argtypes.int_list, metavar="LIST", default=None,
                    help="train one policy on several team sizes at once, e.g. 3,4,5 or 3-5 "
                         "(team_sizes; default: the scenario's own)")
+    p.add_argument("--distribution", metavar="NAME_OR_FILE", default=None,
+                   help="draw each training episode's layout and actuator from ranges: 'broad' or a "
+                        ".json/.toml file (see `formation scenarios --show-distribution broad`)")
     p.add_argument("--init-from", metavar="CKPT", help="start from an M-robot checkpoint (transfer)")
     p.add_argument("--config", metavar="FILE_OR_JSON",
                    help="MAPPOConfig fields: a .json/.toml file or inline JSON, e.g. '{\"lr\": 5e-4}'")
@@ -61,7 +64,7 @@ def resolve_config(args) -> MAPPOConfig:
     """Defaults < ``--config`` < flags given (module docstring); raises ValueError-like errors."""
     fields = read_config(args.config, "--config") if args.config else {}
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed,
-             "init_from": args.init_from, "team_sizes": args.team_sizes}
+             "init_from": args.init_from, "team_sizes": args.team_sizes, "distribution": args.distribution}
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
         fields["stop_at_convergence"] = False

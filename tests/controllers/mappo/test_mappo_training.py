@@ -17,6 +17,7 @@ from controllers.mappo import (
 )
 from controllers.mappo.checkpoint import save_checkpoint
 from sim.batched_env import BatchedFormationEnv
+from sim.distribution import DISTRIBUTIONS
 from sim.observations import LAYOUT_VERSION
 from sim.scenario import Scenario, make_scenario
 
@@ -307,6 +308,27 @@ def test_several_team_sizes_train_side_by_side_and_resume_on_the_same_curve(tmp_
     assert rows(tmp_path / "parts" / "eval.jsonl") == evals
     with pytest.raises(TrainConfigError, match="team_sizes"):
         train(tiny(total_episodes=16, eval_interval=8, team_sizes=[2, 3, 4]), tmp_path / "parts", resume=True)
+
+
+def test_a_distribution_draws_layouts_and_actuators_and_resumes_on_the_same_curve(tmp_path):
+    """Training on the broad distribution: each group's layout changes between episodes, the
+    actuators differ per environment, the config stores the ranges, and a resume is exact."""
+    config = tiny(team_sizes=[2, 3], total_episodes=24, eval_interval=8, distribution="broad")
+    assert config.distribution == DISTRIBUTIONS["broad"].to_dict()
+    whole = MAPPOTrainer(config, tmp_path / "whole")
+    seen = set()
+    while whole.episodes < 24:
+        whole._iteration()
+        seen |= {g.env.scenario.name for g in whole.groups}
+    assert len(seen) >= 4                                  # new layouts as episodes end
+    assert float(whole.groups[0].env.actuators.gain.std()) > 0.05
+    whole.save()
+    state = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["env_state"]
+    assert [s["layout"]["name"] for s in state] == [g.env.scenario.name for g in whole.groups]
+    train(config.replace(total_episodes=8), tmp_path / "a")     # stops where a layout was just drawn
+    train(config, tmp_path / "a", resume=True)                   # ... and draws two more
+    train(config, tmp_path / "b")
+    assert rows(tmp_path / "a" / "train.jsonl") == rows(tmp_path / "b" / "train.jsonl")
 
 
 def test_the_update_draws_minibatches_of_every_team_size(tmp_path):

@@ -1,0 +1,127 @@
+"""Scenario distributions: every draw is a valid layout of the kind asked for; the training
+world draws a fresh layout when all its environments restart; errors name the field."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sim.batched_env import BatchedFormationEnv
+from sim.distribution import (
+    DIRECTIONS,
+    DISTRIBUTIONS,
+    DistributionError,
+    ScenarioDistribution,
+    load_distribution,
+    object_polygon,
+)
+from sim.scenario import make_scenario, polygon_signed_area
+
+BASE = make_scenario("paper-3")
+BROAD = DISTRIBUTIONS["broad"]
+
+
+def _signed_area(vertices) -> float:
+    return polygon_signed_area(np.asarray(vertices))
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 8), seed=st.integers(0, 2**32 - 1))
+def test_every_broad_draw_is_a_valid_layout_whose_robots_move_the_named_way(n, seed):
+    """Scenario() validates each draw (slots in the arena, off the object, apart); the direction
+    in its name is where the targets lie from the starts, across the object's centre."""
+    sc = BROAD.layout(BASE, n, np.random.default_rng(seed))
+    direction = sc.name.split("-")[0]
+    move = sc.targets.mean(0) - sc.starts.mean(0)
+    axis, sign = {"right_to_left": (0, -1), "left_to_right": (0, 1), "top_to_bottom": (1, -1),
+                  "bottom_to_top": (1, 1)}[direction]
+    assert sign * move[axis] > 0.2 and abs(move[1 - axis]) < 1e-9
+    c = sc.object_center
+    assert sign * (c[axis] - sc.starts[:, axis]).min() > 0 and sign * (sc.targets[:, axis] - c[axis]).min() > 0
+    w, h = np.ptp(sc.polygon, 0)
+    assert w <= 0.3 + 1e-6 and h <= 0.36 + 1e-6
+    if "-box-" in sc.name:                  # a polygon's vertices need not reach its box
+        assert 0.12 - 1e-6 <= w and 0.15 - 1e-6 <= h
+    assert np.abs(c - 0.5).max() <= 0.05 + 0.36 / 2       # the offset bound, plus a polygon's centroid shift
+    assert 0.0 <= sc.start_jitter <= 0.02 and sc.dynamics == BASE.dynamics
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), w=st.floats(0.05, 0.5), h=st.floats(0.05, 0.5))
+def test_polygons_are_convex_counter_clockwise_and_fill_their_box(seed, w, h):
+    rng = np.random.default_rng(seed)
+    poly = np.asarray(object_polygon("polygon", np.array([0.5, 0.5]), (w, h), rng))
+    assert 5 <= len(poly) <= 8 and _signed_area(poly) > 0
+    edges = np.roll(poly, -1, 0) - poly
+    turns = edges[:, 0] * np.roll(edges[:, 1], -1) - edges[:, 1] * np.roll(edges[:, 0], -1)
+    assert (turns > 0).all()                                     # convex: every turn to the left
+    x, y = (poly - 0.5).T
+    assert np.allclose((x / (w / 2)) ** 2 + (y / (h / 2)) ** 2, 1.0, atol=1e-4)   # on the ellipse
+
+
+def test_all_four_directions_and_both_shapes_are_drawn():
+    rng = np.random.default_rng(0)
+    names = {BROAD.layout(BASE, 4, rng).name.rsplit("-", 1)[0] for _ in range(200)}
+    assert names == {f"{d}-{s}" for d in DIRECTIONS for s in ("box", "polygon")}
+
+
+def test_the_default_distribution_is_the_preset_layout():
+    d = ScenarioDistribution()
+    assert not d.varies_layout and not d.varies_dynamics
+    sc = d.layout(BASE, 3, np.random.default_rng(0))
+    assert np.array_equal(sc.starts, BASE.starts) and np.array_equal(sc.targets, BASE.targets)
+    assert np.allclose(sc.polygon, BASE.polygon)
+
+
+def test_the_training_world_draws_a_new_layout_when_all_its_environments_restart():
+    env = BatchedFormationEnv(BASE, 4, seed=0, distribution=BROAD)
+    env.reset()
+    first = env.scenario
+    assert torch.allclose(env.targets[0], torch.as_tensor(first.targets, dtype=torch.float32))
+    env.reset(env_ids=torch.tensor([1]))                 # one alone: the layout stays
+    assert env.scenario is first
+    layouts = [first.name]
+    for _ in range(3 * BASE.dynamics.episode_steps):
+        out = env.step(torch.zeros(4, 3, 2))
+        if out.done.any():
+            assert out.done.sum() >= 3                   # env 1 restarted later, alone
+            layouts.append(env.scenario.name)
+    assert env.scenario is not first
+    dist = (env.pos - env.start_slots).abs().max()
+    assert float(dist) < 0.5                             # robots stand near the new layout's starts
+    again = BatchedFormationEnv(BASE, 4, seed=0, distribution=BROAD)
+    again.reset()
+    assert again.scenario == first                       # the seed repeats the draws
+
+
+def test_a_distribution_file_round_trips_and_bad_fields_are_named(tmp_path):
+    path = tmp_path / "d.json"
+    path.write_text(json.dumps(BROAD.to_dict()))
+    assert load_distribution(str(path)) == BROAD
+    assert load_distribution("broad") is BROAD
+    toml = tmp_path / "d.toml"
+    toml.write_text('directions = ["left_to_right"]\nobject_width = [0.1, 0.2]\n')
+    assert load_distribution(str(toml)).directions == ("left_to_right",)
+    for data, message in (({"object_width": [0.3, 0.1]}, "object_width must satisfy"),
+                          ({"directions": ["sideways"]}, r"directions: unknown choice\(s\) \['sideways'\]"),
+                          ({"directions": "left_to_right"}, "directions must be a non-empty list"),
+                          ({"delay_ticks": [0, 1.5]}, "delay_ticks must be a pair of integers"),
+                          ({"gain": [0.5, 1.0], "gain_spread": 0.6}, "gain_spread must be"),
+                          ({"colour": "red"}, r"unknown distribution field\(s\) \['colour'\]")):
+        with pytest.raises(DistributionError, match=message):
+            ScenarioDistribution.from_dict(data)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"object_offset": [0.1]}')
+    with pytest.raises(DistributionError, match="bad.json.*object_offset must be"):
+        load_distribution(str(bad))
+    with pytest.raises(DistributionError, match="broad"):
+        load_distribution("no-such-distribution")
+
+
+def test_a_distribution_that_cannot_place_the_team_says_which_fields_to_narrow():
+    huge = ScenarioDistribution(object_width=(0.8, 0.9), object_height=(0.8, 0.9))
+    with pytest.raises(DistributionError, match="narrow object_width"):
+        huge.layout(BASE, 3, np.random.default_rng(0))
