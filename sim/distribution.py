@@ -223,12 +223,14 @@ def _turn(points, degrees: float, centre: np.ndarray) -> tuple[tuple[float, floa
 DISTRIBUTIONS: dict[str, ScenarioDistribution] = {
     "none": ScenarioDistribution(),
     "broad": ScenarioDistribution(
-        object_width=(0.12, 0.3), object_height=(0.15, 0.36), object_offset=(0.05, 0.05),
-        object_shapes=("box", "polygon"), directions=tuple(DIRECTIONS), start_jitter=(0.0, 0.02),
-        gain=(0.7, 1.2), gain_spread=0.1, lag_tau=(0.0, 0.1), delay_ticks=(0, 2)),
+        object_width=(0.1, 0.4), object_height=(0.1, 0.4), object_offset=(0.05, 0.05),
+        object_shapes=SHAPES, directions=tuple(DIRECTIONS), start_jitter=(0.0, 0.02),
+        gain=(0.6, 1.2), gain_spread=0.1, lag_tau=(0.0, 0.1), delay_ticks=(0, 3)),
 }
-"""Named distributions: ``none`` (the preset layout, a perfect actuator) and ``broad`` (every
-knob varied within what the 1 x 1 arena and the robots' limits allow for up to 8 robots)."""
+"""Named distributions: ``none`` (the preset layout, a perfect actuator) and ``broad``: every
+knob varied, objects of 0.1-0.4 m a side (two columns of 7 robots still fit beside one in the
+1 x 1 arena), either shape, every direction, and actuators from 60 % to 120 % gain with up to
+100 ms of lag and 150 ms (3 ticks) of delay, the link the safety layer is built for."""
 
 
 def load_distribution(source: str | Path | dict) -> ScenarioDistribution:

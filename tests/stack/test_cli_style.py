@@ -22,3 +22,17 @@ def test_errors_go_to_stderr(argv, capsys):
     assert main(argv) == 2
     out, err = capsys.readouterr()
     assert out == "" and err.startswith("error:")
+
+
+@pytest.mark.parametrize("command", ["export", "train", "eval"])
+def test_help_keeps_the_examples_of_the_command_docstring_on_their_own_lines(command, capsys):
+    """Every command's --help prints its module docstring as written (its example lines intact)."""
+    import importlib
+
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    text = capsys.readouterr().out
+    doc = importlib.import_module(f"stack.commands.{command}").__doc__
+    first, *rest = [line for line in doc.strip().splitlines() if line.strip()]
+    assert first in text
+    assert all(line.rstrip() in text for line in rest[:4])
