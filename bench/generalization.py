@@ -6,17 +6,26 @@ Trains, for ``--seeds`` seeds on Ray Tune (:mod:`stack.sweep`, one CPU each):
                  layout at once (``MAPPOConfig.team_sizes``), budget ``--budget``
     specialist   SDPA-MAPPO on paper-3 alone (the paper's recipe: what 3 robots learned)
 
-then judges every final policy, no further training, on a grid of ``--robots`` (default 1..10)
+The generalist draws each episode's layout and actuator from ``--distribution`` (default
+``none``: the paper's layout; ``broad`` varies object, direction and actuator, see
+:mod:`sim.distribution`). It then judges every final policy, no further training, on a grid of ``--robots`` (default 1..10)
 x layouts (:data:`LAYOUTS`: the default transport layout; its mirror, left to right; a larger
 object; a hexagonal object), ``--episodes`` deterministic episodes each in the batched world
 (no filter, no MEC), and with ``--pymunk-episodes`` > 0 also in pymunk with model error (gain
 0.85 +- 0.15, lag 0.03 s, one tick of command delay) through the default stack (filter + MEC).
 A success needs every robot within the target tolerance at the end and no contact.
 
+Fine-tuning (``--finetune-budget`` > 0, default 400): each generalist seed is trained further on
+a held-out layout, :func:`held_out` (an L-shaped, non-convex object, which no distribution
+draws, and 4 robots), with ``formation train --init-from`` and ``init_keep`` 1 (the weights as
+they are), the convergence rule unchanged; reported are its zero-shot success (the evaluation
+at episode 0) and the episodes to convergence (the budget where it does not converge).
+
 ``--json``: ``{"train": {"generalist": {"episodes": ..., "env_steps": ..., "wall_s": ...,
 "converged_seeds": ...}, "specialist": {...}}, "grid": [{"policy", "seed", "scenario", "robots",
-"world", "success", "collisions", "final_distance_mm"}, ...], "finetune": null}`` (fine-tuning on
-a held-out layout is not measured yet).
+"world", "success", "collisions", "final_distance_mm"}, ...], "finetune": {"layout": ...,
+"robots": ..., "budget": ..., "runs": [{"seed", "zero_shot_success", "episodes", "converged",
+"wall_s"}], "median_episodes": ...}}``.
 
     python bench/generalization.py --seeds 3                      # the full grid
     python bench/generalization.py --seeds 1 --robots 3,6 --episodes 20 --json
@@ -25,6 +34,7 @@ a held-out layout is not measured yet).
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -67,11 +77,20 @@ def layout(name: str, n: int):
     raise ValueError(f"unknown layout {name!r}; choose from {LAYOUTS}")
 
 
+def held_out(n: int = 4):
+    """The fine-tuning layout: an L-shaped (non-convex) object of the preset's 0.2 x 0.3 box."""
+    from sim.scenario import transport_scenario
+
+    l_shape = ((0.4, 0.35), (0.6, 0.35), (0.6, 0.45), (0.5, 0.45), (0.5, 0.65), (0.4, 0.65))
+    return transport_scenario(n, object_vertices=l_shape, name=f"l-shape-{n}")
+
+
 def trials(args, out: Path) -> list[TrialSpec]:
     base = {"scenario": "paper-3", "update_epochs": args.update_epochs, "total_episodes": args.budget}
     specs = []
+    generalist = {"team_sizes": args.team_sizes, "distribution": args.distribution}
     for seed in range(args.seeds):
-        for name, extra in (("generalist", {"team_sizes": args.team_sizes}), ("specialist", {})):
+        for name, extra in (("generalist", generalist), ("specialist", {})):
             folder = out / name / f"seed-{seed}"
             specs.append(TrialSpec(name, seed, resolve_fields({**base, **extra}, {}, seed), str(folder.resolve())))
     return specs
@@ -106,6 +125,30 @@ def judge(checkpoint: str, args) -> list[dict]:
     return rows
 
 
+def finetune(args, specs: list[TrialSpec], out: Path) -> dict:
+    """Fine-tune every generalist seed on :func:`held_out` (module docstring)."""
+    sc = held_out()
+    runs = []
+    for s in specs:
+        if s.group != "generalist":
+            continue
+        base = {**s.fields, "team_sizes": [], "distribution": None, "scenario": sc.to_dict(),
+                "init_from": str(Path(s.folder) / "checkpoint.pt"), "init_keep": 1.0,
+                "total_episodes": args.finetune_budget}         # the generalist's settings otherwise
+        fields = resolve_fields(base, {}, s.seed)
+        runs.append(TrialSpec("finetune", s.seed, fields, str((out / "finetune" / f"seed-{s.seed}").resolve())))
+    run_trials(runs, out, cpus=args.cpus, experiment="generalization-finetune", restore=False, verbose=0)
+    rows = []
+    for r in runs:
+        summary = summarize(Path(r.folder), args.finetune_budget)
+        first = (Path(r.folder) / "eval.jsonl").read_text().splitlines()[0]
+        rows.append({"seed": r.seed, "zero_shot_success": json.loads(first)["success_rate"],
+                     "episodes": summary["episodes"], "converged": summary["converged"],
+                     "wall_s": summary["wall_s"]})
+    return {"layout": sc.name, "robots": sc.num_robots, "budget": args.finetune_budget, "runs": rows,
+            "median_episodes": statistics.median(r["episodes"] for r in rows) if rows else None}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=positive_int, default=3, help="training seeds 0..K-1 (default 3)")
@@ -118,6 +161,10 @@ def main(argv=None) -> int:
                    help=f"grid layouts, from {','.join(LAYOUTS)} (default all)")
     p.add_argument("--episodes", type=positive_int, default=100, help="batched episodes per cell (default 100)")
     p.add_argument("--pymunk-episodes", type=int, default=0, help="pymunk episodes per cell (default 0: skip)")
+    p.add_argument("--distribution", default=None, metavar="NAME_OR_FILE",
+                   help="the generalist's scenario distribution: none (default), broad or a file")
+    p.add_argument("--finetune-budget", type=int, default=400,
+                   help="fine-tuning episodes on the held-out layout per generalist seed (default 400; 0: skip)")
     p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")
     p.add_argument("--out", type=Path, default=Path("runs/generalization"), help="run folders (default runs/generalization)")
     add_output_args(p)
@@ -138,7 +185,8 @@ def main(argv=None) -> int:
     for s in specs:
         progress(f"judging {s.group} seed {s.seed}")
         grid += [{"policy": s.group, "seed": s.seed, **row} for row in judge(str(Path(s.folder) / "checkpoint.pt"), args)]
-    doc = {"train": train, "grid": grid, "finetune": None}
+    doc = {"train": train, "grid": grid,
+           "finetune": finetune(args, specs, args.out) if args.finetune_budget > 0 else None}
     if args.json:
         print_json(doc)
         return 0
@@ -151,6 +199,11 @@ def main(argv=None) -> int:
                 [[pol, world, lay, *[f"{statistics.mean(cells[(pol, world, lay, n)]):.2f}" for n in args.robots]]
                  for pol in train for world in ("batched", "pymunk") for lay in args.layouts
                  if (pol, world, lay, args.robots[0]) in cells])
+    if doc["finetune"]:
+        ft = doc["finetune"]
+        print_table([f"fine-tune on {ft['layout']}: seed", "zero-shot success", "episodes to converge", "wall s"],
+                    [[r["seed"], f"{r['zero_shot_success']:.2f}", r["episodes"] if r["converged"]
+                      else f">{ft['budget']}", f"{r['wall_s']:.0f}"] for r in ft["runs"]])
     return 0
 
 

@@ -48,3 +48,44 @@ def test_a_policy_is_judged_on_every_cell_of_the_grid_in_both_worlds(tmp_path):
     for r in rows:
         assert r["success"] in (0.0, 0.5, 1.0) and r["collisions"] in (0.0, 0.5, 1.0)
         assert r["final_distance_mm"] is None or r["final_distance_mm"] > 0
+
+
+def test_the_held_out_layout_is_non_convex_and_no_distribution_draws_one():
+    from bench.generalization import held_out
+    from sim.distribution import DISTRIBUTIONS
+
+    poly = held_out().polygon
+    edges = np.roll(poly, -1, 0) - poly
+    turns = edges[:, 0] * np.roll(edges[:, 1], -1) - edges[:, 1] * np.roll(edges[:, 0], -1)
+    assert (turns < 0).sum() == 1                          # one reflex corner: an L
+    for d in DISTRIBUTIONS.values():
+        assert set(d.object_shapes) <= {"box", "polygon"}  # both convex by construction
+
+
+@pytest.mark.slow
+def test_finetuning_starts_from_the_generalist_and_reports_its_zero_shot_success(tmp_path):
+    """A tiny generalist fine-tuned on the held-out layout through Ray: one run per generalist
+    seed, its episode-0 evaluation (the generalist as it is) and the episodes it took."""
+    import json
+
+    from bench.generalization import finetune, held_out
+    from controllers.mappo import MAPPOConfig, train
+    from stack.sweep import TrialSpec
+
+    small = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
+    config = MAPPOConfig(num_envs=2, total_episodes=2, eval_episodes=2, progress=False, team_sizes=[2, 3],
+                         actor=dict(small), critic=dict(small), torch_threads=1)
+    folder = tmp_path / "generalist" / "seed-0"
+    train(config, folder)
+    spec = TrialSpec("generalist", 0, config.to_dict(), str(folder))
+    args = types.SimpleNamespace(finetune_budget=4, cpus=1)
+    doc = finetune(args, [spec], tmp_path)
+    assert doc["layout"] == "l-shape-4" and doc["robots"] == 4 and doc["budget"] == 4
+    (row,) = doc["runs"]
+    run = tmp_path / "finetune" / "seed-0"
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["init_from"] == str(folder / "checkpoint.pt") and saved["init_keep"] == 1.0
+    assert saved["scenario"]["object_vertices"] == [list(p) for p in held_out().object_vertices]
+    first = json.loads((run / "eval.jsonl").read_text().splitlines()[0])
+    assert first["episodes"] == 0 and row["zero_shot_success"] == first["success_rate"]
+    assert row["episodes"] == 4 and not row["converged"]      # a 2-episode generalist does not converge
