@@ -102,6 +102,9 @@ def register(sub) -> None:
                         "recent command round trips (default %(default)s)")
     p.add_argument("--delay-window", type=int, default=d.delay_window, metavar="K",
                    help="how many recent command round trips the percentile is taken over (default %(default)s)")
+    p.add_argument("--rearm-alarm-after", type=argtypes.positive, default=d.rearm_alarm_after, metavar="K",
+                   help="re-arms in a row a robot leaves unanswered (still in FAULT) before an ERROR names "
+                        "it and it is treated as a silent obstacle (default %(default)s)")
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
     p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
                    help="the fleet resets every T ticks: reset the stack, report per episode")
@@ -228,7 +231,8 @@ def run(args) -> int:
                               episode_ticks=args.episode_ticks, lossless=args.lossless,
                               lockstep=args.lockstep, period_s=scenario.dynamics.dt,
                               delay_percentile=args.delay_percentile,
-                              delay_window=args.delay_window, shared_clock=args.shared_clock)
+                              delay_window=args.delay_window, shared_clock=args.shared_clock,
+                              rearm_alarm_after=args.rearm_alarm_after)
         c = scenario.object_center
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),

@@ -45,3 +45,17 @@ def test_the_transport_flags_make_the_nodes_transport_and_refuse_what_cannot_wor
         argtypes.transport_config(parser.parse_args(["--connect", "tcp/10.0.0.1:7447"]))
     insecure = argtypes.transport_config(parser.parse_args(["--connect", "tcp/10.0.0.1:7447", "--insecure"]))
     assert insecure.connect == ("tcp/10.0.0.1:7447",)
+
+
+def test_the_rearm_alarm_threshold_is_a_flag_that_refuses_zero(capsys):
+    import pytest
+
+    from stack.cli import build_parser
+
+    parser = build_parser()
+    base = ["bridge", "--fleet", "f", "--policy", "scripted"]
+    assert parser.parse_args(base).rearm_alarm_after == 10
+    assert parser.parse_args([*base, "--rearm-alarm-after", "3"]).rearm_alarm_after == 3
+    with pytest.raises(SystemExit) as done:
+        parser.parse_args([*base, "--rearm-alarm-after", "0"])
+    assert done.value.code == 2 and "--rearm-alarm-after" in capsys.readouterr().err
