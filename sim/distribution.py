@@ -159,11 +159,11 @@ class ScenarioDistribution:
         jitter = float(rng.uniform(*self.start_jitter))
         vertices = object_polygon(shape, centre + offset, (w, h), rng)
         angle = DIRECTIONS[direction]
-        canonical = transport_scenario(n, object_vertices=_turn(vertices, -angle, centre),
+        canonical = transport_scenario(n, object_vertices=turn_points(vertices, -angle, centre),
                                        start_jitter=jitter, dynamics=base.dynamics)
         return Scenario(
             name=f"{direction}-{shape}-{n}", num_robots=n,
-            start_slots=_turn(canonical.starts, angle, centre), target_slots=_turn(canonical.targets, angle, centre),
+            start_slots=turn_points(canonical.starts, angle, centre), target_slots=turn_points(canonical.targets, angle, centre),
             object_vertices=vertices, arena=base.arena, robot_radius=base.robot_radius,
             target_tolerance=base.target_tolerance, start_jitter=jitter, dynamics=base.dynamics)
 
@@ -211,7 +211,7 @@ def object_polygon(shape: str, centre: np.ndarray, size: tuple[float, float],
     return tuple(map(tuple, (pts + centre).round(6)))
 
 
-def _turn(points, degrees: float, centre: np.ndarray) -> tuple[tuple[float, float], ...]:
+def turn_points(points, degrees: float, centre: np.ndarray) -> tuple[tuple[float, float], ...]:
     """``points`` (K, 2) turned counter-clockwise by ``degrees`` (a multiple of 90) about
     ``centre``, exactly (no rounding error: the rotation matrix has entries 0 and +-1)."""
     c, s = {0: (1, 0), 90: (0, 1), 180: (-1, 0), 270: (0, -1)}[int(degrees) % 360]
@@ -256,5 +256,5 @@ def load_distribution(source: str | Path | dict) -> ScenarioDistribution:
         raise DistributionError(f"{where}: {exc}") from None
 
 
-__all__ = ["DIRECTIONS", "DISTRIBUTIONS", "DistributionError", "SHAPES", "ScenarioDistribution",
+__all__ = ["DIRECTIONS", "DISTRIBUTIONS", "DistributionError", "SHAPES", "ScenarioDistribution", "turn_points",
            "load_distribution", "object_polygon"]

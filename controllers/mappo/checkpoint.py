@@ -89,6 +89,8 @@ def checkpoint_config(data: dict[str, Any]) -> MAPPOConfig:
     for net in ("actor", "critic"):   # saved before token embeddings could have a hidden layer
         if isinstance(config.get(net), dict) and "embed_hidden" not in config[net]:
             config[net] = {**config[net], "embed_hidden": 0}
+        if isinstance(config.get(net), dict) and "frame" not in config[net]:   # ... or turn tokens
+            config[net] = {**config[net], "frame": "world"}
     return MAPPOConfig.from_dict(config)
 
 

@@ -28,8 +28,11 @@ from controllers.policy.layers import (
     TypedEmbedding,
     bounded_acceleration,
     check_tokens,
+    formation_turn,
     keep_self_valid,
     mlp,
+    turn_back,
+    turn_tokens,
     zero_masked,
 )
 from sim.observations import TOKEN_DIM, flat_dim
@@ -48,6 +51,9 @@ class TypedSDPAActor(nn.Module):
         u    = MLP([x_self, z])                          one hidden layer of 128 ReLU
         mean = accel_limit * tanh((u - k_v v) / accel_limit)      k_v = velocity_damping
 
+    With ``config.frame == "formation"`` the tokens f_t are first turned by the quarter turn R
+    of :func:`~controllers.policy.layers.formation_turn` and the mean is ``R^T mean``: a scene
+    turned by a quarter turn about the arena's centre gets its actions turned alike, exactly.
     Permuting robots permutes the outputs (the pooling is symmetric in the keys).
     """
 
@@ -63,36 +69,51 @@ class TypedSDPAActor(nn.Module):
         self.action_dim = ACTION_DIM
         self.input_scale = float(config.input_scale)
         self.velocity_damping = float(config.velocity_damping)
+        self.turning = config.frame == "formation"
         self.embedding = TypedEmbedding(TOKEN_DIM, config.embed_dim, config.embed_hidden)
         self.head = AttentionHead(config.embed_dim, config.num_heads, config.hidden_sizes,
                                   ACTION_DIM, OUT_GAIN)
         self.log_std = nn.Parameter(torch.full((ACTION_DIM,), float(config.init_log_std)))
 
     def _encode(self, obs: torch.Tensor, mask: torch.Tensor | None):
+        """Embedded tokens (B, T, D), key mask, the rows' turns (B, 2, 2) or None, and their
+        own velocities (B, 2) in the frame the network sees."""
         check_tokens(obs, mask, self.token_dim)
         e, n, t = obs.shape[0], obs.shape[1], obs.shape[2]
-        x = self.embedding(zero_masked(obs, mask).reshape(e * n, t, self.token_dim) * self.input_scale, n)
-        return x, keep_self_valid(mask, e * n, t)
+        m = keep_self_valid(mask, e * n, t)
+        f = zero_masked(obs, mask).reshape(e * n, t, self.token_dim)
+        turn: torch.Tensor | None = None
+        if self.turning:
+            turn = formation_turn(f, m)
+            f = turn_tokens(f, turn)
+        return self.embedding(f * self.input_scale, n), m, turn, f[:, 0, 2:4]
+
+    def _act(self, out: torch.Tensor, velocity: torch.Tensor, turn: torch.Tensor | None) -> torch.Tensor:
+        a = bounded_acceleration(out, velocity, self.velocity_damping, self.accel_limit)
+        return a if turn is None else turn_back(a, turn)
 
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        x, m = self._encode(obs, mask)
-        out = self.head(x[:, 0], x, m).view(obs.shape[0], obs.shape[1], self.action_dim)
-        return bounded_acceleration(out, obs[:, :, 0, 2:4], self.velocity_damping, self.accel_limit)
+        x, m, turn, velocity = self._encode(obs, mask)
+        a = self._act(self.head(x[:, 0], x, m), velocity, turn)
+        return a.view(obs.shape[0], obs.shape[1], self.action_dim)
 
     def rows(self, tokens: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` for robots as independent rows: tokens (B, T = 2N+1, F), mask (B, T)
         bool -> (B, 2). N follows from T; the graph has no shape guard on it (the export path,
         :meth:`TypedEmbedding.by_kind`)."""
         m = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:].to(torch.bool)), 1)
-        x = self.embedding.by_kind(torch.where(m.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
-                                   * self.input_scale)
-        out = self.head(x[:, 0], x, m)
-        return bounded_acceleration(out, tokens[:, 0, 2:4], self.velocity_damping, self.accel_limit)
+        f = torch.where(m.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
+        turn: torch.Tensor | None = None
+        if self.turning:
+            turn = formation_turn(f, m)
+            f = turn_tokens(f, turn)
+        x = self.embedding.by_kind(f * self.input_scale)
+        return self._act(self.head(x[:, 0], x, m), f[:, 0, 2:4], turn)
 
     @torch.jit.export
     def attention(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """(E, N, H, T) attention weights of each robot's query over its tokens."""
-        x, m = self._encode(obs, mask)
+        x, m, _, _ = self._encode(obs, mask)
         w = self.head.weights(x[:, 0], x, m)
         return w.view(obs.shape[0], obs.shape[1], w.shape[1], w.shape[2])
 

@@ -31,6 +31,17 @@ def _check_hidden(owner: str, hidden: Any) -> tuple[int, ...]:
     return sizes
 
 
+FRAMES = ("formation", "world")
+
+
+def _check_frame(owner: str, frame: Any, variant: str, turning: str) -> None:
+    if frame not in FRAMES:
+        raise PolicyConfigError(f"{owner}.frame must be one of {FRAMES}, got {frame!r}")
+    if frame == "formation" and variant != turning:
+        raise PolicyConfigError(f"{owner}.frame 'formation' applies to the {turning!r} variant only; "
+                                f"set it to 'world' for variant {variant!r}")
+
+
 def dataclass_from_dict(cls, data: dict, owner: str):
     """Build dataclass ``cls`` from a dict, rejecting unknown keys with a message naming them."""
     if not isinstance(data, dict):
@@ -66,6 +77,12 @@ class ActorConfig:
             keep off the object).
         velocity_damping: k_v [1/s] of the output ``accel_limit * tanh((u - k_v v) / accel_limit)``
             (v: the robot's own velocity); 0 gives the plain ``tanh`` output.
+        frame: ``"formation"``: the network sees every robot's tokens turned by the quarter turn
+            that brings its formation into the right-to-left frame and its output is turned
+            back (:func:`controllers.policy.layers.formation_turn`): the square arena, the task
+            and so the policy are the same under quarter turns, which the network then need
+            not learn; ``"world"``: the tokens as they are. None: ``"formation"`` for the
+            typed actor, ``"world"`` otherwise (checkpoints from before the field: ``"world"``).
     """
 
     variant: str = "typed"
@@ -76,11 +93,14 @@ class ActorConfig:
     init_log_std: float = -0.5
     input_scale: float = 10.0
     velocity_damping: float = 0.0
+    frame: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_sizes", _check_hidden("actor", self.hidden_sizes))
         if self.embed_hidden is None:
             object.__setattr__(self, "embed_hidden", 32 if self.variant == "typed" else 0)
+        if self.frame is None:
+            object.__setattr__(self, "frame", "formation" if self.variant == "typed" else "world")
         self.validate()
 
     def validate(self) -> None:
@@ -102,6 +122,7 @@ class ActorConfig:
             raise PolicyConfigError(f"actor.input_scale must be > 0, got {self.input_scale!r}")
         if not 0.0 <= float(self.velocity_damping) <= 100.0:
             raise PolicyConfigError(f"actor.velocity_damping must be in [0, 100] 1/s, got {self.velocity_damping!r}")
+        _check_frame("actor", self.frame, self.variant, "typed")
 
     @property
     def obs_kind(self) -> str:
@@ -129,6 +150,8 @@ class CriticConfig:
         value_mixing: epsilon of the paper's Equation (2),
             ``V_joint^i = eps * V^i + (1 - eps) * mean_j V^j``; 1.0 turns mixing off.
         input_scale: as in :class:`ActorConfig`.
+        frame: as in :class:`ActorConfig` (the value does not turn); None: ``"formation"`` for
+            the attention critic, ``"world"`` for the MLP one.
     """
 
     variant: str = "attention"
@@ -138,9 +161,12 @@ class CriticConfig:
     hidden_sizes: tuple[int, ...] = (128,)
     value_mixing: float = 1.0
     input_scale: float = 4.0
+    frame: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_sizes", _check_hidden("critic", self.hidden_sizes))
+        if self.frame is None:
+            object.__setattr__(self, "frame", "formation" if self.variant == "attention" else "world")
         self.validate()
 
     def validate(self) -> None:
@@ -161,6 +187,7 @@ class CriticConfig:
                                     f"got {self.value_mixing!r}")
         if not float(self.input_scale) > 0:
             raise PolicyConfigError(f"critic.input_scale must be > 0, got {self.input_scale!r}")
+        _check_frame("critic", self.frame, self.variant, "attention")
 
     @property
     def obs_kind(self) -> str:

@@ -18,8 +18,10 @@ from controllers.policy.layers import (
     MultiHeadAttention,
     TypedEmbedding,
     check_tokens,
+    formation_turn,
     keep_self_valid,
     mlp,
+    turn_tokens,
     zero_masked,
 )
 from sim.observations import TOKEN_DIM, flat_dim
@@ -40,6 +42,8 @@ class AttentionCritic(nn.Module):
     2. Robot-level SDPA: every ``h_i`` queries all ``h_j`` of its environment -> context ``c_i``.
     3. ``V^i = MLP([h_i, c_i])``, then optional value mixing.
 
+    With ``config.frame == "formation"`` the tokens are turned first, as the actor's are.
+
     Token-level masks are honoured; all robots take part in step 2 (training always has the
     full team).
     """
@@ -54,6 +58,7 @@ class AttentionCritic(nn.Module):
         self.num_robots = -1
         self.input_scale = float(config.input_scale)
         self.value_mixing = float(config.value_mixing)
+        self.turning = config.frame == "formation"
         self.token_dim = TOKEN_DIM
         self.embedding = TypedEmbedding(TOKEN_DIM, d, config.embed_hidden)
         self.token_pool = AttentionHead(d, config.num_heads, (), d, 1.0)
@@ -63,8 +68,12 @@ class AttentionCritic(nn.Module):
     def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         check_tokens(obs, mask, self.token_dim)
         e, n, t = obs.shape[0], obs.shape[1], obs.shape[2]
-        x = self.embedding(zero_masked(obs, mask).reshape(e * n, t, self.token_dim) * self.input_scale, n)
-        h = torch.relu(self.token_pool(x[:, 0], x, keep_self_valid(mask, e * n, t))).view(e, n, -1)
+        m = keep_self_valid(mask, e * n, t)
+        f = zero_masked(obs, mask).reshape(e * n, t, self.token_dim)
+        if self.turning:                    # the frame of ActorConfig.frame; a value does not turn
+            f = turn_tokens(f, formation_turn(f, m))
+        x = self.embedding(f * self.input_scale, n)
+        h = torch.relu(self.token_pool(x[:, 0], x, m)).view(e, n, -1)
         c = self.robot_attention(h, h, None)                                   # (E, N, D)
         values = self.value_head(torch.cat((h, c), -1)).squeeze(-1)            # (E, N)
         return mix_values(values, self.value_mixing)

@@ -134,6 +134,45 @@ class TypedEmbedding(nn.Module):
         return out
 
 
+def formation_turn(tokens: torch.Tensor, read: torch.Tensor | None) -> torch.Tensor:
+    """(B, 2, 2): for each row of tokens (B, T = 2N+1, F) in the layout of
+    :mod:`sim.observations` (masked tokens already zero; ``read`` (B, T) bool or None: all),
+    the quarter turn ``R_k`` that brings its formation into the right-to-left frame.
+
+    With ``m = mean_k (g_k - p) - (c - p) = mean_k g_k - c`` (the targets' centroid seen from the
+    object's centroid, the same for every robot of a team), ``k = argmax_k -(R_k m)_x``: the
+    targets come to lie left of the object, as in the presets. The token kinds are found by
+    index (targets 1..N, object 2N), not by slicing at N, so exported graphs keep T dynamic.
+    Every token feature pair is a vector in the arena frame (the self token's position is
+    relative to the arena's centre, about which the square arena is symmetric), so turning them
+    all turns the scene; quarter turns are exact in floating point (entries 0 and +-1).
+    """
+    b, t = tokens.shape[0], tokens.shape[1]
+    index = torch.arange(t, device=tokens.device)
+    kind = (index >= 1).long() + (index >= (t + 1) // 2).long() + (index >= t - 1).long()
+    target = (kind == 1).to(tokens.dtype).expand(b, t)
+    if read is not None:
+        target = target * read.to(tokens.dtype)
+    weight = target / target.sum(1, keepdim=True).clamp_min(1.0) - (kind == 3).to(tokens.dtype)
+    m = (tokens[..., 0:2] * weight.unsqueeze(-1)).sum(1)                      # (B, 2)
+    k = torch.stack((-m[:, 0], m[:, 1], m[:, 0], -m[:, 1]), -1).argmax(-1)    # quarter turns, CCW
+    c = (k == 0).to(tokens.dtype) - (k == 2).to(tokens.dtype)                  # cos, sin of k 90 deg
+    s = (k == 1).to(tokens.dtype) - (k == 3).to(tokens.dtype)
+    return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), 1)
+
+
+def turn_tokens(tokens: torch.Tensor, turn: torch.Tensor) -> torch.Tensor:
+    """(B, T, 4) tokens with both feature pairs turned by ``turn`` (B, 2, 2)."""
+    b, t = tokens.shape[0], tokens.shape[1]
+    pairs = tokens.reshape(b, t, 2, 2)
+    return torch.matmul(pairs, turn.transpose(1, 2).unsqueeze(1)).reshape(b, t, 4)
+
+
+def turn_back(vectors: torch.Tensor, turn: torch.Tensor) -> torch.Tensor:
+    """(B, 2) vectors of the turned frame back in the arena frame: ``R^T a``."""
+    return torch.matmul(turn.transpose(1, 2), vectors.unsqueeze(-1)).squeeze(-1)
+
+
 def check_tokens(obs: torch.Tensor, mask: torch.Tensor | None, feature_dim: int) -> None:
     """Raise ValueError unless ``obs`` is (E, N, 2N+1, F) and ``mask`` None or (E, N, 2N+1)."""
     if obs.dim() != 4 or obs.shape[3] != feature_dim or obs.shape[2] != 2 * obs.shape[1] + 1:

@@ -247,7 +247,7 @@ def test_export_paths_compute_the_training_numbers(embed_hidden):
     """The graphs torch.export traces (embedding by token kind, one-query attention without head
     reshapes) give the actions of the training forward, for every N and with masked tokens."""
     torch.manual_seed(0)
-    actor = build_actor(ActorConfig(embed_hidden=embed_hidden), 3).eval()
+    actor = build_actor(ActorConfig(embed_hidden=embed_hidden, frame="world"), 3).eval()   # the turn: below
     generator = torch.Generator().manual_seed(1)
     for n in (1, 2, 5, 16):
         obs = torch.randn(4, n, 2 * n + 1, 4, generator=generator) * 0.3
