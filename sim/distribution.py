@@ -220,17 +220,20 @@ def turn_points(points, degrees: float, centre: np.ndarray) -> tuple[tuple[float
     return tuple(map(tuple, turned))
 
 
+_LAYOUTS = dict(object_width=(0.1, 0.4), object_height=(0.1, 0.4), object_offset=(0.05, 0.05),
+                object_shapes=SHAPES, directions=tuple(DIRECTIONS), start_jitter=(0.0, 0.02))
+_ACTUATORS = dict(gain=(0.6, 1.2), gain_spread=0.1, lag_tau=(0.0, 0.1), delay_ticks=(0, 3))
 DISTRIBUTIONS: dict[str, ScenarioDistribution] = {
     "none": ScenarioDistribution(),
-    "broad": ScenarioDistribution(
-        object_width=(0.1, 0.4), object_height=(0.1, 0.4), object_offset=(0.05, 0.05),
-        object_shapes=SHAPES, directions=tuple(DIRECTIONS), start_jitter=(0.0, 0.02),
-        gain=(0.6, 1.2), gain_spread=0.1, lag_tau=(0.0, 0.1), delay_ticks=(0, 3)),
+    "actuators": ScenarioDistribution(**_ACTUATORS),
+    "layouts": ScenarioDistribution(**_LAYOUTS),
+    "broad": ScenarioDistribution(**_LAYOUTS, **_ACTUATORS),
 }
-"""Named distributions: ``none`` (the preset layout, a perfect actuator) and ``broad``: every
-knob varied, objects of 0.1-0.4 m a side (two columns of 7 robots still fit beside one in the
-1 x 1 arena), either shape, every direction, and actuators from 60 % to 120 % gain with up to
-100 ms of lag and 150 ms (3 ticks) of delay, the link the safety layer is built for."""
+"""Named distributions: ``none`` (the preset layout, a perfect actuator); ``actuators`` (the
+preset layout; gain 0.6-1.2 with a 0.1 per-robot spread, up to 100 ms of lag and 150 ms (3
+ticks) of delay: the link the safety layer is built for); ``layouts`` (a perfect actuator;
+objects of 0.1-0.4 m a side, where two columns of 7 robots still fit beside one in the 1 x 1
+arena, either shape, every direction, 0-2 cm of start jitter); ``broad`` (both)."""
 
 
 def load_distribution(source: str | Path | dict) -> ScenarioDistribution:
