@@ -81,8 +81,10 @@ class ActorConfig:
             that brings its formation into the right-to-left frame and its output is turned
             back (:func:`controllers.policy.layers.formation_turn`): the square arena, the task
             and so the policy are the same under quarter turns, which the network then need
-            not learn; ``"world"``: the tokens as they are. None: ``"formation"`` for the
-            typed actor, ``"world"`` otherwise (checkpoints from before the field: ``"world"``).
+            not learn (exactly so in a square arena; in an oblong one only the half turn is a
+            symmetry, and a quarter-turned formation sees its walls where it never trained);
+            ``"world"``: the tokens as they are. None: ``"formation"`` for the typed actor,
+            ``"world"`` otherwise (checkpoints from before the field: ``"world"``).
     """
 
     variant: str = "typed"
