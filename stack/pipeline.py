@@ -378,7 +378,8 @@ class ControlStack:
             a_cmd = self.brake(vel)
             brake_reason = (brake_reason + "; " if brake_reason else "") + "final command not finite: braking"
         if self.predictor is not None:         # the silent robots' rows too (asked nothing)
-            self.predictor.record(safe.ids, safe.full(achieved))
+            braking = np.concatenate([stale, np.ones(safe.size - n, dtype=bool)])
+            self.predictor.record(safe.ids, safe.full(achieved), braking)
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
@@ -454,7 +455,8 @@ class ControlStack:
                 pending = np.concatenate([pending, np.full(len(silent), -1)])
             prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
                                                 state.command_delay_s, fixed=unknown, pending=pending,
-                                                position_noise=position_std, velocity_noise=velocity_std)
+                                                position_noise=position_std, velocity_noise=velocity_std,
+                                                now=state.time)
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

@@ -1,0 +1,160 @@
+"""Where a silent robot can be, from the commands it was sent (controllers/safety/silent_reach.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controllers.safety.latency import LatencyConfig, LatencyPredictor
+from controllers.safety.silent_reach import branch_paths, silent_paths
+from controllers.scripted import ScriptedController
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import Dynamics, clip_norm, make_scenario
+from stack.pipeline import ControlStack, StackConfig
+
+DYN = Dynamics()
+
+
+def test_the_branches_of_a_robot_at_rest_asked_one_push_hand_worked():
+    """u_0 = 0, u_1 = (1, 0), W = 1, dt 0.05, c 0.5. Branches (s, w): (0, 0) and (0, 1) stay;
+    (1, 0): v = 0.05, x = 0.0025, then the brake stops it in one tick; (1, 1): the push held a
+    tick more, v = 0.05 + 0.05 (1 - 0.025) = 0.09875, x = 0.0074375, then braking at the limit
+    (-1) to v = 0.0462813, x = 0.0097516, then to rest."""
+    commands = np.array([[0.0, 0.0], [1.0, 0.0]])
+    paths = branch_paths(np.zeros(2), np.zeros(2), commands, np.zeros(2, dtype=bool), 1, DYN)
+    assert paths.shape[0] == 4
+    np.testing.assert_allclose(paths[:, -1, 0], [0.0, 0.0, 0.0025, 0.0097516], atol=1e-7)
+    np.testing.assert_allclose(paths[:, :, 1], 0.0)
+    np.testing.assert_allclose(paths[3, 1:3, 0], [0.0025, 0.0074375], atol=1e-9)
+
+
+def test_a_command_sent_as_brake_is_the_braking_law_whatever_was_recorded():
+    """A BRAKE row brakes the robot from its own velocity; the recorded vector is not applied."""
+    commands = np.array([[0.0, 0.0], [1.0, 0.0]])
+    paths = branch_paths(np.zeros(2), np.array([0.2, 0.0]), commands, np.array([False, True]), 0, DYN)
+    by_brake = branch_paths(np.zeros(2), np.array([0.2, 0.0]), commands[:1], np.array([False]), 0, DYN)
+    np.testing.assert_allclose(paths[1, -1], by_brake[0, -1], atol=1e-12)
+
+
+@st.composite
+def silent_robot(draw):
+    m = draw(st.integers(0, 6))
+    hold = draw(st.integers(0, 2))
+    rng = np.random.default_rng(draw(st.integers(0, 2**31)))
+    speed = draw(st.floats(0.0, DYN.speed_limit))
+    angle = rng.uniform(0, 2 * np.pi)
+    vel0 = speed * np.array([np.cos(angle), np.sin(angle)])
+    commands = clip_norm(rng.normal(0, 0.8, (m + 1, 2)), DYN.accel_limit)
+    braking = rng.random(m + 1) < 0.2
+    s, w = int(rng.integers(0, m + 1)), int(rng.integers(0, hold + 1))
+    accel_error = draw(st.floats(0.0, 0.5))
+    return vel0, commands, braking, hold, s, w, accel_error, rng
+
+
+@settings(max_examples=200, deadline=None)
+@given(silent_robot())
+def test_the_disc_holds_a_robot_on_any_branch_with_any_acceleration_error(case):
+    """A robot that follows any branch ``(s, w)`` and misses every asked acceleration by up to
+    ``A``, and the braking law by up to ``accel_uncertainty`` at full braking (in proportion
+    below it: a robot at rest stays at rest), lies in the disc at every tick."""
+    vel0, commands, braking, hold, s, w, accel_error, rng = case
+    brake_error = 0.05
+    paths = silent_paths(np.zeros(2), vel0, [(commands, braking)], hold, accel_error, brake_error, 0.0, DYN)
+    p, v = np.zeros((1, 2)), vel0[None].copy()
+    for n in range(1, paths.points.shape[1] + 6):
+        acting = n <= s + w
+        index = n if n <= s else s
+        brakes = not acting or braking[index]
+        asked = DYN.brake(v) if brakes else commands[index][None]
+        bound = brake_error * np.linalg.norm(asked) / DYN.accel_limit if brakes else accel_error
+        direction = rng.normal(size=2)
+        error = bound * rng.uniform(0, 1) * direction / np.linalg.norm(direction)
+        p, v = DYN.step_np(p, v, asked + error)
+        centre, _, radius, _ = paths.disc(n * DYN.dt)
+        assert np.linalg.norm(p[0] - centre) <= radius + 1e-9, (n, s, w)
+
+
+def test_a_robot_at_rest_asked_alternating_pushes_is_a_small_disc_not_a_ball():
+    """At rest, asked +-1 m/s^2 in turn, silent from t = 0.8 s: at 1.5 s the ball of the
+    largest command has grown it past 0.1 m; its commands keep it within 3 cm (a push held for the two
+    ticks of the watchdog moves it 1.5 cm before it brakes; the branches
+    are taken when it first counts as stale, at 1.0 s, and kept for that last state)."""
+    pred = LatencyPredictor(DYN, LatencyConfig())
+    ids = ("r",)
+    for k in range(pred.depth):
+        pred.record(ids, np.array([[1.0 if k % 2 else -1.0, 0.0]]))
+    pos, vel, a_nom = np.array([[0.5, 0.5]]), np.zeros((1, 2)), np.zeros((1, 2))
+    first = pred.predict(ids, pos, vel, np.array([0.2]), a_nom, pending=np.array([4]), now=1.0)
+    for _ in range(14):
+        pred.record(ids, np.zeros((1, 2)), np.array([True]))
+    ball = pred.predict(ids, pos, vel, np.array([0.7]), a_nom, pending=np.array([18]))
+    branches = pred.predict(ids, pos, vel, np.array([0.7]), a_nom, pending=np.array([18]), now=1.5)
+    assert first.fixed[0] and ball.fixed[0] and branches.fixed[0]
+    assert ball.grow[0] > 0.1
+    assert first.grow[0] < 0.03 and branches.grow[0] < 0.03
+    assert np.linalg.norm(branches.pos[0] - pos[0]) < 0.01
+
+
+def test_without_the_history_of_a_robot_the_ball_stands():
+    """A robot seen stale from its first tick has no commands on record: it may be doing
+    anything the actuator allows, so it keeps the ball of ``accel_limit``."""
+    pred = LatencyPredictor(DYN, LatencyConfig())
+    ids = ("new",)
+    pos, vel, age = np.array([[0.5, 0.5]]), np.zeros((1, 2)), np.array([0.2])
+    ball = pred.predict(ids, pos, vel, age, np.zeros((1, 2)), pending=np.array([4]))
+    with_now = pred.predict(ids, pos, vel, age, np.zeros((1, 2)), pending=np.array([4]), now=1.0)
+    np.testing.assert_allclose(with_now.grow, ball.grow)
+
+
+def _frozen_misses(seed: int, config: LatencyConfig) -> int:
+    """Ticks at which the frozen robot's true centre lay outside the disc the stack predicted
+    for that tick (pymunk, scripted controller, a robot frozen mid-motion)."""
+    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
+    rng = np.random.default_rng(seed)
+    robot, tick = int(rng.integers(sc.num_robots)), int(rng.integers(8, 30))
+    world = PymunkWorld(sc, ModelError(freeze=(robot, tick)))
+    stack = ControlStack(sc, ScriptedController(sc), StackConfig(latency=config))
+    predictions = []
+    predict = stack.predictor.predict
+    stack.predictor.predict = lambda *a, **k: predictions.append(predict(*a, **k)) or predictions[-1]
+    state, due, misses = world.reset(seed=seed), {}, 0
+    stack.reset()
+    ahead = int(round(config.command_delay_s / sc.dynamics.dt))
+    for k in range(tick + 30):
+        result = stack.tick(state)
+        if result.stale[robot]:
+            due[k + ahead] = (predictions[-1].pos[robot].copy(), float(predictions[-1].grow[robot]))
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+        if k + 1 in due:
+            centre, grow = due.pop(k + 1)
+            true = world.true_state().positions[robot]
+            misses += bool(np.linalg.norm(true - centre) > grow + 1e-9)
+    return misses
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_disc_of_a_frozen_pymunk_robot_holds_its_true_centre(seed):
+    """The pymunk robot frozen mid-motion (silent and deaf, its last command held two ticks,
+    then its watchdog brakes it): the disc from its commands holds its true centre at every
+    tick it is predicted for, so the branches line up with the world's ticks and commands."""
+    assert _frozen_misses(seed, LatencyConfig()) == 0
+
+
+def test_without_the_hold_branches_a_deaf_robot_holding_its_push_is_missed():
+    """At rest, asked u_0 = +1 then u_1 = -1 along x, deaf at once: it holds u_0 for the two
+    ticks of its watchdog (x = 0.0074 m), then brakes. The branches with the hold hold it;
+    without them (W = 0) every branch stays at x <= 0 and the disc misses it."""
+    commands, braking = np.array([[1.0, 0.0], [-1.0, 0.0]]), np.zeros(2, dtype=bool)
+    p, v = np.zeros((1, 2)), np.zeros((1, 2))
+    truth = []
+    for n in range(12):
+        p, v = DYN.step_np(p, v, commands[:1] if n < 2 else DYN.brake(v))
+        truth.append(p[0].copy())
+    for hold, expected in ((2, 0), (0, 1)):
+        paths = silent_paths(np.zeros(2), np.zeros(2), [(commands, braking)], hold, 0.05, 0.05, 0.0, DYN)
+        missed = [n for n, x in enumerate(truth, 1)
+                  if np.linalg.norm(x - paths.disc(n * DYN.dt)[0]) > paths.disc(n * DYN.dt)[2]]
+        assert bool(missed) == bool(expected), (hold, missed)
