@@ -55,6 +55,25 @@ def test_docking_holds_between_capture_and_release_radius_per_robot_id():
     assert not step(IDS, 0.27)
 
 
+def test_a_robot_passing_its_matched_target_is_not_captured_until_it_slows():
+    """Capture needs speed below ``capture_speed`` (0.1 m/s): a robot passing 4 cm from a
+    target at 0.3 m/s is left to the policy (the one-to-one matching of a moment is not where
+    the policy is taking it); slowed to 0.05 m/s it is captured, and once docking, speed does
+    not release it."""
+    dock = Docking(R, LIMIT)
+    pos = np.array([[0.24, 0.5], [0.6, 0.7]])
+    a_nom = np.array([[0.3, 0.3], [0.5, 0.0]])
+    fast = np.array([[0.0, 0.3], [0.0, 0.0]])
+    out, docking = dock(IDS, pos, fast, TARGETS, a_nom)
+    assert docking.tolist() == [False, False]
+    np.testing.assert_array_equal(out, a_nom)
+    slow = np.array([[0.0, 0.05], [0.0, 0.0]])
+    assert dock(IDS, pos, slow, TARGETS, a_nom)[1].tolist() == [True, False]
+    assert dock(IDS, pos, fast, TARGETS, a_nom)[1].tolist() == [True, False]
+    eager = Docking(R, LIMIT, DockingConfig(capture_speed=10.0))       # above any speed: no gate
+    assert eager(IDS, pos, fast, TARGETS, a_nom)[1].tolist() == [True, False]
+
+
 def test_docking_errors_name_the_field():
     with pytest.raises(DockingConfigError, match="release_radius"):
         DockingConfig(capture_radius=0.1, release_radius=0.05)
