@@ -15,6 +15,12 @@ resolved configuration and exits.
 
     formation train --config runs/p3/config.json --seed 1 --out runs/p3-seed1
     formation train --config sweep.toml --print-config
+
+``--algo maddpg`` trains the paper's MADDPG baseline instead (:mod:`controllers.baselines.maddpg`,
+built from TorchRL's pieces; its fields are :class:`controllers.baselines.MADDPGConfig`), on the
+same reward, episode length, evaluation and convergence rule, into the same kind of run folder:
+
+    formation train --algo maddpg --scenario paper-3 --episodes 25000 --out runs/maddpg-p3
 """
 
 from __future__ import annotations
@@ -35,6 +41,9 @@ from stack.commands import argtypes
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
                        description=__doc__)
+    p.add_argument("--algo", choices=("mappo", "maddpg"), default=None,
+                   help="the learner: SDPA-/MLP-MAPPO (default) or the MADDPG baseline (default: the "
+                        "--config file's \"algo\", or on --resume the run's)")
     p.add_argument("--scenario", default=None, help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
     p.add_argument("--episodes", type=argtypes.positive, default=None,
                    help="episode budget, total_episodes (default 2000)")
@@ -75,10 +84,81 @@ def resolve_config(args) -> MAPPOConfig:
     return MAPPOConfig.from_dict(user_fields(fields))
 
 
+MADDPG_FLAGS = ("variant", "team_sizes", "distribution", "init_from", "tensorboard")
+
+
+def resolve_maddpg_config(args):
+    """MADDPG's configuration: defaults < ``--config`` < flags given; flags it has no use for are
+    refused by name."""
+    from controllers.baselines import MADDPGConfig
+
+    unused = [name for name in MADDPG_FLAGS if getattr(args, name) not in (None, False)]
+    if unused:
+        raise ValueError(f"--algo maddpg does not take --{unused[0].replace('_', '-')} (MAPPO only)")
+    fields = read_config(args.config, "--config") if args.config else {}
+    flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed}
+    fields |= {k: v for k, v in flags.items() if v is not None}
+    if args.no_stop:
+        fields["stop_at_convergence"] = False
+    return MADDPGConfig.from_dict(fields)
+
+
+def chosen_algo(args) -> str:
+    """``--algo``, else the ``"algo"`` of the ``--config`` file, else (``--resume``) of the run's
+    ``config.json``, else ``mappo``: a MADDPG run resumes, or is repeated, as itself."""
+    if args.algo is not None:
+        return args.algo
+    sources = [args.config] if args.config else []
+    if args.resume and args.out is not None and (args.out / "config.json").is_file():
+        sources.append(args.out / "config.json")
+    for source in sources:
+        try:
+            algo = read_config(source, "--config").get("algo")
+        except ConfigFileError:
+            continue                      # the MAPPO path reports the bad file
+        if algo in ("mappo", "maddpg"):
+            return algo
+    return "mappo"
+
+
+def run_maddpg(args) -> int:
+    from controllers.baselines import MADDPGConfigError, train_maddpg
+    from controllers.mappo.checkpoint import CheckpointError
+
+    try:
+        import torchrl  # noqa: F401
+    except ImportError:
+        print("error: --algo maddpg needs TorchRL: pip install -c constraints.txt -e '.[torchrl]'",
+              file=sys.stderr)
+        return 2
+
+    try:
+        config = resolve_maddpg_config(args)
+    except (ConfigFileError, MADDPGConfigError, ScenarioError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print(json.dumps(config.to_dict(), indent=2))
+        return 0
+    out = args.out or Path("runs") / time.strftime(f"maddpg-{config.scenario_name}-%Y%m%d-%H%M%S")
+    try:
+        result = train_maddpg(config, out, resume=args.resume)
+    except CheckpointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    conv = result.converged_episode
+    print(f"run folder: {out}")
+    print(f"episodes {result.episodes}, env steps {result.env_steps}, wall {result.wall_time_s:.0f} s, "
+          + (f"converged at episode {conv}" if conv is not None else "not converged"))
+    return 0
+
+
 def run(args) -> int:
     if args.resume and args.out is None:
         print("error: --resume needs --out, the folder of the run to continue", file=sys.stderr)
         return 2
+    if chosen_algo(args) == "maddpg":
+        return run_maddpg(args)
     try:
         config = resolve_config(args)
     except (ConfigFileError, TrainConfigError, PolicyConfigError, ScenarioError, ValueError) as exc:

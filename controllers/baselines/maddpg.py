@@ -1,0 +1,288 @@
+r"""MADDPG (Lowe et al., NeurIPS 2017) on the formation task, built from TorchRL's pieces.
+
+The paper's Table 1 compares SDPA-MAPPO with MADDPG-family methods; this is the MADDPG it
+replaces, trained on the same world, reward, episode length, evaluation and convergence rule
+(:mod:`controllers.mappo.evaluate`) as SDPA-MAPPO, so the episode counts compare.
+
+**Networks** (TorchRL's :class:`~torchrl.modules.MultiAgentMLP`): one actor per robot on the
+paper's flat observation ``o_i`` (:func:`sim.observations.flat`, ``(4N + 2,)``), ``a_i = a_max
+tanh(mu_i(o_i))``; one centralised critic per robot, ``Q_i(o_1..o_N, a_1..a_N)``. Both 2 hidden
+layers of 64 ReLU units (the MADDPG paper's).
+
+**One update** (TorchRL's :class:`~torchrl.objectives.DDPGLoss` with the centralised critic,
+TD(0) targets through target networks)::
+
+    y_i      = r_i + gamma (1 - terminated) Q'_i(o', mu'(o'))      (time-limit ends bootstrap)
+    L_Q      = mean_i (Q_i(o, a) - y_i)^2                           over a replay batch
+    L_mu     = -mean_i Q_i(o, mu(o))                                (every robot's action from
+                                                                     its current actor, as
+                                                                     TorchRL's loss computes it)
+    theta'  <- (1 - tau) theta' + tau theta                         (:class:`SoftUpdate`)
+
+with Adam on each loss and gradient norms clipped to 0.5 (the MADDPG reference code).
+
+**Data**: ``num_envs`` environments of :class:`sim.torchrl_env.FormationTorchRLEnv` collected by
+:class:`~torchrl.collectors.Collector`, the actor's action plus Gaussian noise of
+standard deviation ``sigma`` (annealed linearly from ``noise_start`` to ``noise_end`` times
+``a_max`` over ``noise_anneal_episodes``; :class:`~torchrl.modules.AdditiveGaussianModule`,
+clipped to the action box), into a :class:`~torchrl.data.TensorDictReplayBuffer`; one update
+per ``samples_per_update`` transitions added.
+
+**Hyper-parameters** and their source (MADDPG paper, Appendix; its reference code): Adam, lr
+0.01 (both networks), tau 0.01, gamma 0.95, batch 1024 transitions, buffer 10^6, an update every
+100 samples added, 2 x 64 ReLU. The exploration noise is ours (the paper's continuous tasks use
+Gumbel-softmax on discrete actions); it is the DDPG-style Gaussian, 0.3 -> 0.05 of ``a_max``.
+
+Run directory: as :mod:`controllers.mappo.trainer` (``config.json``, ``run.json``,
+``train.jsonl/.csv``, ``eval.jsonl/.csv``, ``checkpoint.pt``, ``result.json``). The checkpoint
+keeps the networks, their targets, the optimisers, the noise level, the replay buffer and the
+evaluation history: ``resume`` continues the run from there, every environment starting a fresh
+episode (a resumed run is not bit-identical to an uninterrupted one).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+
+from sim.scenario import Scenario, ScenarioError, make_scenario
+from sim.torchrl_env import GROUP
+
+
+class MADDPGConfigError(ValueError):
+    """A MADDPG setting that cannot work; the message names the field and the fix."""
+
+
+@dataclass(frozen=True)
+class MADDPGConfig:
+    """Everything a MADDPG run depends on (module docstring for the sources).
+
+    Attributes:
+        scenario: preset name (or transport-N) of the task.
+        seed: seeds torch, the environments and the evaluations.
+        total_episodes: training budget in episodes (every environment's episode counts).
+        num_envs: environments collected side by side.
+        steps_per_collection: steps of every environment per collection.
+        buffer_size: replay capacity [transitions].
+        batch_size: transitions per update.
+        samples_per_update: one update per this many transitions added.
+        gamma: discount; tau: target network step.
+        actor_lr, critic_lr: Adam learning rates.
+        hidden, depth: units and hidden layers of every network.
+        max_grad_norm: gradient norm clip of each loss.
+        noise_start, noise_end: exploration noise std as a fraction of ``accel_limit``.
+        noise_anneal_episodes: episodes over which it falls from start to end.
+        eval_interval, eval_episodes, success_threshold: the convergence rule's
+            (:mod:`controllers.mappo.evaluate`, as SDPA-MAPPO).
+        stop_at_convergence: end the run when the rule is met.
+        torch_threads: intra-op threads (0: leave torch's default).
+    """
+
+    scenario: str | dict = "paper-3"
+    seed: int = 0
+    total_episodes: int = 25_000
+    num_envs: int = 32
+    steps_per_collection: int = 25
+    buffer_size: int = 1_000_000
+    batch_size: int = 1024
+    samples_per_update: int = 100
+    gamma: float = 0.95
+    tau: float = 0.01
+    actor_lr: float = 0.01
+    critic_lr: float = 0.01
+    hidden: int = 64
+    depth: int = 2
+    max_grad_norm: float = 0.5
+    noise_start: float = 0.3
+    noise_end: float = 0.05
+    noise_anneal_episodes: int = 5_000
+    eval_interval: int = 50
+    eval_episodes: int = 100
+    success_threshold: float = 0.9
+    stop_at_convergence: bool = True
+    torch_threads: int = 1
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", "float") and (isinstance(value, bool) or not isinstance(value, int | float)
+                                               or not math.isfinite(value)):
+                raise MADDPGConfigError(f"maddpg.{f.name} must be a finite number, got {value!r}")
+        for name in ("total_episodes", "num_envs", "steps_per_collection", "buffer_size", "batch_size",
+                     "samples_per_update", "hidden", "depth", "noise_anneal_episodes", "eval_interval",
+                     "eval_episodes"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise MADDPGConfigError(f"maddpg.{name} must be a positive integer, got {getattr(self, name)!r}")
+        for name in ("gamma", "tau", "success_threshold"):
+            if not 0 < getattr(self, name) <= 1:
+                raise MADDPGConfigError(f"maddpg.{name} must be in (0, 1], got {getattr(self, name)!r}")
+        for name in ("actor_lr", "critic_lr", "max_grad_norm"):
+            if getattr(self, name) <= 0:
+                raise MADDPGConfigError(f"maddpg.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 <= self.noise_end <= self.noise_start:
+            raise MADDPGConfigError(f"maddpg.noise_end ({self.noise_end}) must be in [0, noise_start "
+                                    f"({self.noise_start})]: the noise only anneals down")
+        if self.batch_size > self.buffer_size:
+            raise MADDPGConfigError(f"maddpg.batch_size ({self.batch_size}) must not exceed buffer_size "
+                                    f"({self.buffer_size})")
+        if isinstance(self.scenario, str) and self.scenario.endswith((".json", ".toml")):
+            object.__setattr__(self, "scenario", self.build_scenario().to_dict())   # the file's content
+        self.build_scenario()
+
+    def build_scenario(self) -> Scenario:
+        """The run's scenario: a preset name, transport-N, or a scenario dict (a file's content)."""
+        try:
+            if isinstance(self.scenario, dict):
+                return Scenario.from_dict(dict(self.scenario))
+            if isinstance(self.scenario, str):
+                return make_scenario(self.scenario)
+        except (ScenarioError, TypeError) as exc:
+            raise MADDPGConfigError(f"maddpg.scenario: {exc}") from None
+        raise MADDPGConfigError(f"maddpg.scenario must be a preset name, a scenario file or a scenario "
+                                f"dict, got {self.scenario!r}")
+
+    @property
+    def scenario_name(self) -> str:
+        return self.build_scenario().name
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"algo": "maddpg", **asdict(self)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MADDPGConfig:
+        data = {k: v for k, v in data.items() if k != "algo"}
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise MADDPGConfigError(f"unknown MADDPG field(s) {unknown}; known: {sorted(known)}")
+        return cls(**data)
+
+
+class BoundedActor(nn.Module):
+    """Per-robot actors: ``(..., N, 4N + 2)`` flat observations -> ``(..., N, 2)`` accelerations
+    ``a_max tanh(mu_i(o_i))``; ``obs_kind = "flat"``, so :func:`controllers.mappo.evaluate` and
+    the ControlStack run it as they run the MLP-MAPPO actor."""
+
+    obs_kind = "flat"
+
+    def __init__(self, num_robots: int, accel_limit: float, hidden: int, depth: int):
+        super().__init__()
+        from torchrl.modules import MultiAgentMLP
+
+        self.accel_limit = float(accel_limit)
+        self.net = MultiAgentMLP(4 * num_robots + 2, 2, num_robots, centralized=False, share_params=False,
+                                 depth=depth, num_cells=hidden, activation_class=nn.ReLU)
+
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self.accel_limit * torch.tanh(self.net(obs))
+
+
+class CentralCritic(nn.Module):
+    """``Q_i(o_1..o_N, a_1..a_N)`` for every robot i: ``(..., N, 4N + 2)`` and ``(..., N, 2)`` ->
+    ``(..., N, 1)``, one network per robot, each reading every robot's observation and action."""
+
+    def __init__(self, num_robots: int, hidden: int, depth: int):
+        super().__init__()
+        from torchrl.modules import MultiAgentMLP
+
+        self.net = MultiAgentMLP(4 * num_robots + 4, 1, num_robots, centralized=True, share_params=False,
+                                 depth=depth, num_cells=hidden, activation_class=nn.ReLU)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([obs, action], dim=-1))
+
+
+@dataclass
+class MADDPGParts:
+    """The TorchRL modules of one run (:func:`build_maddpg`)."""
+
+    actor: BoundedActor
+    critic: CentralCritic
+    policy: TensorDictModule
+    explore: TensorDictSequential
+    noise: Any
+    loss: Any
+    target_update: Any
+    optimizers: dict[str, torch.optim.Optimizer]
+
+
+def build_maddpg(scenario: Scenario, config: MADDPGConfig, action_spec) -> MADDPGParts:
+    """Actor, critic, exploration, loss, target updater and optimisers (module docstring)."""
+    from torchrl.modules import AdditiveGaussianModule
+    from torchrl.objectives import DDPGLoss, SoftUpdate, ValueEstimators
+
+    n, a_max = scenario.num_robots, scenario.dynamics.accel_limit
+    actor = BoundedActor(n, a_max, config.hidden, config.depth)
+    critic = CentralCritic(n, config.hidden, config.depth)
+    policy = TensorDictModule(actor, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "action")])
+    value = TensorDictModule(critic, in_keys=[(GROUP, "observation"), (GROUP, "action")],
+                             out_keys=[(GROUP, "state_action_value")])
+    episodes_per_collection = max(1, config.num_envs * config.steps_per_collection
+                                  // scenario.dynamics.episode_steps)
+    noise = AdditiveGaussianModule(spec=action_spec, sigma_init=config.noise_start * a_max,
+                                   sigma_end=config.noise_end * a_max,
+                                   annealing_num_steps=max(1, config.noise_anneal_episodes // episodes_per_collection),
+                                   action_key=(GROUP, "action"))
+    explore = TensorDictSequential(policy, noise)
+    loss = DDPGLoss(actor_network=policy, value_network=value, delay_value=True, delay_actor=True,
+                    loss_function="l2")
+    loss.set_keys(state_action_value=(GROUP, "state_action_value"), reward=(GROUP, "reward"),
+                  done=(GROUP, "done"), terminated=(GROUP, "terminated"))
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=config.gamma)
+    target_update = SoftUpdate(loss, tau=config.tau)
+    optimizers = {
+        "loss_actor": torch.optim.Adam(loss.actor_network_params.flatten_keys().values(), lr=config.actor_lr),
+        "loss_value": torch.optim.Adam(loss.value_network_params.flatten_keys().values(), lr=config.critic_lr),
+    }
+    return MADDPGParts(actor, critic, policy, explore, noise, loss, target_update, optimizers)
+
+
+def maddpg_update(parts: MADDPGParts, batch: TensorDict, max_grad_norm: float) -> dict[str, float]:
+    """One critic and one actor step on a replay ``batch`` (module docstring), then the targets."""
+    losses = parts.loss(batch)
+    out = {}
+    for name, optimizer in parts.optimizers.items():
+        optimizer.zero_grad()
+        losses[name].backward()
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
+        optimizer.step()
+        out[name] = float(losses[name].detach())
+    parts.target_update.step()
+    return out
+
+
+def team_flags(data: TensorDict, num_robots: int) -> TensorDict:
+    """Copy the env's ``("next", "done"/"terminated")`` (..., 1) to every robot,
+    ``("next", GROUP, ...)`` (..., N, 1), where the TD(0) target of per-robot values reads them."""
+    for key in ("done", "terminated"):
+        flag = data.get(("next", key))
+        data.set(("next", GROUP, key), flag.unsqueeze(-2).expand(*flag.shape[:-1], num_robots, 1).clone())
+    return data
+
+
+@dataclass
+class MADDPGResult:
+    episodes: int
+    env_steps: int
+    wall_time_s: float
+    converged_episode: int | None
+    final_success_rate: float | None
+
+
+def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = False) -> MADDPGResult:
+    """Train MADDPG (or continue the run in ``run_dir``) and return the summary."""
+    from controllers.baselines.maddpg_trainer import MADDPGTrainer
+
+    return MADDPGTrainer(config, run_dir, resume=resume).run()
+
+
+__all__ = ["BoundedActor", "CentralCritic", "MADDPGConfig", "MADDPGConfigError", "MADDPGParts",
+           "MADDPGResult", "build_maddpg", "maddpg_update", "team_flags", "train_maddpg"]
