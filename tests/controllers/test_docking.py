@@ -56,7 +56,7 @@ def test_docking_holds_between_capture_and_release_radius_per_robot_id():
 
 
 def test_a_robot_passing_its_matched_target_is_not_captured_until_it_slows():
-    """Capture needs speed below ``capture_speed`` (0.1 m/s): a robot passing 4 cm from a
+    """Capture needs speed below ``capture_speed`` (0.2 m/s): a robot passing 4 cm from a
     target at 0.3 m/s is left to the policy (the one-to-one matching of a moment is not where
     the policy is taking it); slowed to 0.05 m/s it is captured, and once docking, speed does
     not release it."""
