@@ -83,6 +83,9 @@ class MADDPGConfig:
             (:mod:`controllers.mappo.evaluate`, as SDPA-MAPPO).
         stop_at_convergence: end the run when the rule is met.
         torch_threads: intra-op threads (0: leave torch's default).
+        self_imitation: GASIL-MADDPG (:mod:`controllers.baselines.gasil`): the reward shaped by a
+            discriminator between the run's best episodes and the policy's transitions.
+        imitation_weight: GASIL's ``alpha``; good_episodes: its K; discriminator_lr: its Adam rate.
     """
 
     scenario: str | dict = "paper-3"
@@ -108,6 +111,10 @@ class MADDPGConfig:
     success_threshold: float = 0.9
     stop_at_convergence: bool = True
     torch_threads: int = 1
+    self_imitation: bool = False
+    imitation_weight: float = 0.1
+    good_episodes: int = 100
+    discriminator_lr: float = 3e-4
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -117,13 +124,17 @@ class MADDPGConfig:
                 raise MADDPGConfigError(f"maddpg.{f.name} must be a finite number, got {value!r}")
         for name in ("total_episodes", "num_envs", "steps_per_collection", "buffer_size", "batch_size",
                      "samples_per_update", "hidden", "depth", "noise_anneal_episodes", "eval_interval",
-                     "eval_episodes"):
+                     "eval_episodes", "good_episodes"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise MADDPGConfigError(f"maddpg.{name} must be a positive integer, got {getattr(self, name)!r}")
         for name in ("gamma", "tau", "success_threshold"):
             if not 0 < getattr(self, name) <= 1:
                 raise MADDPGConfigError(f"maddpg.{name} must be in (0, 1], got {getattr(self, name)!r}")
-        for name in ("actor_lr", "critic_lr", "max_grad_norm"):
+        if not isinstance(self.self_imitation, bool):
+            raise MADDPGConfigError(f"maddpg.self_imitation must be true or false, got {self.self_imitation!r}")
+        if self.imitation_weight < 0:
+            raise MADDPGConfigError(f"maddpg.imitation_weight must be >= 0, got {self.imitation_weight!r}")
+        for name in ("actor_lr", "critic_lr", "max_grad_norm", "discriminator_lr"):
             if getattr(self, name) <= 0:
                 raise MADDPGConfigError(f"maddpg.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0 <= self.noise_end <= self.noise_start:
@@ -152,11 +163,17 @@ class MADDPGConfig:
     def scenario_name(self) -> str:
         return self.build_scenario().name
 
+    @property
+    def algo(self) -> str:
+        return "gasil-maddpg" if self.self_imitation else "maddpg"
+
     def to_dict(self) -> dict[str, Any]:
-        return {"algo": "maddpg", **asdict(self)}
+        return {"algo": self.algo, **asdict(self)}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MADDPGConfig:
+        if data.get("algo") == "gasil-maddpg":
+            data = {"self_imitation": True, **data}
         data = {k: v for k, v in data.items() if k != "algo"}
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)

@@ -17,8 +17,10 @@ resolved configuration and exits.
     formation train --config sweep.toml --print-config
 
 ``--algo maddpg`` trains the paper's MADDPG baseline instead (:mod:`controllers.baselines.maddpg`,
-built from TorchRL's pieces; its fields are :class:`controllers.baselines.MADDPGConfig`), on the
-same reward, episode length, evaluation and convergence rule, into the same kind of run folder:
+built from TorchRL's pieces; its fields are :class:`controllers.baselines.MADDPGConfig`), and
+``--algo gasil-maddpg`` the same with GASIL's self-imitation reward
+(:mod:`controllers.baselines.gasil`), on the same reward, episode length, evaluation and
+convergence rule, into the same kind of run folder:
 
     formation train --algo maddpg --scenario paper-3 --episodes 25000 --out runs/maddpg-p3
 """
@@ -41,8 +43,8 @@ from stack.commands import argtypes
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
                        description=__doc__)
-    p.add_argument("--algo", choices=("mappo", "maddpg"), default=None,
-                   help="the learner: SDPA-/MLP-MAPPO (default) or the MADDPG baseline (default: the "
+    p.add_argument("--algo", choices=("mappo", "maddpg", "gasil-maddpg"), default=None,
+                   help="the learner: SDPA-/MLP-MAPPO (default) or a baseline (default: the "
                         "--config file's \"algo\", or on --resume the run's)")
     p.add_argument("--scenario", default=None, help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
     p.add_argument("--episodes", type=argtypes.positive, default=None,
@@ -94,12 +96,14 @@ def resolve_maddpg_config(args):
 
     unused = [name for name in MADDPG_FLAGS if getattr(args, name) not in (None, False)]
     if unused:
-        raise ValueError(f"--algo maddpg does not take --{unused[0].replace('_', '-')} (MAPPO only)")
+        raise ValueError(f"--algo {chosen_algo(args)} does not take --{unused[0].replace('_', '-')} (MAPPO only)")
     fields = read_config(args.config, "--config") if args.config else {}
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed}
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
         fields["stop_at_convergence"] = False
+    if chosen_algo(args) == "gasil-maddpg":
+        fields["self_imitation"] = True
     return MADDPGConfig.from_dict(fields)
 
 
@@ -116,7 +120,7 @@ def chosen_algo(args) -> str:
             algo = read_config(source, "--config").get("algo")
         except ConfigFileError:
             continue                      # the MAPPO path reports the bad file
-        if algo in ("mappo", "maddpg"):
+        if algo in ("mappo", "maddpg", "gasil-maddpg"):
             return algo
     return "mappo"
 
@@ -140,7 +144,7 @@ def run_maddpg(args) -> int:
     if args.print_config:
         print(json.dumps(config.to_dict(), indent=2))
         return 0
-    out = args.out or Path("runs") / time.strftime(f"maddpg-{config.scenario_name}-%Y%m%d-%H%M%S")
+    out = args.out or Path("runs") / time.strftime(f"{config.algo}-{config.scenario_name}-%Y%m%d-%H%M%S")
     try:
         result = train_maddpg(config, out, resume=args.resume)
     except CheckpointError as exc:
@@ -157,7 +161,7 @@ def run(args) -> int:
     if args.resume and args.out is None:
         print("error: --resume needs --out, the folder of the run to continue", file=sys.stderr)
         return 2
-    if chosen_algo(args) == "maddpg":
+    if chosen_algo(args) in ("maddpg", "gasil-maddpg"):
         return run_maddpg(args)
     try:
         config = resolve_config(args)
