@@ -7,7 +7,13 @@ import json
 import torch
 
 from controllers.baselines import MADDPGConfig, train_maddpg
-from controllers.baselines.gasil import BONUS_CAP, Discriminator, GoodEpisodes, discriminator_step, imitation_bonus
+from controllers.baselines.gasil import (
+    BONUS_CAP,
+    Discriminator,
+    GoodEpisodes,
+    discriminator_step,
+    imitation_bonus,
+)
 
 
 def _episodes(returns, steps=4, robots=2, dim=3):
