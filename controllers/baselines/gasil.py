@@ -31,6 +31,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from sim.torchrl_env import GROUP
+
 BONUS_CAP = 10.0
 """Upper bound of ``-log D`` (module docstring): where D is ~0 the bonus would be unbounded."""
 
@@ -107,4 +109,53 @@ def discriminator_step(discriminator: Discriminator, optimizer: torch.optim.Opti
     return float(loss.detach())
 
 
-__all__ = ["BONUS_CAP", "Discriminator", "GoodEpisodes", "discriminator_step", "imitation_bonus"]
+class SelfImitation:
+    """GASIL's part of a run: the episodes in progress, the good episodes, the discriminator.
+    The environments run in lock step (every episode is ``episode_steps`` long and they all
+    start together), so one step index serves them all."""
+
+    def __init__(self, config, num_robots: int):
+        self.weight = config.imitation_weight
+        self.good = GoodEpisodes(config.good_episodes)
+        self.discriminator = Discriminator(4 * num_robots + 2, config.hidden, config.depth)
+        self.optimizer = torch.optim.Adam(self.discriminator.parameters(), lr=config.discriminator_lr)
+        self._obs: list[torch.Tensor] = []
+        self._action: list[torch.Tensor] = []
+        self._return: torch.Tensor | None = None
+
+    def record(self, data) -> None:
+        """Follow a collection ``(E, K)`` step by step; offer the episodes that end."""
+        obs, action = data.get((GROUP, "observation")), data.get((GROUP, "action"))
+        reward = data.get(("next", GROUP, "reward"))[..., 0].mean(-1)          # (E, K) team
+        done = data.get(("next", "done"))[..., 0]
+        for k in range(obs.shape[1]):
+            self._obs.append(obs[:, k])
+            self._action.append(action[:, k])
+            self._return = reward[:, k] if self._return is None else self._return + reward[:, k]
+            if done[:, k].any():
+                if done[:, k].all():
+                    self.good.add(torch.stack(self._obs, 1), torch.stack(self._action, 1), self._return)
+                self._obs, self._action, self._return = [], [], None
+
+    def shape(self, batch) -> dict[str, float]:
+        """Add ``alpha * min(-log D, cap)`` to the batch's rewards; one discriminator step."""
+        if not len(self.good):
+            return {}
+        obs, action = batch.get((GROUP, "observation")), batch.get((GROUP, "action"))
+        bonus = imitation_bonus(self.discriminator, obs, action)                  # (B, N, 1)
+        batch.set(("next", GROUP, "reward"), batch.get(("next", GROUP, "reward")) + self.weight * bonus)
+        policy = (obs.flatten(0, 1), action.flatten(0, 1))
+        loss = discriminator_step(self.discriminator, self.optimizer, policy, self.good.sample(len(policy[0])))
+        return {"loss_discriminator": loss, "imitation_bonus": float(bonus.mean())}
+
+    def state_dict(self) -> dict:
+        return {"good": self.good.state_dict(), "discriminator": self.discriminator.state_dict(),
+                "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.good.load_state_dict(state["good"])
+        self.discriminator.load_state_dict(state["discriminator"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+
+__all__ = ["BONUS_CAP", "Discriminator", "GoodEpisodes", "SelfImitation", "discriminator_step", "imitation_bonus"]

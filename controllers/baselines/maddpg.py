@@ -42,8 +42,7 @@ episode (a resumed run is not bit-identical to an uninterrupted one).
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,16 +51,20 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 
-from sim.scenario import Scenario, ScenarioError, make_scenario
+from controllers.baselines.offpolicy import (
+    BaselineConfigError,
+    BaselineResult,
+    OffPolicyTrainer,
+    RunSettings,
+)
+from sim.scenario import Scenario
 from sim.torchrl_env import GROUP
 
-
-class MADDPGConfigError(ValueError):
-    """A MADDPG setting that cannot work; the message names the field and the fix."""
+MADDPGConfigError = BaselineConfigError
 
 
 @dataclass(frozen=True)
-class MADDPGConfig:
+class MADDPGConfig(RunSettings):
     """Everything a MADDPG run depends on (module docstring for the sources).
 
     Attributes:
@@ -117,69 +120,26 @@ class MADDPGConfig:
     discriminator_lr: float = 3e-4
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type in ("int", "float") and (isinstance(value, bool) or not isinstance(value, int | float)
-                                               or not math.isfinite(value)):
-                raise MADDPGConfigError(f"maddpg.{f.name} must be a finite number, got {value!r}")
-        for name in ("total_episodes", "num_envs", "steps_per_collection", "buffer_size", "batch_size",
-                     "samples_per_update", "hidden", "depth", "noise_anneal_episodes", "eval_interval",
-                     "eval_episodes", "good_episodes"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
-                raise MADDPGConfigError(f"maddpg.{name} must be a positive integer, got {getattr(self, name)!r}")
-        for name in ("gamma", "tau", "success_threshold"):
-            if not 0 < getattr(self, name) <= 1:
-                raise MADDPGConfigError(f"maddpg.{name} must be in (0, 1], got {getattr(self, name)!r}")
-        if not isinstance(self.self_imitation, bool):
-            raise MADDPGConfigError(f"maddpg.self_imitation must be true or false, got {self.self_imitation!r}")
+        self.check(positive_ints=("total_episodes", "num_envs", "steps_per_collection", "buffer_size",
+                                  "batch_size", "samples_per_update", "hidden", "depth", "noise_anneal_episodes",
+                                  "eval_interval", "eval_episodes", "good_episodes"),
+                   unit_interval=("gamma", "tau", "success_threshold"),
+                   positive=("actor_lr", "critic_lr", "max_grad_norm", "discriminator_lr"))
         if self.imitation_weight < 0:
-            raise MADDPGConfigError(f"maddpg.imitation_weight must be >= 0, got {self.imitation_weight!r}")
-        for name in ("actor_lr", "critic_lr", "max_grad_norm", "discriminator_lr"):
-            if getattr(self, name) <= 0:
-                raise MADDPGConfigError(f"maddpg.{name} must be > 0, got {getattr(self, name)!r}")
+            raise MADDPGConfigError(f"{self.algo}.imitation_weight must be >= 0, got {self.imitation_weight!r}")
         if not 0 <= self.noise_end <= self.noise_start:
-            raise MADDPGConfigError(f"maddpg.noise_end ({self.noise_end}) must be in [0, noise_start "
+            raise MADDPGConfigError(f"{self.algo}.noise_end ({self.noise_end}) must be in [0, noise_start "
                                     f"({self.noise_start})]: the noise only anneals down")
-        if self.batch_size > self.buffer_size:
-            raise MADDPGConfigError(f"maddpg.batch_size ({self.batch_size}) must not exceed buffer_size "
-                                    f"({self.buffer_size})")
-        if isinstance(self.scenario, str) and self.scenario.endswith((".json", ".toml")):
-            object.__setattr__(self, "scenario", self.build_scenario().to_dict())   # the file's content
-        self.build_scenario()
-
-    def build_scenario(self) -> Scenario:
-        """The run's scenario: a preset name, transport-N, or a scenario dict (a file's content)."""
-        try:
-            if isinstance(self.scenario, dict):
-                return Scenario.from_dict(dict(self.scenario))
-            if isinstance(self.scenario, str):
-                return make_scenario(self.scenario)
-        except (ScenarioError, TypeError) as exc:
-            raise MADDPGConfigError(f"maddpg.scenario: {exc}") from None
-        raise MADDPGConfigError(f"maddpg.scenario must be a preset name, a scenario file or a scenario "
-                                f"dict, got {self.scenario!r}")
-
-    @property
-    def scenario_name(self) -> str:
-        return self.build_scenario().name
 
     @property
     def algo(self) -> str:
         return "gasil-maddpg" if self.self_imitation else "maddpg"
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"algo": self.algo, **asdict(self)}
-
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MADDPGConfig:
         if data.get("algo") == "gasil-maddpg":
             data = {"self_imitation": True, **data}
-        data = {k: v for k, v in data.items() if k != "algo"}
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise MADDPGConfigError(f"unknown MADDPG field(s) {unknown}; known: {sorted(known)}")
-        return cls(**data)
+        return cls(**cls.known_fields(data))
 
 
 class BoundedActor(nn.Module):
@@ -276,30 +236,57 @@ def maddpg_update(parts: MADDPGParts, batch: TensorDict, max_grad_norm: float) -
     return out
 
 
-def team_flags(data: TensorDict, num_robots: int) -> TensorDict:
-    """Copy the env's ``("next", "done"/"terminated")`` (..., 1) to every robot,
-    ``("next", GROUP, ...)`` (..., N, 1), where the TD(0) target of per-robot values reads them."""
-    for key in ("done", "terminated"):
-        flag = data.get(("next", key))
-        data.set(("next", GROUP, key), flag.unsqueeze(-2).expand(*flag.shape[:-1], num_robots, 1).clone())
-    return data
+class MADDPGAgent:
+    """MADDPG (or GASIL-MADDPG) as the off-policy loop drives it (:class:`~controllers.baselines.offpolicy.Agent`)."""
+
+    action_keys = [(GROUP, "action")]
+
+    def __init__(self, scenario: Scenario, config: MADDPGConfig, action_spec):
+        from controllers.baselines.gasil import SelfImitation
+
+        self.config = config
+        self.parts = build_maddpg(scenario, config, action_spec)
+        self.explore, self.actor = self.parts.explore, self.parts.actor
+        self.gasil = SelfImitation(config, scenario.num_robots) if config.self_imitation else None
+        self.loss_names = ("loss_actor", "loss_value") + (
+            ("loss_discriminator", "imitation_bonus") if self.gasil is not None else ())
+
+    def record(self, data: TensorDict) -> None:
+        if self.gasil is not None:
+            self.gasil.record(data)
+
+    def update(self, batch: TensorDict) -> dict[str, float]:
+        shaped = self.gasil.shape(batch) if self.gasil is not None else {}
+        return maddpg_update(self.parts, batch, self.config.max_grad_norm) | shaped
+
+    def after_collection(self) -> None:
+        self.parts.noise.step()
+
+    def log_row(self) -> dict[str, Any]:
+        row = {"noise_sigma": float(self.parts.noise.sigma)}
+        if self.gasil is not None:
+            row["good_episodes"] = len(self.gasil.good)
+        return row
+
+    def state_dict(self) -> dict:
+        parts = self.parts
+        return {"loss": parts.loss.state_dict(), "noise_sigma": float(parts.noise.sigma),
+                "optimizers": {k: o.state_dict() for k, o in parts.optimizers.items()},
+                "gasil": self.gasil.state_dict() if self.gasil is not None else None}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.parts.loss.load_state_dict(state["loss"])
+        for name, optimizer_state in state["optimizers"].items():
+            self.parts.optimizers[name].load_state_dict(optimizer_state)
+        self.parts.noise.sigma.fill_(state["noise_sigma"])
+        if self.gasil is not None:
+            self.gasil.load_state_dict(state["gasil"])
 
 
-@dataclass
-class MADDPGResult:
-    episodes: int
-    env_steps: int
-    wall_time_s: float
-    converged_episode: int | None
-    final_success_rate: float | None
+def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = False) -> BaselineResult:
+    """Train MADDPG or GASIL-MADDPG (or continue the run in ``run_dir``); returns the summary."""
+    return OffPolicyTrainer(config, MADDPGAgent, run_dir, resume=resume).run()
 
 
-def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = False) -> MADDPGResult:
-    """Train MADDPG (or continue the run in ``run_dir``) and return the summary."""
-    from controllers.baselines.maddpg_trainer import MADDPGTrainer
-
-    return MADDPGTrainer(config, run_dir, resume=resume).run()
-
-
-__all__ = ["BoundedActor", "CentralCritic", "MADDPGConfig", "MADDPGConfigError", "MADDPGParts",
-           "MADDPGResult", "build_maddpg", "maddpg_update", "team_flags", "train_maddpg"]
+__all__ = ["BoundedActor", "CentralCritic", "MADDPGAgent", "MADDPGConfig", "MADDPGConfigError", "MADDPGParts",
+           "build_maddpg", "maddpg_update", "train_maddpg"]

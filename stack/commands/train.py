@@ -17,12 +17,14 @@ resolved configuration and exits.
     formation train --config sweep.toml --print-config
 
 ``--algo maddpg`` trains the paper's MADDPG baseline instead (:mod:`controllers.baselines.maddpg`,
-built from TorchRL's pieces; its fields are :class:`controllers.baselines.MADDPGConfig`), and
+built from TorchRL's pieces; its fields are :class:`controllers.baselines.MADDPGConfig`),
 ``--algo gasil-maddpg`` the same with GASIL's self-imitation reward
-(:mod:`controllers.baselines.gasil`), on the same reward, episode length, evaluation and
-convergence rule, into the same kind of run folder:
+(:mod:`controllers.baselines.gasil`), ``--algo ddq`` Deep Dyna-Q
+(:class:`controllers.baselines.DDQConfig`), each on the same reward, episode length, evaluation
+and convergence rule as SDPA-MAPPO, into the same kind of run folder:
 
-    formation train --algo maddpg --scenario paper-3 --episodes 25000 --out runs/maddpg-p3
+    formation train --algo gasil-maddpg --scenario paper-3 --episodes 25000 --out runs/gasil-p3
+    formation train --algo ddq --config '{"planning_steps": 10}' --out runs/ddq-p3
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from stack.commands import argtypes
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
                        description=__doc__)
-    p.add_argument("--algo", choices=("mappo", "maddpg", "gasil-maddpg"), default=None,
+    p.add_argument("--algo", choices=ALGOS, default=None,
                    help="the learner: SDPA-/MLP-MAPPO (default) or a baseline (default: the "
                         "--config file's \"algo\", or on --resume the run's)")
     p.add_argument("--scenario", default=None, help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
@@ -86,15 +88,16 @@ def resolve_config(args) -> MAPPOConfig:
     return MAPPOConfig.from_dict(user_fields(fields))
 
 
-MADDPG_FLAGS = ("variant", "team_sizes", "distribution", "init_from", "tensorboard")
+ALGOS = ("mappo", "maddpg", "gasil-maddpg", "ddq")
+MAPPO_ONLY = ("variant", "team_sizes", "distribution", "init_from", "tensorboard")
 
 
-def resolve_maddpg_config(args):
-    """MADDPG's configuration: defaults < ``--config`` < flags given; flags it has no use for are
-    refused by name."""
-    from controllers.baselines import MADDPGConfig
+def resolve_baseline_config(args):
+    """A baseline's configuration: defaults < ``--config`` < flags given; flags it has no use
+    for are refused by name."""
+    from controllers.baselines import BASELINES
 
-    unused = [name for name in MADDPG_FLAGS if getattr(args, name) not in (None, False)]
+    unused = [name for name in MAPPO_ONLY if getattr(args, name) not in (None, False)]
     if unused:
         raise ValueError(f"--algo {chosen_algo(args)} does not take --{unused[0].replace('_', '-')} (MAPPO only)")
     fields = read_config(args.config, "--config") if args.config else {}
@@ -102,9 +105,10 @@ def resolve_maddpg_config(args):
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
         fields["stop_at_convergence"] = False
-    if chosen_algo(args) == "gasil-maddpg":
+    algo = chosen_algo(args)
+    if algo == "gasil-maddpg":
         fields["self_imitation"] = True
-    return MADDPGConfig.from_dict(fields)
+    return BASELINES[algo][0].from_dict(fields)
 
 
 def chosen_algo(args) -> str:
@@ -120,25 +124,25 @@ def chosen_algo(args) -> str:
             algo = read_config(source, "--config").get("algo")
         except ConfigFileError:
             continue                      # the MAPPO path reports the bad file
-        if algo in ("mappo", "maddpg", "gasil-maddpg"):
+        if algo in ALGOS:
             return algo
     return "mappo"
 
 
-def run_maddpg(args) -> int:
-    from controllers.baselines import MADDPGConfigError, train_maddpg
+def run_baseline(args) -> int:
+    from controllers.baselines import BASELINES, BaselineConfigError
     from controllers.mappo.checkpoint import CheckpointError
 
     try:
         import torchrl  # noqa: F401
     except ImportError:
-        print("error: --algo maddpg needs TorchRL: pip install -c constraints.txt -e '.[torchrl]'",
+        print(f"error: --algo {chosen_algo(args)} needs TorchRL: pip install -c constraints.txt -e '.[torchrl]'",
               file=sys.stderr)
         return 2
 
     try:
-        config = resolve_maddpg_config(args)
-    except (ConfigFileError, MADDPGConfigError, ScenarioError, ValueError) as exc:
+        config = resolve_baseline_config(args)
+    except (ConfigFileError, BaselineConfigError, ScenarioError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.print_config:
@@ -146,7 +150,7 @@ def run_maddpg(args) -> int:
         return 0
     out = args.out or Path("runs") / time.strftime(f"{config.algo}-{config.scenario_name}-%Y%m%d-%H%M%S")
     try:
-        result = train_maddpg(config, out, resume=args.resume)
+        result = BASELINES[config.algo][1](config, out, resume=args.resume)
     except CheckpointError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -161,8 +165,8 @@ def run(args) -> int:
     if args.resume and args.out is None:
         print("error: --resume needs --out, the folder of the run to continue", file=sys.stderr)
         return 2
-    if chosen_algo(args) in ("maddpg", "gasil-maddpg"):
-        return run_maddpg(args)
+    if chosen_algo(args) != "mappo":
+        return run_baseline(args)
     try:
         config = resolve_config(args)
     except (ConfigFileError, TrainConfigError, PolicyConfigError, ScenarioError, ValueError) as exc:

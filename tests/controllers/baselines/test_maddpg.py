@@ -9,7 +9,8 @@ import torch
 from tensordict import TensorDict
 
 from controllers.baselines import MADDPGConfig, MADDPGConfigError, train_maddpg
-from controllers.baselines.maddpg import build_maddpg, maddpg_update, team_flags
+from controllers.baselines.maddpg import build_maddpg, maddpg_update
+from controllers.baselines.offpolicy import team_flags
 from sim.scenario import make_scenario
 from sim.torchrl_env import GROUP, FormationTorchRLEnv
 from stack.cli import main as cli
@@ -40,7 +41,7 @@ def test_config_errors_name_the_field():
         MADDPGConfig(batch_size=2048, buffer_size=1024)
     with pytest.raises(MADDPGConfigError, match="maddpg.noise_end"):
         MADDPGConfig(noise_start=0.1, noise_end=0.2)
-    with pytest.raises(MADDPGConfigError, match="unknown MADDPG field"):
+    with pytest.raises(MADDPGConfigError, match="unknown MADDPGConfig field"):
         MADDPGConfig.from_dict({"gama": 0.9})
     with pytest.raises(MADDPGConfigError, match="maddpg.scenario"):
         MADDPGConfig(scenario="paper-9")
