@@ -198,16 +198,17 @@ class OffPolicyTrainer:
         cfg = self.config
         bar = tqdm(total=cfg.total_episodes, initial=self.episodes, desc=f"{cfg.algo} {cfg.scenario_name}",
                    unit="ep")
+        clock = time.perf_counter()
         try:
             for data in self.collector:
-                start = time.perf_counter()
                 finished = int(data.get(("next", "done")).sum())
                 self._store(data)
                 losses = self._updates()
                 self.episodes += finished
                 self.env_steps += data.numel()
                 self.agent.after_collection()
-                self.wall_time_s += time.perf_counter() - start
+                now = time.perf_counter()              # collection, updates and evaluations
+                self.wall_time_s, clock = self.wall_time_s + now - clock, now
                 self._log(data, finished, losses)
                 bar.update(finished)
                 if evaluation_due(self.episodes, self.last_eval_episodes, cfg.eval_interval, cfg.num_envs):
@@ -251,13 +252,11 @@ class OffPolicyTrainer:
         self.train_log.append(row | self.agent.log_row() | {"buffer": len(self.buffer)})
 
     def _evaluate(self) -> None:
-        start = time.perf_counter()
         seed = 1_000_000 * (self.config.seed + 1) + 1_000 * self.eval_count
         result = evaluate(self.agent.actor, self.scenario, episodes=self.config.eval_episodes, seed=seed)
         converged = self.tracker.add(self.episodes, result.success_rate)
         self.eval_count += 1
         self.last_eval_episodes = self.episodes
-        self.wall_time_s += time.perf_counter() - start
         measured = {k: getattr(result, k) for k in ("success_rate", "final_distance", "episode_return",
                                                      "robot_collisions", "object_collisions",
                                                      "wall_collisions", "collision_rate")}
