@@ -6,6 +6,11 @@ Settings (each trained ``--seeds`` times with seeds 0..K-1, MAPPOConfig defaults
     mlp-3                      MLP-MAPPO (the paper's flat vector, no attention) on paper-3
     transfer-3to4 / -3to5      SDPA-MAPPO on paper-4 / -5 starting from the sdpa-3 run of the
                                same seed (``--init-from`` its final checkpoint)
+    maddpg-3, gasil-maddpg-3,  the paper's Table 1 baselines on paper-3 (controllers.baselines:
+    ddq-3                      MADDPG and GASIL-MADDPG from TorchRL's pieces, Deep Dyna-Q), their
+                               own defaults, the paper's episodes as budget; with sdpa-3 in the
+                               run, the measured "SDPA-MAPPO is Nx faster" beside the paper's
+                               (``ratios``)
 
 plus the zero-shot success of every sdpa-3 policy on paper-4 and paper-5 (100 deterministic
 episodes each, no further training; the mean over seeds is reported).
@@ -20,8 +25,9 @@ and one torch thread each, ``--jobs`` CPUs), each writing its usual run folder u
 a finished run is reused when the table is produced again with the same settings, and an
 interrupted one continues from its checkpoint.
 
-    python bench/paper_tables.py                       # 5 seeds, every setting
+    python bench/paper_tables.py                       # 5 seeds, every SDPA/MLP setting
     python bench/paper_tables.py --seeds 2 --settings sdpa-3,transfer-3to5 --json
+    python bench/paper_tables.py --seeds 3 --settings sdpa-3,maddpg-3,gasil-maddpg-3,ddq-3 --json
 """
 
 from __future__ import annotations
@@ -42,12 +48,22 @@ from bench._common import positive_int, print_json, print_table, progress  # noq
 from stack.sweep import TrialSpec, resolve_fields, run_trials  # noqa: E402
 
 PAPER_EPISODES = {"sdpa-3": 1200, "sdpa-4": 1500, "sdpa-5": 3200, "mlp-3": None,
-                  "transfer-3to4": 650, "transfer-3to5": 850}
+                  "transfer-3to4": 650, "transfer-3to5": 850,
+                  "maddpg-3": None, "gasil-maddpg-3": 25_000, "ddq-3": 40_000}
 PAPER_BASELINES = {"GASIL-MADDPG (3)": 25_000, "Deep Dyna-Q (3)": 40_000}
+PAPER_RATIOS = {"gasil-maddpg-3": 20.8, "ddq-3": 33.3}
+"""Table 1's "SDPA-MAPPO is Nx faster" (25,000 / 1200 and 40,000 / 1200)."""
 SETTINGS = tuple(PAPER_EPISODES)
-# Budget of each setting: twice the paper's episodes (the MLP baseline gets the SDPA budget).
+BASELINE_SETTINGS = ("maddpg-3", "gasil-maddpg-3", "ddq-3")
+DEFAULT_SETTINGS = tuple(n for n in SETTINGS if n not in BASELINE_SETTINGS)
+"""What runs without ``--settings``: the baselines' budgets are hours of CPU; name them to run them."""
+# Budget of each setting: twice the paper's episodes for SDPA-MAPPO (the MLP baseline gets the
+# SDPA budget); the paper's own figure for the off-policy baselines (MADDPG, which the paper does
+# not time, gets GASIL-MADDPG's): a seed that does not converge counts as the budget, so their
+# ratios are lower bounds.
 DEFAULT_BUDGET = {"sdpa-3": 2400, "sdpa-4": 3000, "sdpa-5": 6400, "mlp-3": 2400,
-                  "transfer-3to4": 1300, "transfer-3to5": 1700}
+                  "transfer-3to4": 1300, "transfer-3to5": 1700,
+                  "maddpg-3": 25_000, "gasil-maddpg-3": 25_000, "ddq-3": 40_000}
 
 
 @dataclass(frozen=True)
@@ -56,9 +72,12 @@ class Setting:
     scenario: str
     variant: str
     transfer_from: str | None = None   # the setting whose checkpoint seeds this run
+    algo: str = "mappo"
 
 
 def setting(name: str) -> Setting:
+    if name in BASELINE_SETTINGS:
+        return Setting(name, "paper-3", "", algo=name[:-2])
     if name.startswith("sdpa-"):
         return Setting(name, f"paper-{name[5:]}", "typed")
     if name == "mlp-3":
@@ -83,6 +102,9 @@ def run_dir(out: Path, name: str, seed: int) -> Path:
 def trial(out: Path, name: str, seed: int, budget: int, config: dict) -> TrialSpec:
     """The sweep trial of one (setting, seed): its resolved fields and run folder."""
     s = setting(name)
+    if s.algo != "mappo":      # --config holds MAPPOConfig fields: not the baselines'
+        fields = {"algo": s.algo, "scenario": s.scenario, "total_episodes": budget}
+        return TrialSpec(name, seed, resolve_fields(fields, {}, seed), str(run_dir(out, name, seed).resolve()))
     fields = {**config, "scenario": s.scenario, "total_episodes": budget,
               "actor": {**config.get("actor", {}), "variant": s.variant}}
     if s.transfer_from:
@@ -129,11 +151,24 @@ def row(name: str, seeds: int, runs: list[dict]) -> dict:
             "episodes": [r["episodes"] for r in runs], "paper_episodes": PAPER_EPISODES[name]}
 
 
+def ratios(rows: list[dict]) -> list[dict]:
+    """Median episodes of each baseline setting over sdpa-3's (both in the rows): ``lower_bound``
+    when a baseline seed did not converge (it counts as its budget)."""
+    by_name = {r["setting"]: r for r in rows}
+    if "sdpa-3" not in by_name:
+        return []
+    sdpa = by_name["sdpa-3"]["episodes_median"]
+    return [{"baseline": name, "ratio": round(by_name[name]["episodes_median"] / sdpa, 2),
+             "lower_bound": by_name[name]["converged_seeds"] < by_name[name]["seeds"],
+             "paper": PAPER_RATIOS.get(name)} for name in BASELINE_SETTINGS if name in by_name]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=positive_int, default=5, help="seeds per setting (0..K-1; default 5)")
-    p.add_argument("--settings", type=settings_list, default=list(SETTINGS),
-                   help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3)")
+    p.add_argument("--settings", type=settings_list, default=list(DEFAULT_SETTINGS),
+                   help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3; "
+                        f"default: {','.join(DEFAULT_SETTINGS)})")
     p.add_argument("--jobs", type=positive_int, default=2, help="CPUs of the local Ray: trials at a time (default 2)")
     p.add_argument("--budget-scale", type=float, default=1.0,
                    help="multiply every episode budget (default budgets: twice the paper's episodes)")
@@ -175,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                 zero[f"3to{robots}"] = round(statistics.fmean(rates), 3)
     rows = [row(n, args.seeds, results[n]) for n in names]
     doc = {"rows": rows, "zero_shot": zero, "paper_baselines": PAPER_BASELINES,
-           "budgets": budgets, "config": config, "wall_s_total": round(time.perf_counter() - start, 1)}
+           "ratios": ratios(rows), "budgets": budgets, "config": config,
+           "wall_s_total": round(time.perf_counter() - start, 1)}
     if args.json:
         print_json(doc)
         return 0
@@ -186,6 +222,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['wall_s_median']:.0f}", r["paper_episodes"] or "-"] for r in rows])
     for key, value in zero.items():
         print(f"zero-shot success {key}: {value:.2f} (mean over {args.seeds} seeds, 100 episodes each)")
+    for r in doc["ratios"]:
+        bound = "at least " if r["lower_bound"] else ""
+        paper = f" (paper: {r['paper']}x)" if r["paper"] else ""
+        print(f"SDPA-MAPPO is {bound}{r['ratio']:.1f}x faster than {r['baseline']} here, in median episodes{paper}")
     print("paper baselines (3 robots): " + ", ".join(f"{k} {v}" for k, v in PAPER_BASELINES.items()))
     return 0
 

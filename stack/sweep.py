@@ -49,7 +49,7 @@ class TrialSpec:
 
     group: str
     seed: int
-    fields: dict[str, Any]   # MAPPOConfig.to_dict() of the run
+    fields: dict[str, Any]   # MAPPOConfig.to_dict() of the run (or a baseline config's, with "algo")
     folder: str              # absolute run folder
 
     @property
@@ -95,12 +95,28 @@ def resolve_fields(base: dict, overrides: dict[str, Any], seed: int) -> dict:
     fields = dict(base)
     for key, value in overrides.items():
         fields = _set_dotted(fields, key, value)
-    fields |= {"seed": seed, "progress": False, "torch_threads": 1}
+    baseline = _baseline(fields)
+    fields |= {"seed": seed, "torch_threads": 1} | ({} if baseline else {"progress": False})
     try:
+        if baseline:
+            return baseline[0].from_dict(fields).to_dict()
         return MAPPOConfig.from_dict(user_fields(fields)).to_dict()
     except (TypeError, ValueError) as exc:
         where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "the base config"
         raise SweepError(f"{where}: {exc}") from None
+
+
+def _baseline(fields: dict[str, Any]):
+    """``(config class, train function)`` of a baseline's fields (``"algo"``: maddpg,
+    gasil-maddpg, ddq; :data:`controllers.baselines.BASELINES`), None for MAPPO's."""
+    algo = fields.get("algo")
+    if algo in (None, "mappo"):
+        return None
+    from controllers.baselines import BASELINES
+
+    if algo not in BASELINES:
+        raise SweepError(f"algo {algo!r}: choose mappo or one of {', '.join(BASELINES)}")
+    return BASELINES[algo]
 
 
 def group_name(overrides: dict[str, Any]) -> str:
@@ -156,7 +172,11 @@ def train_trial(spec: TrialSpec) -> dict:
     folder = Path(spec.folder)
     if not finished(folder, spec.budget):
         resume = (folder / "checkpoint.pt").exists()
-        train(MAPPOConfig.from_dict(spec.fields), folder, resume=resume)
+        baseline = _baseline(spec.fields)
+        if baseline:
+            baseline[1](baseline[0].from_dict(spec.fields), folder, resume=resume)
+        else:
+            train(MAPPOConfig.from_dict(spec.fields), folder, resume=resume)
     return summarize(folder, spec.budget)
 
 

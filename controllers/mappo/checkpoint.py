@@ -85,6 +85,12 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def checkpoint_config(data: dict[str, Any]) -> MAPPOConfig:
+    algo = data.get("algo", "mappo")
+    if algo != "mappo":
+        raise CheckpointError(f"this is a {algo} checkpoint (`formation train --algo {algo}`): the "
+                              "paper's baselines are measured in training (their run folder's eval.jsonl, "
+                              "bench/paper_tables.py); export, eval and the ControlStack take SDPA-/MLP-MAPPO "
+                              "checkpoints")
     config = dict(data["config"])
     for net in ("actor", "critic"):   # saved before token embeddings could have a hidden layer
         if isinstance(config.get(net), dict) and "embed_hidden" not in config[net]:

@@ -110,3 +110,12 @@ def test_ddq_learns_a_clear_lane_for_one_robot(tmp_path):
     rows = [json.loads(line) for line in (tmp_path / "eval.jsonl").read_text().splitlines()]
     first, last = rows[0]["final_distance"], min(r["final_distance"] for r in rows[-3:])
     assert last < 0.4 * first, [r["final_distance"] for r in rows]
+
+
+def test_export_refuses_a_baseline_checkpoint_by_name(tmp_path, capsys):
+    from stack.cli import main as cli
+
+    train_ddq(DDQConfig(total_episodes=8, num_envs=8, steps_per_collection=16, buffer_size=4096, batch_size=128,
+                        eval_interval=8, eval_episodes=4), tmp_path)
+    assert cli(["export", str(tmp_path / "checkpoint.pt"), "--out", str(tmp_path / "policy")]) != 0
+    assert "ddq checkpoint" in capsys.readouterr().err
