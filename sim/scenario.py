@@ -335,6 +335,17 @@ def load_scenario_file(path: str | Path) -> Scenario:
         raise ScenarioError(f"scenario file {str(path)!r}: {exc}") from None
 
 
+def scenario_from(value: str | dict) -> Scenario:
+    """A run config's ``scenario`` field: a preset name, transport-N, a scenario file, or a
+    scenario dict (a file's content, as a run's config.json keeps it). ScenarioError or
+    TypeError (a missing field) name what is wrong; ValueError for any other kind of value."""
+    if isinstance(value, dict):
+        return Scenario.from_dict(dict(value))
+    if isinstance(value, str):
+        return make_scenario(value)
+    raise ValueError(f"scenario must be a preset name, a scenario file or a scenario dict, got {value!r}")
+
+
 def make_scenario(name: str) -> Scenario:
     """Build a preset by name (see :data:`PRESETS`), ``transport-N`` for any N, or the scenario of
     a .json/.toml file (:func:`load_scenario_file`)."""

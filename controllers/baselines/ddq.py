@@ -61,8 +61,8 @@ def action_table(accel_limit: float) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class DDQConfig(RunSettings):
-    """Everything a Deep Dyna-Q run depends on (module docstring for the sources); the shared
-    fields mean what they mean in :class:`controllers.baselines.MADDPGConfig`.
+    """Everything a Deep Dyna-Q run depends on (module docstring for the sources); the fields every
+    baseline shares are :class:`~controllers.baselines.offpolicy.RunSettings`'.
 
     Attributes:
         planning_steps: K, planned Q updates per real one.
@@ -72,15 +72,7 @@ class DDQConfig(RunSettings):
         epsilon_start, epsilon_end, epsilon_anneal_episodes: the exploration schedule.
     """
 
-    scenario: str | dict = "paper-3"
-    seed: int = 0
     total_episodes: int = 40_000
-    num_envs: int = 32
-    steps_per_collection: int = 25
-    buffer_size: int = 1_000_000
-    batch_size: int = 1024
-    samples_per_update: int = 100
-    gamma: float = 0.95
     lr: float = 1e-3
     model_lr: float = 1e-3
     hidden: int = 64
@@ -90,11 +82,6 @@ class DDQConfig(RunSettings):
     epsilon_start: float = 1.0
     epsilon_end: float = 0.05
     epsilon_anneal_episodes: int = 5_000
-    eval_interval: int = 50
-    eval_episodes: int = 100
-    success_threshold: float = 0.9
-    stop_at_convergence: bool = True
-    torch_threads: int = 1
 
     def __post_init__(self) -> None:
         self.check(positive_ints=("total_episodes", "num_envs", "steps_per_collection", "buffer_size",

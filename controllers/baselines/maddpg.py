@@ -65,41 +65,21 @@ MADDPGConfigError = BaselineConfigError
 
 @dataclass(frozen=True)
 class MADDPGConfig(RunSettings):
-    """Everything a MADDPG run depends on (module docstring for the sources).
+    """Everything a MADDPG run depends on (module docstring for the sources); the fields every
+    baseline shares are :class:`~controllers.baselines.offpolicy.RunSettings`'.
 
     Attributes:
-        scenario: preset name (or transport-N) of the task.
-        seed: seeds torch, the environments and the evaluations.
-        total_episodes: training budget in episodes (every environment's episode counts).
-        num_envs: environments collected side by side.
-        steps_per_collection: steps of every environment per collection.
-        buffer_size: replay capacity [transitions].
-        batch_size: transitions per update.
-        samples_per_update: one update per this many transitions added.
-        gamma: discount; tau: target network step.
+        tau: target network step.
         actor_lr, critic_lr: Adam learning rates.
         hidden, depth: units and hidden layers of every network.
         max_grad_norm: gradient norm clip of each loss.
         noise_start, noise_end: exploration noise std as a fraction of ``accel_limit``.
         noise_anneal_episodes: episodes over which it falls from start to end.
-        eval_interval, eval_episodes, success_threshold: the convergence rule's
-            (:mod:`controllers.mappo.evaluate`, as SDPA-MAPPO).
-        stop_at_convergence: end the run when the rule is met.
-        torch_threads: intra-op threads (0: leave torch's default).
         self_imitation: GASIL-MADDPG (:mod:`controllers.baselines.gasil`): the reward shaped by a
             discriminator between the run's best episodes and the policy's transitions.
         imitation_weight: GASIL's ``alpha``; good_episodes: its K; discriminator_lr: its Adam rate.
     """
 
-    scenario: str | dict = "paper-3"
-    seed: int = 0
-    total_episodes: int = 25_000
-    num_envs: int = 32
-    steps_per_collection: int = 25
-    buffer_size: int = 1_000_000
-    batch_size: int = 1024
-    samples_per_update: int = 100
-    gamma: float = 0.95
     tau: float = 0.01
     actor_lr: float = 0.01
     critic_lr: float = 0.01
@@ -109,11 +89,6 @@ class MADDPGConfig(RunSettings):
     noise_start: float = 0.3
     noise_end: float = 0.05
     noise_anneal_episodes: int = 5_000
-    eval_interval: int = 50
-    eval_episodes: int = 100
-    success_threshold: float = 0.9
-    stop_at_convergence: bool = True
-    torch_threads: int = 1
     self_imitation: bool = False
     imitation_weight: float = 0.1
     good_episodes: int = 100

@@ -35,7 +35,7 @@ from controllers.mappo.evaluate import (
 from controllers.mappo.logs import MetricsLog
 from sim.files import atomic_path
 from sim.provenance import provenance
-from sim.scenario import Scenario, ScenarioError, make_scenario
+from sim.scenario import Scenario, ScenarioError, scenario_from
 from sim.torchrl_env import GROUP, FormationTorchRLEnv
 
 TRANSITION = [(GROUP, "observation"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
@@ -51,10 +51,44 @@ class BaselineConfigError(ValueError):
     """A baseline setting that cannot work; the message names the field and the fix."""
 
 
+@dataclass(frozen=True)
 class RunSettings:
-    """What every baseline config shares: the scenario (a preset name, transport-N, a scenario
-    file, stored as its content, or a dict), its ``algo`` name in ``to_dict``, field checks that
-    name ``<algo>.<field>``. Subclasses are frozen dataclasses."""
+    """What every baseline config shares: its fields below, its ``algo`` name in ``to_dict``,
+    field checks that name ``<algo>.<field>``. Subclasses are frozen dataclasses.
+
+    Attributes:
+        scenario: preset name, transport-N, a scenario file (kept as its content) or dict.
+        seed: seeds torch, the environments and the evaluations.
+        total_episodes: training budget in episodes (every environment's episode counts).
+        num_envs: environments collected side by side.
+        steps_per_collection: steps of every environment per collection.
+        buffer_size: replay capacity [transitions]; batch_size: transitions per update.
+        samples_per_update: one update per this many transitions added.
+        gamma: discount.
+        eval_interval, eval_episodes, success_threshold: the convergence rule's
+            (:mod:`controllers.mappo.evaluate`, as SDPA-MAPPO).
+        stop_at_convergence: end the run when the rule is met.
+        torch_threads: intra-op threads (0: leave torch's default).
+    """
+
+    scenario: str | dict = "paper-3"
+    seed: int = 0
+    total_episodes: int = 25_000
+    num_envs: int = 32
+    steps_per_collection: int = 25
+    buffer_size: int = 1_000_000
+    batch_size: int = 1024
+    samples_per_update: int = 100
+    gamma: float = 0.95
+    eval_interval: int = 50
+    eval_episodes: int = 100
+    success_threshold: float = 0.9
+    stop_at_convergence: bool = True
+    torch_threads: int = 1
+
+    @property
+    def algo(self) -> str:
+        raise NotImplementedError
 
     def check(self, positive_ints: tuple[str, ...], unit_interval: tuple[str, ...],
               positive: tuple[str, ...]) -> None:
@@ -85,14 +119,9 @@ class RunSettings:
     def build_scenario(self) -> Scenario:
         """The run's scenario."""
         try:
-            if isinstance(self.scenario, dict):
-                return Scenario.from_dict(dict(self.scenario))
-            if isinstance(self.scenario, str):
-                return make_scenario(self.scenario)
-        except (ScenarioError, TypeError) as exc:
+            return scenario_from(self.scenario)
+        except (ScenarioError, TypeError, ValueError) as exc:
             raise BaselineConfigError(f"{self.algo}.scenario: {exc}") from None
-        raise BaselineConfigError(f"{self.algo}.scenario must be a preset name, a scenario file or a "
-                                  f"scenario dict, got {self.scenario!r}")
 
     @property
     def scenario_name(self) -> str:

@@ -201,16 +201,12 @@ class MAPPOConfig:
 
     def build_scenario(self):
         """The :class:`sim.scenario.Scenario` of this run."""
-        from sim.scenario import Scenario, ScenarioError, make_scenario
+        from sim.scenario import ScenarioError, scenario_from
 
         try:
-            if isinstance(self.scenario, dict):
-                return Scenario.from_dict(dict(self.scenario))
-            if isinstance(self.scenario, str):
-                return make_scenario(self.scenario)
-        except (ScenarioError, TypeError) as exc:
+            return scenario_from(self.scenario)
+        except (ScenarioError, TypeError, ValueError) as exc:
             raise TrainConfigError(f"scenario: {exc}") from None
-        raise TrainConfigError(f"scenario must be a preset name or a scenario dict, got {self.scenario!r}")
 
     def build_team_scenarios(self) -> list:
         """The scenario of each team size trained on (:attr:`team_sizes`; the scenario alone

@@ -111,6 +111,15 @@ def resolve_baseline_config(args):
     return BASELINES[algo][0].from_dict(fields)
 
 
+def summary(out: Path, result) -> int:
+    """Print where the run is and how it ended; exit status 0."""
+    conv = result.converged_episode
+    print(f"run folder: {out}")
+    print(f"episodes {result.episodes}, env steps {result.env_steps}, wall {result.wall_time_s:.0f} s, "
+          + (f"converged at episode {conv}" if conv is not None else "not converged"))
+    return 0
+
+
 def chosen_algo(args) -> str:
     """``--algo``, else the ``"algo"`` of the ``--config`` file, else (``--resume``) of the run's
     ``config.json``, else ``mappo``: a MADDPG run resumes, or is repeated, as itself."""
@@ -154,11 +163,7 @@ def run_baseline(args) -> int:
     except CheckpointError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    conv = result.converged_episode
-    print(f"run folder: {out}")
-    print(f"episodes {result.episodes}, env steps {result.env_steps}, wall {result.wall_time_s:.0f} s, "
-          + (f"converged at episode {conv}" if conv is not None else "not converged"))
-    return 0
+    return summary(out, result)
 
 
 def run(args) -> int:
@@ -177,8 +182,4 @@ def run(args) -> int:
         return 0
     out = args.out or Path("runs") / time.strftime(f"train-{config.scenario_name}-%Y%m%d-%H%M%S")
     result = train(config, out, resume=args.resume)
-    conv = result.converged_episode
-    print(f"run folder: {out}")
-    print(f"episodes {result.episodes}, env steps {result.env_steps}, wall {result.wall_time_s:.0f} s, "
-          + (f"converged at episode {conv}" if conv is not None else "not converged"))
-    return 0
+    return summary(out, result)
