@@ -1,4 +1,4 @@
-"""`formation train`: train an SDPA-MAPPO (or MLP-MAPPO) policy on a scenario.
+"""`formation train`: train an SDPA-MAPPO (or MLP-MAPPO, or a paper baseline) policy on a scenario.
 
 Every run writes, in its folder: ``config.json`` (the resolved configuration, itself a valid
 ``--config`` file), ``run.json`` (git commit, package versions, threads, host), ``train.csv`` /
