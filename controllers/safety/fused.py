@@ -238,9 +238,12 @@ class FusedScene:
         w = vel.T @ self.gather_t                                            # (2, K)
         sdot = (normal * w).sum(axis=0)
         tang = np.maximum((w * w).sum(axis=0) - sdot * sdot, 0.0)
-        alpha, two_alpha, dropped = self.alpha, self.two_alpha, None
+        alpha, two_alpha, dropped, gamma = self.alpha, self.two_alpha, None, cfg.gamma
         sdot_drift = sdot
         if prediction is not None:
+            if prediction.unsure is not None and prediction.unsure.any():
+                gamma = np.where(prediction.unsure.astype(np.float64) @ self.gather_abs_t > 0,
+                                 cfg.gamma_unsure, cfg.gamma)
             dist = dist - prediction.grow @ self.gather_abs_t
             allowance = prediction.closing @ self.gather_abs_t
             sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)
@@ -256,7 +259,7 @@ class FusedScene:
         slope = alpha / root
         h = root + slope * (dist - clamped) + sdot
         drift = (slope - self.dynamics.damping) * sdot_drift + curv * tang
-        k_of_h = cfg.gamma * (h if cfg.class_k == "linear" else h * h * h)
+        k_of_h = gamma * (h if cfg.class_k == "linear" else h * h * h)
         bound = -k_of_h - drift
         if dropped is not None and dropped.any():
             bound[dropped] = -np.inf

@@ -231,6 +231,9 @@ class Prediction:
         velocity_error: (N,) bound on the error of ``vel`` [m/s]: ``closing`` plus
             ``VELOCITY_NOISE_BOUND`` times the velocity noise the caller measured; read by the
             post-check's rule that excuses commands no worse than braking. None: 0.
+        unsure: (N,) bool, robots whose command delay may change under the prediction (it
+            changed lately, or their pending count is unknown): their rows take the filter's
+            ``gamma_unsure`` (:class:`controllers.safety.barrier.SafetyConfig`). None: none.
     """
 
     pos: np.ndarray
@@ -241,6 +244,7 @@ class Prediction:
     horizon: np.ndarray
     brake_vel: np.ndarray | None = None
     velocity_error: np.ndarray | None = None
+    unsure: np.ndarray | None = None
 
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
@@ -392,7 +396,8 @@ class LatencyPredictor:
         velocity_error = closing + (0.0 if velocity_noise is None else
                                     VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
-                          brake_vel=brake_vel, velocity_error=np.broadcast_to(velocity_error, (len(p),)))
+                          brake_vel=brake_vel, velocity_error=np.broadcast_to(velocity_error, (len(p),)),
+                          unsure=unsure)
 
     def _silent_paths(self, i: int, pos: np.ndarray, vel: np.ndarray, measured_at: float, pending: int,
                       age: float, delay: float, spread_weight: float) -> SilentPaths | None:

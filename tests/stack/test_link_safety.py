@@ -187,3 +187,15 @@ def test_robots_braked_inside_their_grown_discs_move_apart_instead_of_freezing(m
     assert scripted_paper5_succeeds(8)
     no_excuses(monkeypatch)
     assert not scripted_paper5_succeeds(8)
+
+
+@pytest.mark.slow
+def test_robots_whose_delay_jitters_brake_earlier_and_touch_without_it():
+    """The filter starts braking later (class-K gain ``gamma`` 6) except in the rows of a robot
+    whose delay is not known to hold (``gamma_unsure`` 3): there a brake the prediction counted
+    on may be overtaken and never act. ``bench/safety.py`` ``delay_jitter`` seed 184 (8 robots)
+    touches the object (0.2 mm deep) with the raised gain on every row, not with the default."""
+    from controllers.safety import SafetyConfig
+
+    assert not crowd_collided(184, StackConfig())
+    assert crowd_collided(184, StackConfig(safety_config=SafetyConfig(gamma_unsure=6.0)))

@@ -146,3 +146,28 @@ def test_config_errors_name_the_field():
     with pytest.raises(SafetyConfigError, match=r"unknown safety field\(s\) \['gamma_typo'\]"):
         SafetyConfig.from_dict({"gamma_typo": 1.0})
     assert SafetyConfig.from_dict({"gamma": 2.0}).gamma == 2.0
+
+
+def test_rows_of_an_unsure_robot_take_the_unsure_gain():
+    """Three robots, robot 1 unsure: the pairs (0, 1) and (1, 2), and robot 1's object and wall
+    rows take ``gamma_unsure``; every other row ``gamma``. The bound is -gamma_row h - drift."""
+    from controllers.safety.barrier import row_gamma
+    from controllers.safety.latency import Prediction
+
+    cfg = SafetyConfig(gamma=6.0, gamma_unsure=3.0)
+    n = 3
+    zeros = np.zeros(n)
+    pred = Prediction(pos=np.zeros((n, 2)), vel=np.zeros((n, 2)), grow=zeros, closing=zeros,
+                      fixed=np.zeros(n, dtype=bool), horizon=np.zeros(n, dtype=int),
+                      unsure=np.array([False, True, False]))
+    pi, pj = np.triu_indices(n, 1)                        # pairs (0, 1), (0, 2), (1, 2)
+    gamma = row_gamma(cfg, pred, pi, pj)
+    want = [3, 6, 3] + [6, 3, 6] + [6] * 4 + [3] * 4 + [6] * 4
+    assert gamma.tolist() == want
+    pred.unsure = np.zeros(n, dtype=bool)
+    assert row_gamma(cfg, pred, pi, pj) == 6.0
+    rng = np.random.default_rng(3)
+    pos, vel = random_state(rng, n, 0.02)
+    pred.unsure = np.array([False, True, False])
+    terms = barrier_terms(analytic_distances(pos, R, SCENARIO.arena, SCENARIO.polygon), vel, DYN, cfg, pred)
+    np.testing.assert_allclose(terms.bound, -np.array(want) * terms.h - terms.drift, atol=1e-12)

@@ -204,3 +204,21 @@ def test_fused_filter_statuses_by_hand():
                               DYN, f.config)
     assert np.all(reference.rows_times(push.a_safe) >= reference.bound - 1e-9)
     assert push.a_safe[0, 0] < 1.0 and push.a_safe[1, 0] > -1.0        # both hold back
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 8), speed=st.floats(0.0, 0.6))
+def test_fused_rows_equal_the_reference_rows_under_a_prediction(seed, n, speed):
+    """Grown discs, closing allowances, fixed robots and unsure robots (their rows' gain) give the
+    same rows on both paths."""
+    from controllers.safety.latency import Prediction
+
+    rng = np.random.default_rng(seed)
+    pos, vel, _ = scene(rng, n, speed)
+    prediction = Prediction(pos=pos, vel=vel, grow=rng.uniform(0, 0.02, n), closing=rng.uniform(0, 0.1, n),
+                            fixed=rng.random(n) < 0.3, horizon=np.full(n, 3), unsure=rng.random(n) < 0.5)
+    config = SafetyConfig()
+    want = barrier_terms(analytic_distances(pos, R, SCENARIO.arena, SCENARIO.polygon), vel, DYN, config,
+                         prediction)
+    got = FusedScene(R, SCENARIO.arena, DYN, config, n).terms(pos, vel, np.asarray(SCENARIO.polygon), prediction)
+    assert_terms_equal(got, want)
