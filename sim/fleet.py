@@ -129,6 +129,13 @@ class FleetState:
                                  f"or None, got {self.commands_pending!r}")
             self.commands_pending = pending.astype(np.int64)
 
+    def replaced(self, **fields) -> FleetState:
+        """A shallow copy with ``fields`` replaced, not validated again: the caller keeps every
+        shape (a control tick's stand-ins and estimates)."""
+        new = object.__new__(FleetState)
+        new.__dict__.update(self.__dict__, **fields)
+        return new
+
     def ages(self) -> np.ndarray:
         """(N,) state ages [s] (zeros when ``state_age_s`` is None)."""
         return np.zeros(self.num_robots) if self.state_age_s is None else self.state_age_s

@@ -58,7 +58,6 @@ and judges the episode.
 
 from __future__ import annotations
 
-import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -345,8 +344,7 @@ class ControlStack:
             t_obs = t_pol = time.perf_counter_ns()
         else:
             if unknown.any() or vel is not state.velocities or pos is not state.positions:
-                state = copy.copy(state)        # same shapes: no need to validate again
-                state.positions, state.velocities, state.state_age_s = pos, vel, ages
+                state = state.replaced(positions=pos, velocities=vel, state_age_s=ages)
             a_nom, t_obs, t_pol = self._policy(state, t0)
             if not np.isfinite(a_nom).all():
                 a_nom = self.brake(vel)

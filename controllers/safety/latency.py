@@ -166,7 +166,7 @@ class LatencyConfig:
 
 def horizon_ticks(age_s: np.ndarray, delay_s: float, dt: float) -> np.ndarray:
     """(N,) ticks ``ceil((tau + L) / dt)`` from each measurement to the new command acting."""
-    return np.ceil((np.asarray(age_s) + delay_s) / dt - 1e-9).astype(np.int64).clip(min=0)
+    return np.maximum(np.ceil((np.asarray(age_s) + delay_s) / dt - 1e-9).astype(np.int64), 0)
 
 
 def reach(pos0: np.ndarray, vel0: np.ndarray, t: np.ndarray, brake_after: float, dynamics: Dynamics,
@@ -396,7 +396,7 @@ class LatencyPredictor:
         velocity_error = closing + (0.0 if velocity_noise is None else
                                     VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
-                          brake_vel=brake_vel, velocity_error=np.broadcast_to(velocity_error, (len(p),)),
+                          brake_vel=brake_vel, velocity_error=velocity_error + np.zeros(len(p)),
                           unsure=unsure)
 
     def _silent_paths(self, i: int, pos: np.ndarray, vel: np.ndarray, measured_at: float, pending: int,

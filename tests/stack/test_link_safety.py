@@ -159,13 +159,14 @@ def test_a_jittering_robot_braked_from_its_prediction_is_run_into_and_not_from_i
     a prediction that counts on pending commands a newer one then overtook never stops the robot
     (bench/safety.py ``delay_jitter`` seeds 3, 24, 33: each touched before the rule). Since the
     post-check excuses commands no worse than braking, these seeds stay clear even without the
-    rule (so do seeds 0-79, measured); the rule's teeth are shown with the excuse off."""
+    rule (so do seeds 0-79, measured); the rule's teeth are shown with the excuse off. Since the
+    filter's gain is 6 (3 for unsure robots), seed 3 stays clear without the rule too."""
     seeds = (3, 24, 33)
     old = StackConfig(latency=LatencyConfig(jitter_brake_measured=False))
     assert [s for s in seeds if crowd_collided(s, StackConfig())] == []
     no_excuses(monkeypatch)
     assert [s for s in seeds if crowd_collided(s, StackConfig())] == []
-    assert [s for s in seeds if crowd_collided(s, old)] == list(seeds)
+    assert [s for s in seeds if crowd_collided(s, old)] == [24, 33]
 
 
 def scripted_paper5_succeeds(seed: int) -> bool:

@@ -101,8 +101,9 @@ def test_robots_already_closing_too_fast_get_slack_and_bounded_commands():
 
 def test_osqp_failure_falls_back_to_the_exact_slack_qp():
     rng = np.random.default_rng(3)
-    exact = SafetyFilter(SCENARIO)
-    starved = SafetyFilter(SCENARIO, SafetyConfig(max_iter=1))
+    # gamma 3: this state and push make the barrier rows bind (with 6 the nominal is already safe)
+    exact = SafetyFilter(SCENARIO, SafetyConfig(gamma=3.0))
+    starved = SafetyFilter(SCENARIO, SafetyConfig(gamma=3.0, max_iter=1))
     pos, vel = random_state(rng, 5, exact)
     a_nom = toward_neighbours(pos)
     want = exact.filter(pos, vel, a_nom)
