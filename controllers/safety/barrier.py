@@ -46,7 +46,10 @@ or ``gamma h^3`` (as in the paper), i.e. one row per pair, linear in the acceler
     n . u_i - n . u_j >= b,        b = -K(h) - drift
 
 Feasibility on the boundary ``h = 0``: there ``s_dot = -phi(z)``, so ``b = alpha - c phi(z) -
-kappa |w_t|^2 <= alpha``, which the braking budget above covers. Continuous-time invariance of
+kappa |w_t|^2 <= alpha``, which the braking budget above covers, for each row alone. Two rows of
+one robot at their boundaries with opposite normals (a robot pinned between the object and a
+neighbour driving at it) can ask more than any split of the budget gives: there the QP is
+infeasible and the slack QP and the post-check answer. Continuous-time invariance of
 ``h >= 0`` then follows from the comparison lemma; the discrete 20 Hz zero-order hold and the
 speed limit are absorbed by the margin ``m`` and caught by the post-check.
 
