@@ -132,7 +132,7 @@ class FleetState:
     def replaced(self, **fields) -> FleetState:
         """A shallow copy with ``fields`` replaced, not validated again: the caller keeps every
         shape (a control tick's stand-ins and estimates)."""
-        new = object.__new__(FleetState)
+        new = object.__new__(type(self))
         new.__dict__.update(self.__dict__, **fields)
         return new
 

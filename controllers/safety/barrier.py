@@ -74,6 +74,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -218,15 +219,16 @@ def _phi(z: np.ndarray, alpha: float | np.ndarray, floor: float) -> tuple[np.nda
     return root + slope * np.minimum(z - floor, 0.0), slope
 
 
-def row_gamma(config: SafetyConfig, prediction: Prediction | None, pair_i: np.ndarray,
-              pair_j: np.ndarray) -> float | np.ndarray:
+def row_gamma(config: SafetyConfig, prediction: Prediction | None,
+              row_sum: Callable[[np.ndarray], np.ndarray]) -> float | np.ndarray:
     """The class-K gain of each row: ``gamma_unsure`` where a robot of the row is
     :attr:`~controllers.safety.latency.Prediction.unsure`, else ``gamma`` (a scalar when no
-    robot is)."""
+    robot is). ``row_sum`` maps a per-robot (N,) array to its (K,) per-row sums (each path's
+    own: :func:`~controllers.safety.latency.row_sums`, or the fused path's gather matrix)."""
     unsure = None if prediction is None else prediction.unsure
     if unsure is None or not unsure.any():
         return config.gamma
-    return np.where(row_sums(unsure.astype(np.float64), pair_i, pair_j) > 0, config.gamma_unsure, config.gamma)
+    return np.where(row_sum(unsure.astype(np.float64)) > 0, config.gamma_unsure, config.gamma)
 
 
 def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
@@ -256,7 +258,7 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
     alpha[len(sdot_pair):] = alpha_static
     dropped, sdot_drift, gamma = None, sdot, config.gamma
     if prediction is not None:
-        gamma = row_gamma(config, prediction, dist.pair_i, dist.pair_j)
+        gamma = row_gamma(config, prediction, lambda x: row_sums(x, dist.pair_i, dist.pair_j))
         s = s - row_sums(prediction.grow, dist.pair_i, dist.pair_j)
         allowance = row_sums(prediction.closing, dist.pair_i, dist.pair_j)
         sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)

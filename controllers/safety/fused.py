@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
+from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel, row_gamma
 from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
 from controllers.safety.latency import Prediction
 from controllers.safety.postcheck import (
@@ -241,9 +241,7 @@ class FusedScene:
         alpha, two_alpha, dropped, gamma = self.alpha, self.two_alpha, None, cfg.gamma
         sdot_drift = sdot
         if prediction is not None:
-            if prediction.unsure is not None and prediction.unsure.any():
-                gamma = np.where(prediction.unsure.astype(np.float64) @ self.gather_abs_t > 0,
-                                 cfg.gamma_unsure, cfg.gamma)
+            gamma = row_gamma(cfg, prediction, lambda x: x @ self.gather_abs_t)
             dist = dist - prediction.grow @ self.gather_abs_t
             allowance = prediction.closing @ self.gather_abs_t
             sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)

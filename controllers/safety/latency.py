@@ -396,7 +396,7 @@ class LatencyPredictor:
         velocity_error = closing + (0.0 if velocity_noise is None else
                                     VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
-                          brake_vel=brake_vel, velocity_error=velocity_error + np.zeros(len(p)),
+                          brake_vel=brake_vel, velocity_error=velocity_error,
                           unsure=unsure)
 
     def _silent_paths(self, i: int, pos: np.ndarray, vel: np.ndarray, measured_at: float, pending: int,

@@ -152,7 +152,7 @@ def test_rows_of_an_unsure_robot_take_the_unsure_gain():
     """Three robots, robot 1 unsure: the pairs (0, 1) and (1, 2), and robot 1's object and wall
     rows take ``gamma_unsure``; every other row ``gamma``. The bound is -gamma_row h - drift."""
     from controllers.safety.barrier import row_gamma
-    from controllers.safety.latency import Prediction
+    from controllers.safety.latency import Prediction, row_sums
 
     cfg = SafetyConfig(gamma=6.0, gamma_unsure=3.0)
     n = 3
@@ -161,11 +161,11 @@ def test_rows_of_an_unsure_robot_take_the_unsure_gain():
                       fixed=np.zeros(n, dtype=bool), horizon=np.zeros(n, dtype=int),
                       unsure=np.array([False, True, False]))
     pi, pj = np.triu_indices(n, 1)                        # pairs (0, 1), (0, 2), (1, 2)
-    gamma = row_gamma(cfg, pred, pi, pj)
+    gamma = row_gamma(cfg, pred, lambda x: row_sums(x, pi, pj))
     want = [3, 6, 3] + [6, 3, 6] + [6] * 4 + [3] * 4 + [6] * 4
     assert gamma.tolist() == want
     pred.unsure = np.zeros(n, dtype=bool)
-    assert row_gamma(cfg, pred, pi, pj) == 6.0
+    assert row_gamma(cfg, pred, lambda x: row_sums(x, pi, pj)) == 6.0
     rng = np.random.default_rng(3)
     pos, vel = random_state(rng, n, 0.02)
     pred.unsure = np.array([False, True, False])
