@@ -410,6 +410,10 @@ class ControlStack:
             t_obs = t0
             raw = np.asarray(self.callable(state), dtype=np.float64)
         elif self._exported is not None:    # numpy in, numpy out; rows it flags count as NaN
+            if n not in self._exported.robot_counts:
+                raise StackError(f"{self._exported.path} runs {self._exported.robot_counts_text} "
+                                 f"robots, this fleet has {n}; export a typed actor (any team "
+                                 "a scenario holds) or one trained for this N")
             self._network_input(state)
             array, mask = self._buffers[n][0], self._row_masks.get(n)
             if mask is None:

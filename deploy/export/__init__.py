@@ -13,7 +13,7 @@ NaN and bound rules are in :mod:`deploy.export.contract`) and its metadata::
     token_features, io         each token feature with units; dtypes, shapes and mask rules
     dt, accel_limit            control period [s], acceleration bound (in norm) [m/s^2]
     trained_robots, scenario   N and the scenario (its dict) of the training task
-    robot_counts               N the file runs: [1..16] (typed actor) or [N] (slot actor)
+    robot_counts               N the file runs: [1..21] (typed actor) or [N] (slot actor)
     variant, config            the actor class and the training config
     torch_version, source      torch at export, the checkpoint exported
     golden_file, golden_sha256 the golden file beside it and its checksum
@@ -26,9 +26,9 @@ on the training scenario's ``polygon`` (M, 2) and ``arena`` (2,), the tokens ``n
 ``n{N}_actions`` (1, N, 2). The robot runtime (:mod:`deploy.robot`) replays it at start-up.
 
 The export verifies itself before anything is published: each file is reloaded (digest
-checked) and compared with the eager contract for N = 1..16 at batch 1 and 16, with and
-without masked tokens, on random fleets in the arena (:func:`random_fleet_rows`), max abs diff
-<= 1e-5; on failure no file is left. Files are written to
+checked) and compared with the eager contract for N = 1..21 (every team a scenario can
+hold) at batch 1 and 16, with and without masked tokens, on random fleets in the arena
+(:func:`random_fleet_rows`), max abs diff <= 1e-5; on failure no file is left. Files are written to
 temporary names and moved into place (:func:`sim.files.atomic_path`).
 """
 
@@ -91,6 +91,9 @@ class ExportedPolicy:
         self.file_format = str(meta["file_format"])
         self.accel_limit = float(meta["accel_limit"])
         counts = meta["robot_counts"]
+        self.robot_counts = frozenset(int(c) for c in counts)
+        self.robot_counts_text = (f"{min(counts)}..{max(counts)}" if len(counts) > 1
+                                  and len(counts) == max(counts) - min(counts) + 1 else str(counts))
         self.num_robots = counts[0] if len(counts) == 1 and meta["variant"] != "TypedSDPAActor" else -1
 
     def eval(self) -> ExportedPolicy:

@@ -5,7 +5,7 @@ Every format (:mod:`deploy.export.formats`) holds the same module, :class:`Polic
     forward(tokens (B, T, 4) float32, mask (B, T) bool) -> (accel (B, 2) float32, valid (B,) bool)
 
 one row per robot, ``T = 2N + 1`` tokens of robot i of N in the layout of
-:mod:`sim.observations` (:data:`TOKEN_FEATURES`); ``B`` and ``T`` are free (1..16 robots from one
+:mod:`sim.observations` (:data:`TOKEN_FEATURES`); ``B`` and ``T`` are free (1..21 robots from one
 file; a slot actor's file has one N). The module enforces the contract inside the file, so a
 robot that calls it directly gets the same guarantees as the ControlStack:
 
@@ -35,12 +35,12 @@ import torch
 from torch import nn
 
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM
+from sim.scenario import MAX_ROBOTS
 
 EXPORT_FORMAT = "formation-stack/policy"
 EXPORT_FORMAT_VERSION = 2
 HASH_FIELD = "content_sha256"
 UNHASHED_MEMBERS = ("extra/meta.json", ".data/serialization_id")
-MAX_ROBOTS = 16
 
 TOKEN_FEATURES: dict[str, Any] = {
     "tokens_per_robot": "T = 2N + 1 for robot i of N, in this order",

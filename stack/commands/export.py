@@ -5,7 +5,7 @@
     formation export --check policy.onnx                # re-verify a file against its golden file
 
 Formats: torchscript (.pt), pt2 (torch.export), onnx (runs with numpy + onnxruntime only,
-`deploy/robot.py`). Each file is reloaded and compared with the eager actor for 1..16 robots
+`deploy/robot.py`). Each file is reloaded and compared with the eager actor for 1..21 robots
 before anything is published. Exit code 0 when every file is verified, 1 when one is not (an
 export then leaves no file), 2 for bad arguments.
 """

@@ -260,7 +260,7 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
         ("h2", "Export"),
         ("p", f"{', '.join(ex['files'].values())} (TorchScript, torch.export, ONNX; robots "
               f"{_counts(ex['robot_counts'])}) with one golden file {ex['golden']}: each reloaded, its "
-              f"digest checked, and compared with the eager actor for N = 1..16 "
+              f"digest checked, and compared with the eager actor for N = 1..21 "
               f"({ex['comparisons']} comparisons in all), then re-checked against the golden file as a "
               "robot does at start-up. Max abs diff by format: "
               + ", ".join(f"{k} {v:.2g}" for k, v in ex["max_abs_diff_by_format"].items())

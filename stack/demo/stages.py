@@ -109,7 +109,7 @@ def transfer_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
 
 def export_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
     """Export the 5-robot actor as TorchScript, torch.export and ONNX (each verified against the
-    eager actor for N = 1..16), then re-check every file against the golden file as a robot
+    eager actor for N = 1..21), then re-check every file against the golden file as a robot
     would. The fleet stage runs the ONNX file (:data:`POLICY`)."""
     from deploy.export import TOLERANCE, ExportError, check_export, export_checkpoint
 

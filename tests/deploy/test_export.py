@@ -1,4 +1,4 @@
-"""Export to TorchScript, torch.export and ONNX: parity with the eager actor for N = 1..16, the
+"""Export to TorchScript, torch.export and ONNX: parity with the eager actor for N = 1..21, the
 contract inside every file (norm bound, NaN -> brake flag, frozen weights), metadata and digest
 checked on every load, clear refusals."""
 
@@ -28,8 +28,10 @@ from deploy.export import (
 )
 from deploy.export.contract import PolicyContract
 from deploy.export.formats import FORMATS
+from sim.fleet import FleetState
 from sim.observations import LAYOUT_VERSION
-from sim.scenario import make_scenario
+from sim.scenario import MAX_ROBOTS, make_scenario, transport_scenario
+from stack.pipeline import ControlStack, StackConfig
 from stack.policy_io import StackError, load_policy
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -77,13 +79,13 @@ def copy_export(path: Path, dest: Path) -> Path:
 
 
 @pytest.mark.parametrize("name", DEFAULT_FORMATS)
-def test_every_format_matches_the_eager_actor_for_1_to_16_robots(exported, name):
+def test_every_format_matches_the_eager_actor_for_every_team_a_scenario_holds(exported, name):
     actor, files, _ = exported
     policy = load_exported(files[name])
     generator = torch.Generator().manual_seed(123)
     scenario = make_scenario("paper-5")
     worst = 0.0
-    for n in range(1, 17):
+    for n in range(1, MAX_ROBOTS + 1):
         for batch, masked in ((1, False), (16, True)):
             rows, mask = random_fleet_rows(n, batch, generator, scenario, masked)
             obs, obs_mask = rows.view(batch, n, 2 * n + 1, 4), mask.view(batch, n, 2 * n + 1)
@@ -153,7 +155,7 @@ def test_metadata_travels_inside_every_file(exported):
         assert meta["file_format"] == name and meta["format_version"] == 2
         assert meta["layout_version"] == LAYOUT_VERSION and meta["token_dim"] == 4
         assert meta["dt"] == 0.05 and meta["accel_limit"] == 1.0
-        assert meta["trained_robots"] == 5 and meta["robot_counts"] == list(range(1, 17))
+        assert meta["trained_robots"] == 5 and meta["robot_counts"] == list(range(1, 22))
         assert meta["scenario"]["name"] == "paper-5"
         assert meta["io"]["inputs"]["tokens"]["dtype"] == "float32"
         assert meta["io"]["inputs"]["mask"]["required"] is True
@@ -165,7 +167,7 @@ def test_metadata_travels_inside_every_file(exported):
     with np.load(golden_path(files["onnx"])) as golden:
         assert list(golden["counts"]) == [1, 2, 3, 5, 8, 16]
         assert golden["n5_tokens"].shape == (1, 5, 11, 4)
-    assert reports[0].cases >= 16 * 2 * 2
+    assert reports[0].cases >= 21 * 2 * 2
 
 
 @pytest.mark.parametrize("name", DEFAULT_FORMATS)
@@ -304,3 +306,19 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path):
         result = formation("export", str(wrong), "--out", str(tmp_path / "r"))
         assert result.returncode == 1 and "Traceback" not in result.stderr
         assert "checkpoint" in result.stderr and "weights_only" not in result.stderr
+
+
+def test_the_stack_runs_every_team_the_file_runs_and_names_the_file_otherwise(exported, tmp_path):
+    """A typed file runs the largest team a scenario holds (torch.export's bound included); a
+    slot file meets a team of another size with an error naming the file and its N."""
+    _, files, _ = exported
+    big = transport_scenario(MAX_ROBOTS)
+    state = FleetState(0.0, 0, big.starts.copy(), np.zeros((MAX_ROBOTS, 2)), big.targets,
+                       np.array([*big.object_center, 0.0]))
+    for path in files.values():
+        a_nom = ControlStack(big, load_exported(path), StackConfig(safety=False, mec=False)).tick(state).a_nom
+        assert a_nom.shape == (MAX_ROBOTS, 2) and np.linalg.norm(a_nom, axis=1).max() > 1e-3
+    slot = export_policy(make_actor(variant="slot", n=3), tmp_path / "s", dt=0.05, trained_robots=3,
+                         formats=("onnx",))[0].path
+    with pytest.raises(StackError, match=rf"s\.onnx runs \[3\] robots, this fleet has {MAX_ROBOTS}"):
+        ControlStack(big, load_exported(slot), StackConfig(safety=False, mec=False)).tick(state)
