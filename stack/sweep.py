@@ -203,9 +203,15 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
     ``restore``: continue Tune's saved experiment ``<out>/ray/<experiment>`` if there is one
     (it must hold these same trials); otherwise start it afresh (the folders still decide).
 
+    Trials whose folders already hold a finished run are only summarised; when every trial is
+    finished, Ray is not started at all (a finished bench reprints its table in seconds).
+
     Raises KeyboardInterrupt when the sweep stopped (Ctrl-C) before every trial finished, after
     Tune saved its state, and SweepError naming the folders of trials that failed.
     """
+    check_folders(trials)
+    if all(finished(Path(t.folder), t.budget) for t in trials):
+        return [_trial_row(t, summarize(Path(t.folder), t.budget)) for t in trials]
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # nothing leaves the machine
     try:
         import ray
@@ -221,7 +227,6 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
         ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False, **kwargs)
     trainable = tune.with_resources(_tune_trial, {"cpu": 1})
     space = {"trial": tune.grid_search([asdict(t) for t in trials])}
-    check_folders(trials)
     path = storage / experiment
     if restore and tune.Tuner.can_restore(path):
         tuner = tune.Tuner.restore(str(path), trainable, param_space=space,
@@ -244,9 +249,13 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
                          "folder's logs and Ray's under <out>/ray; run the same command again to resume)")
     if any(t.folder not in by_folder for t in trials):
         raise KeyboardInterrupt("the sweep was stopped before every trial finished")
+    return [_trial_row(t, by_folder[t.folder]) for t in trials]
+
+
+def _trial_row(trial: TrialSpec, summary: dict) -> dict:
+    """One trial's result: its group, seed and folder with the :func:`summarize` fields."""
     keys = ("converged", "episodes", "env_steps", "wall_s", "final_success")
-    return [{"group": t.group, "seed": t.seed, "folder": t.folder,
-             **{k: by_folder[t.folder][k] for k in keys}} for t in trials]
+    return {"group": trial.group, "seed": trial.seed, "folder": trial.folder, **{k: summary[k] for k in keys}}
 
 
 def median_ci(values: Sequence[float], level: float = 0.95, resamples: int = 2000,

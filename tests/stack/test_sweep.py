@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from stack.commands.sweep import seeds_arg
-from stack.sweep import SweepError, aggregate, grid_trials, median_ci, parse_grid_option
+from stack.sweep import SweepError, aggregate, grid_trials, median_ci, parse_grid_option, run_trials
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
@@ -74,8 +74,28 @@ def test_rows_aggregate_each_group_over_its_seeds():
     assert b["episodes_ci95"] == [50.0, 50.0]
 
 
-def _sweep(out: Path, *extra: str, **kw) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "stack.cli", "sweep", "--config", json.dumps(TINY), "--cpus", "2",
+
+def test_finished_trials_are_summarised_without_starting_ray(tmp_path, monkeypatch):
+    trials = grid_trials({"scenario": "paper-3", "total_episodes": 96}, [], [0, 1], tmp_path)
+    for t, converged in zip(trials, (48, None), strict=True):
+        folder = Path(t.folder)
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps(t.fields))
+        (folder / "result.json").write_text(json.dumps({"converged_episode": converged, "episodes": 96,
+                                                        "env_steps": 12288, "wall_time_s": 30.0}))
+        (folder / "eval.jsonl").write_text("".join(json.dumps(
+            {"episodes": e, "env_steps": e * 128, "wall_time_s": e / 4, "success_rate": s}) + "\n"
+            for e, s in ((48, 0.95), (96, 0.9))))
+    monkeypatch.setitem(sys.modules, "ray", None)     # importing Ray would now fail
+    rows = run_trials(trials, tmp_path)
+    assert [(r["seed"], r["converged"], r["episodes"], r["wall_s"]) for r in rows] == [
+        (0, True, 48, 12.0), (1, False, 96, 30.0)]
+    Path(trials[1].folder, "result.json").unlink()    # one left to run: that one needs Ray
+    with pytest.raises(SweepError, match="Ray Tune, which is not installed"):
+        run_trials(trials, tmp_path)
+
+def _sweep(out: Path, *extra: str, config: dict = TINY, **kw) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "stack.cli", "sweep", "--config", json.dumps(config), "--cpus", "2",
            "--out", str(out), *extra]
     return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
@@ -107,7 +127,7 @@ def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(t
 
 @pytest.mark.slow
 def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
-    proc = _sweep(tmp_path, "--episodes", "96", "--seeds", "1")
+    proc = _sweep(tmp_path, "--episodes", "48", "--seeds", "1", config=TINY | {"checkpoint_interval": 2})
     checkpoint = tmp_path / "trials" / "000" / "seed-0" / "checkpoint.pt"
     deadline = time.monotonic() + 300
     while not checkpoint.exists() and time.monotonic() < deadline and proc.poll() is None:
@@ -122,7 +142,7 @@ def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp
                               str(tmp_path), "--json"], cwd=ROOT, capture_output=True, text=True,
                              timeout=600)
     assert resumed.returncode == 0, resumed.stderr
-    assert json.loads(resumed.stdout)["rows"][0]["episodes"] == [96]
+    assert json.loads(resumed.stdout)["rows"][0]["episodes"] == [48]
     iterations = [json.loads(line)["iteration"] for line in
                   (tmp_path / "trials" / "000" / "seed-0" / "train.jsonl").read_text().splitlines()]
     assert iterations == list(range(1, len(iterations) + 1))   # one curve, continued
