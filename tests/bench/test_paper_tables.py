@@ -40,7 +40,7 @@ def test_summary_takes_the_first_of_two_evaluations_and_counts_a_failure_as_the_
 def test_tiny_run_prints_the_documented_json_and_reuses_finished_runs(tmp_path):
     cmd = [sys.executable, str(ROOT / "bench" / "paper_tables.py"), "--seeds", "1", "--settings",
            "sdpa-3,transfer-3to4,ddq-3", "--budget-scale", "0.01", "--out", str(tmp_path), "--json",
-           "--config", json.dumps({"num_envs": 4, "eval_episodes": 4, "eval_interval": 8})]
+           "--config", json.dumps({"num_envs": 16, "eval_episodes": 4, "eval_interval": 16})]
     first = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr
     doc = json.loads(first.stdout)

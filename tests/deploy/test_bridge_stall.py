@@ -26,12 +26,13 @@ from test_fleet_sim_bridge import Proc  # noqa: E402
 
 RUNS = 5
 FREEZE_S = 3.0
+TICKS = 180   # 9 s at 20 Hz from the bridge's first tick: the freeze ends near tick 80
 
 
 def frozen_run(tmp_path: Path) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     sim = Proc("fleet-sim", "--fleet", "stall", "--scenario", "paper-5", "--rate-hz", "20",
-               "--listen", endpoint, "--ticks", "300", "--report", str(tmp_path / "sim.json"))
+               "--listen", endpoint, "--ticks", str(TICKS), "--report", str(tmp_path / "sim.json"))
     bridge = Proc("bridge", "--fleet", "stall", "--scenario", "paper-5", "--policy", "scripted",
                   "--connect", endpoint, "--trace", "--report", str(tmp_path / "bridge.json"))
     try:

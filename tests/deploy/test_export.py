@@ -62,6 +62,18 @@ def formation(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
+def formation_here(capsys, *args: str) -> tuple[int, str]:
+    """``formation ARGS`` in this process: (exit code, what it wrote to stderr)."""
+    from stack.cli import main
+
+    capsys.readouterr()
+    try:
+        rc = main(list(args))
+    except SystemExit as exc:     # argparse's refusals
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
 def eager_reference(actor, obs, mask):
     """The eager actor's forward (slicing by N), bounded in norm as the contract promises."""
     with torch.no_grad():
@@ -282,7 +294,7 @@ def test_slot_actor_exports_for_its_own_n(tmp_path):
         assert check_export(report.path).max_abs_diff <= 1e-5
 
 
-def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path):
+def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path, capsys):
     config = MAPPOConfig()
     actor = build_actor(config.actor, 3)
     save_checkpoint(tmp_path / "ck.pt", {"num_robots": 3, "scenario": config.scenario_name,
@@ -295,17 +307,18 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path):
     assert meta["trained_robots"] == 3 and meta["source"].endswith("ck.pt")
     assert meta["scenario"]["name"] == config.scenario_name
     assert meta["config"]["scenario"] == config.scenario_name
-    bad = formation("export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "q"), "--format", "tflite")
-    assert bad.returncode == 2 and "tflite" in bad.stderr
-    missing = formation("export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q"))
-    assert missing.returncode == 1 and "does not exist" in missing.stderr
+    # the refusals in this process (an exception escaping main would fail the test as it is)
+    rc, err = formation_here(capsys, "export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "q"),
+                             "--format", "tflite")
+    assert rc == 2 and "tflite" in err
+    rc, err = formation_here(capsys, "export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q"))
+    assert rc == 1 and "does not exist" in err
     (tmp_path / "random.pt").write_bytes(np.random.default_rng(1).bytes(3000))
     torch.jit.save(torch.jit.script(actor.eval()), str(tmp_path / "script.pt"))
     for wrong in (tmp_path / "p.pt2", tmp_path / "p.golden.npz", tmp_path / "random.pt",
                   tmp_path / "script.pt"):                         # not a checkpoint: no traceback
-        result = formation("export", str(wrong), "--out", str(tmp_path / "r"))
-        assert result.returncode == 1 and "Traceback" not in result.stderr
-        assert "checkpoint" in result.stderr and "weights_only" not in result.stderr
+        rc, err = formation_here(capsys, "export", str(wrong), "--out", str(tmp_path / "r"))
+        assert rc == 1 and "checkpoint" in err and "weights_only" not in err and "Traceback" not in err
 
 
 def test_the_stack_runs_every_team_the_file_runs_and_names_the_file_otherwise(exported, tmp_path):

@@ -31,13 +31,6 @@ def _snapshot(out: Path) -> dict[str, tuple[int, int]]:
             for p in sorted(out.rglob("*")) if p.is_file()}
 
 
-@pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo") / "run"
-    assert main(["demo", "--quick", "--out", str(out)]) == 0
-    return out
-
-
 def test_quick_demo_writes_every_file(quick_run):
     out = quick_run
     for name in ("report.md", "report.html", "metrics.json", "stages.json", "policy.pt",

@@ -1,10 +1,16 @@
 """Ctrl-C during the fleet stage of `formation demo`: every child process stops cleanly, finished
-stages are kept, and `--resume` finishes the run from there."""
+stages are kept, and `--resume` finishes the run from there.
+
+The run starts from a copy of the quick demo's folder (``quick_run``) cut back to its trained
+and exported stages, with six fleet episodes (a window wide enough to interrupt mid-run): the
+demo resumes straight into the fleet stage, so the test trains nothing itself."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,7 +18,10 @@ import time
 from pathlib import Path
 
 from stack.cli import main
-from stack.demo.state import STAGES
+from stack.demo.report import save_metrics
+from stack.demo.state import STAGES, StageBook
+
+LEARNED = ("train-3", "train-5", "export")
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 300.0
@@ -33,11 +42,23 @@ def processes_naming(text: str, exclude: int) -> dict[int, list[str]]:
     return found
 
 
-def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path):
+def trained_copy(finished: Path, out: Path, fleet_episodes: int) -> None:
+    """``out``: the demo folder ``finished`` as it was when its export stage ended, set to run
+    ``fleet_episodes`` fleet episodes."""
+    shutil.copytree(finished, out, ignore=shutil.ignore_patterns("fleet", "report.*", "*.png"))
+    done = StageBook.load(out)
+    settings = dataclasses.replace(done.settings, fleet_episodes=fleet_episodes)
+    book = StageBook(out, settings, {name: done.stages[name] for name in LEARNED}, done.created_unix)
+    book.save()
+    save_metrics(book, complete=False)
+
+
+def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path, quick_run):
     out = tmp_path / "run"
+    trained_copy(quick_run, out, fleet_episodes=6)
     log = (tmp_path / "demo.log").open("w")
-    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--quick", "--episodes", "6",
-                             "--out", str(out)], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--resume", "--out", str(out)],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + WAIT_S
         children: dict[int, list[str]] = {}
@@ -61,7 +82,7 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     assert "formation demo --out" in (tmp_path / "demo.log").read_text()   # tells how to resume
 
     book = json.loads((out / "stages.json").read_text())
-    assert list(book["stages"]) == ["train-3", "train-5", "export"]
+    assert list(book["stages"]) == list(LEARNED)
     partial = json.loads((out / "metrics.json").read_text())
     assert partial["complete"] is False and set(partial["train"]) == {"3", "5"}
     assert partial["export"]["verified"] is True and "fleet" not in partial
@@ -73,7 +94,7 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     assert main(["demo", "--out", str(out), "--resume"]) == 0
     finished = json.loads((out / "stages.json").read_text())
     assert list(finished["stages"]) == list(STAGES)
-    for name in ("train-3", "train-5", "export"):   # kept, not redone
+    for name in LEARNED:   # kept, not redone
         assert finished["stages"][name] == book["stages"][name]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"] is True and metrics["fleet"]["episodes"] == 6
