@@ -99,15 +99,15 @@ class TypedSDPAActor(nn.Module):
 
     def rows(self, tokens: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """:meth:`forward` for robots as independent rows: tokens (B, T = 2N+1, F), mask (B, T)
-        bool -> (B, 2). N follows from T; the graph has no shape guard on it (the export path,
-        :meth:`TypedEmbedding.by_kind`)."""
+        bool -> (B, 2); N follows from T. The reference of exported files, which compute it as
+        :class:`deploy.export.graph.TypedRows`."""
         m = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:].to(torch.bool)), 1)
         f = torch.where(m.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
         turn: torch.Tensor | None = None
         if self.turning:
             turn = formation_turn(f, m)
             f = turn_tokens(f, turn)
-        x = self.embedding.by_kind(f * self.input_scale)
+        x = self.embedding(f * self.input_scale, (tokens.shape[1] - 1) // 2)
         return self._act(self.head(x[:, 0], x, m), f[:, 0, 2:4], turn)
 
     @torch.jit.export

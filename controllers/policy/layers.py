@@ -14,10 +14,10 @@ from torch import nn
 
 
 def exporting() -> bool:
-    """True while ``torch.export`` (or the ONNX exporter on top of it) traces: the export paths
-    (:meth:`TypedEmbedding.by_kind`, :meth:`MultiHeadAttention.one_query`) compute the same
-    numbers as training's with a graph that keeps the token count dynamic and does less work.
-    Training keeps its kernels: one_query's numbers differ in rounding, which sends individual
+    """True while ``torch.export`` (or the ONNX exporter on top of it) traces: the export path of
+    the slot actor (:meth:`MultiHeadAttention.one_query`) computes the same numbers as training's
+    with a graph that does less work (a typed actor is exported through
+    :class:`deploy.export.graph.TypedRows`). Training keeps its kernels: one_query's numbers differ in rounding, which sends individual
     seeds elsewhere (paper-3, 5 seeds: episodes to convergence 528-2400 with one seed not
     converging, against 384-1200 with SDPA) for no wall-clock gain in a real run."""
     return bool(torch.compiler.is_exporting())
@@ -95,43 +95,6 @@ class TypedEmbedding(nn.Module):
                           self.embed_target(tokens[:, 1:n + 1]),
                           self.embed_robot(tokens[:, n + 1:2 * n]),
                           self.embed_object(tokens[:, 2 * n:])), 1)
-
-    def by_kind(self, tokens: torch.Tensor) -> torch.Tensor:
-        """:meth:`forward` without slicing by n (the same numbers): token t goes through the
-        layers of its type, gathered per token from the four stacked embeddings. Its graph has
-        no shape guard on n = (T - 1) / 2, so ``torch.export`` and ONNX keep T dynamic (slices
-        at ``n + 1`` and ``2n`` pin T to the example's value). Only while exporting: eager and
-        TorchScript code (which keeps T free either way) run :meth:`forward`, the same kernels
-        as training, so an exported file differs from the eager actor by its runtime alone."""
-        if not torch.jit.is_scripting():    # TorchScript compiles none of this block
-            if exporting():
-                return self._gathered(tokens)
-        return self.forward(tokens, (tokens.shape[1] - 1) // 2)
-
-    @torch.jit.unused
-    def _gathered(self, tokens: torch.Tensor) -> torch.Tensor:
-        t = tokens.shape[1]
-        index = torch.arange(t, device=tokens.device)
-        kind = (index >= 1).long() + (index >= (t + 1) // 2).long() + (index >= t - 1).long()
-        x = tokens.unsqueeze(-2)                                               # (B, T, 1, F)
-        for weight, bias, relu in self._stacked():
-            x = torch.matmul(x, weight[kind]) + bias[kind].unsqueeze(-2)       # (T, in, out)
-            if relu:
-                x = torch.relu(x)
-        return x.squeeze(-2)
-
-    @torch.jit.unused
-    def _stacked(self) -> list[tuple[torch.Tensor, torch.Tensor, bool]]:
-        """Per layer: weights (4, in, out) and biases (4, out) of the self, target, robot and
-        object embeddings (type order of :mod:`sim.observations`), and whether a ReLU follows."""
-        embeds = [self.embed_self, self.embed_target, self.embed_robot, self.embed_object]
-        layers = [[e] if isinstance(e, nn.Linear) else [e[0], e[2]] for e in embeds]
-        out = []
-        for k in range(len(layers[0])):
-            weight = torch.stack([layer[k].weight.t() for layer in layers])
-            bias = torch.stack([layer[k].bias for layer in layers])
-            out.append((weight, bias, k + 1 < len(layers[0])))
-        return out
 
 
 def formation_turn(tokens: torch.Tensor, read: torch.Tensor | None) -> torch.Tensor:

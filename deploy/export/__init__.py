@@ -210,7 +210,8 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     out = Path(out)
     stem = out.with_suffix("") if out.suffix in {f.suffix for f in FORMATS.values()} else out
     stem.parent.mkdir(parents=True, exist_ok=True)
-    contract = PolicyContract(actor).eval()
+    contract = PolicyContract(actor).eval()             # the actor's own rows: the reference
+    exported = PolicyContract.for_export(actor).eval()  # what the files hold (same numbers)
     fixed_n = int(getattr(actor, "num_robots", -1))
     counts = VERIFY_COUNTS if fixed_n < 0 else (fixed_n,)
     golden = golden_path(stem.with_suffix(".pt"))
@@ -234,7 +235,7 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
             fmt, path = FORMATS[name], stem.with_suffix(FORMATS[name].suffix)
             tmp = publish.enter_context(atomic_path(path))
             try:
-                fmt.write(contract, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)
+                fmt.write(exported, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)
             except ExportError:
                 raise
             except Exception as err:        # the exporter's own failure: say which format

@@ -75,24 +75,37 @@ IO_SPEC: dict[str, Any] = {
 
 
 class PolicyContract(nn.Module):
-    """The deterministic actor (a frozen copy) behind the contract of the module docstring."""
+    """The deterministic actor (a frozen copy) behind the contract of the module docstring.
 
-    def __init__(self, actor: nn.Module):
+    ``PolicyContract(actor)`` runs the actor's own ``rows``: the reference every file is compared
+    with. :meth:`for_export` is what the files hold: for a typed actor the same numbers through
+    :class:`deploy.export.graph.TypedRows` (fewer operations), else the same as the reference.
+    """
+
+    def __init__(self, actor: nn.Module, rows: nn.Module | None = None):
         super().__init__()
         if not hasattr(actor, "rows"):
             raise TypeError(f"{type(actor).__name__} has no rows(tokens, mask); only token actors "
                             "(variant 'typed' or 'slot') can be exported")
-        self.actor = copy.deepcopy(actor).eval()
+        self.actor = rows if rows is not None else copy.deepcopy(actor).eval()
         for p in self.actor.parameters():
             p.requires_grad_(False)
         self.accel_limit = float(getattr(actor, "accel_limit", 1.0))
+
+    @classmethod
+    def for_export(cls, actor: nn.Module) -> PolicyContract:
+        from controllers.policy import TypedSDPAActor
+        from deploy.export.graph import TypedRows
+
+        return cls(actor, TypedRows(actor) if isinstance(actor, TypedSDPAActor) else None)
 
     def forward(self, tokens: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # rows are independent (attention runs within a row), so a non-finite row spoils only
         # its own output; s - s == 0 holds for finite s only (NaN - NaN and inf - inf are NaN)
         read = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:]), 1)
-        total = torch.where(read.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype)).sum((1, 2))
-        a = self.actor.rows(tokens, read)
+        f = torch.where(read.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
+        total = f.sum((1, 2))
+        a = self.actor.rows(f, read)
         total = total + a.sum(-1)
         valid = (total - total) == 0
         a = torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype))

@@ -13,7 +13,8 @@ onnx           ``.onnx`` ``metadata_props["formation.meta"]``      every byte of
 =============  ========  ======================================  ============================
 
 TorchScript is scripted (never traced: a trace bakes in one N). ``torch.export`` and ONNX keep
-B and T dynamic (``T`` in 3..2*21+1, every team a scenario can hold) through :meth:`TypedEmbedding.by_kind`.
+B and T dynamic (``T`` in 3..2*21+1, every team a scenario can hold); a typed actor's graph is
+:class:`deploy.export.graph.TypedRows`.
 """
 
 from __future__ import annotations

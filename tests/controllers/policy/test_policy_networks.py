@@ -243,9 +243,10 @@ def test_embedding_hidden_layer_defaults_per_variant_and_is_checked():
 
 
 @pytest.mark.parametrize("embed_hidden", [0, 32])
-def test_export_paths_compute_the_training_numbers(embed_hidden):
-    """The graphs torch.export traces (embedding by token kind, one-query attention without head
-    reshapes) give the actions of the training forward, for every N and with masked tokens."""
+def test_one_query_attention_computes_the_training_numbers(embed_hidden):
+    """The attention torch.export traces for a slot actor (one query, the key and value
+    projections absorbed) gives the actions of the training forward, for every N and with
+    masked tokens."""
     torch.manual_seed(0)
     actor = build_actor(ActorConfig(embed_hidden=embed_hidden, frame="world"), 3).eval()   # the turn: below
     generator = torch.Generator().manual_seed(1)
@@ -257,8 +258,8 @@ def test_export_paths_compute_the_training_numbers(embed_hidden):
             rows, row_mask = obs.reshape(-1, 2 * n + 1, 4), mask.reshape(-1, 2 * n + 1)
             plain = actor.rows(rows, row_mask)
             embed, head = actor.embedding, actor.head
-            x = embed._gathered(torch.where(torch.cat((torch.ones_like(row_mask[:, :1]), row_mask[:, 1:]), 1)
-                                            .unsqueeze(-1), rows, torch.zeros(())) * actor.input_scale)
+            x = embed(torch.where(torch.cat((torch.ones_like(row_mask[:, :1]), row_mask[:, 1:]), 1)
+                                  .unsqueeze(-1), rows, torch.zeros(())) * actor.input_scale, n)
             m = torch.cat((torch.ones_like(row_mask[:, :1]), row_mask[:, 1:]), 1)
             attended = head.attention.one_query(x[:, 0], x, m)
             u = head.mlp(torch.cat((x[:, 0], attended), -1))

@@ -1,0 +1,63 @@
+"""deploy/export/graph.py: the typed actor's export graph computes the actor's own rows."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from controllers.policy import ActorConfig, build_actor
+from deploy.export.contract import PolicyContract
+from deploy.export.graph import TypedRows, kind_table
+from sim.scenario import MAX_ROBOTS
+
+
+def test_the_kind_table_by_hand():
+    table = kind_table(7)
+    assert table.shape == (8, 7, 4)
+    assert table[7].argmax(1).tolist() == [0, 1, 1, 1, 2, 2, 3]     # 3 robots: self, 3 targets, 2 others, object
+    assert table[3].argmax(1).tolist()[:3] == [0, 1, 3] and table[3, 3:].abs().sum() == 0
+    assert table[4].abs().sum() == 0 and table[7].sum() == 7          # even T holds no team
+
+
+@pytest.mark.parametrize("config", [
+    ActorConfig(),                                              # the default: formation frame, 2-layer embeddings
+    ActorConfig(embed_hidden=0, num_heads=2, hidden_sizes=(64, 32)),
+    ActorConfig(frame="world", velocity_damping=0.5, embed_dim=32, num_heads=8),
+], ids=["default", "linear-embedding", "world-frame-damped"])
+def test_typed_rows_give_the_actors_rows_for_every_team_and_any_mask(config):
+    torch.manual_seed(3)
+    actor = build_actor(config, 3).eval()
+    graph = TypedRows(actor)
+    generator = torch.Generator().manual_seed(4)
+    for n in (1, 2, 5, 16, MAX_ROBOTS):
+        t = 2 * n + 1
+        tokens = torch.randn(6, t, 4, generator=generator) * 0.3
+        read = torch.rand(6, t, generator=generator) > 0.3
+        read[:, 0] = True
+        read[0] = True                                          # one row sees everything
+        f = torch.where(read.unsqueeze(-1), tokens, torch.zeros(()))
+        with torch.no_grad():
+            want, got = actor.rows(tokens, read), graph.rows(f, read)
+        assert float((got - want).abs().max()) <= 1e-6, n
+        assert float(want.abs().max()) > 1e-3                   # the actions are not all ~0
+
+
+def test_turned_scenes_get_turned_actions_and_non_finite_rows_brake():
+    """Through the whole exported contract: a quarter turn of every token (about the arena's
+    centre) turns the actions alike, and a read NaN answers its row alone with 0, flagged."""
+    torch.manual_seed(5)
+    actor = build_actor(ActorConfig(), 3).eval()
+    contract = PolicyContract.for_export(actor)
+    generator = torch.Generator().manual_seed(6)
+    tokens = torch.randn(4, 9, 4, generator=generator) * 0.3
+    mask = torch.ones(4, 9, dtype=torch.bool)
+    turn = torch.tensor([[0.0, -1.0], [1.0, 0.0]])
+    turned = (tokens.view(4, 9, 2, 2) @ turn.t()).view(4, 9, 4)
+    with torch.no_grad():
+        a, ok = contract(tokens, mask)
+        b, _ = contract(turned, mask)
+        tokens[2, 4, 1] = float("nan")
+        c, ok_nan = contract(tokens, mask)
+    assert ok.all() and float((b - a @ turn.t()).abs().max()) <= 1e-6
+    assert ok_nan.tolist() == [True, True, False, True]
+    assert c[2].tolist() == [0.0, 0.0] and torch.equal(c[[0, 1, 3]], a[[0, 1, 3]])
