@@ -13,6 +13,7 @@ numbers, the sweep's options and provenance (git commit, package versions).
 
 Ctrl-C stops the sweep with its state saved; the same command again (or ``--resume --out``)
 continues it: finished trials are kept, interrupted ones continue from their checkpoints.
+A sweep whose trials have all finished is summarised without starting Ray.
 
     formation sweep --config '{"scenario": "paper-3"}' --seeds 5 --grid lr=3e-4,1e-3
     formation sweep --config base.toml --seeds 0-2 --grid actor.embed_dim=32,64 --cpus 2
