@@ -28,8 +28,8 @@ no head reshapes and no gathers of weights, and keeps B and T free:
 Only the order of float32 sums differs from the training forward (about 1e-8 on the actions);
 :func:`deploy.export.export_policy` compares every file with the actor's own ``rows`` and
 refuses one further off than ``TOLERANCE``. The ONNX graph has 85 nodes (the actor's own graph:
-133); at 5 robots inside the control tick ONNX Runtime takes about 0.7 of the time, torch a
-third less for the TorchScript file and 0.6 for the .pt2 (README, "Policies on robots").
+133); at 5 robots inside the control tick the policy stage takes about 0.7 of the time with
+ONNX Runtime, 0.75 with the TorchScript file and 0.6 with the .pt2 (README, "Policies on robots").
 """
 
 from __future__ import annotations
