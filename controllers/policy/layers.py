@@ -17,9 +17,9 @@ def exporting() -> bool:
     """True while ``torch.export`` (or the ONNX exporter on top of it) traces: the export path of
     the slot actor (:meth:`MultiHeadAttention.one_query`) computes the same numbers as training's
     with a graph that does less work (a typed actor is exported through
-    :class:`deploy.export.graph.TypedRows`). Training keeps its kernels: one_query's numbers differ in rounding, which sends individual
-    seeds elsewhere (paper-3, 5 seeds: episodes to convergence 528-2400 with one seed not
-    converging, against 384-1200 with SDPA) for no wall-clock gain in a real run."""
+    :class:`deploy.export.graph.TypedRows`). Training keeps its kernels: one_query's numbers
+    differ in rounding, which sends individual seeds elsewhere (paper-3, 5 seeds: episodes to
+    convergence 528-2400 with one seed not converging, against 384-1200 with SDPA)."""
     return bool(torch.compiler.is_exporting())
 
 

@@ -34,6 +34,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from controllers.policy import TypedSDPAActor
+from deploy.export.graph import TypedRows
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM
 from sim.scenario import MAX_ROBOTS
 
@@ -94,9 +96,6 @@ class PolicyContract(nn.Module):
 
     @classmethod
     def for_export(cls, actor: nn.Module) -> PolicyContract:
-        from controllers.policy import TypedSDPAActor
-        from deploy.export.graph import TypedRows
-
         return cls(actor, TypedRows(actor) if isinstance(actor, TypedSDPAActor) else None)
 
     def forward(self, tokens: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -38,8 +38,10 @@ import copy
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from sim.observations import token_types
 from sim.scenario import MAX_ROBOTS
 
 TURNS = ((1.0, 0.0, 0.0, 1.0), (0.0, -1.0, 1.0, 0.0), (-1.0, 0.0, 0.0, -1.0), (0.0, 1.0, -1.0, 0.0))
@@ -47,15 +49,11 @@ TURNS = ((1.0, 0.0, 0.0, 1.0), (0.0, -1.0, 1.0, 0.0), (-1.0, 0.0, 0.0, -1.0), (0
 
 
 def kind_table(max_tokens: int) -> torch.Tensor:
-    """(max_tokens + 1, max_tokens, 4): row T holds the one-hot kinds of the T = 2N + 1 tokens of
-    a robot of N (self, targets 1..N, other robots N+1..2N-1, object 2N); other rows are zero."""
+    """(max_tokens + 1, max_tokens, 4): row T holds the one-hot kinds (:func:`token_types`: self,
+    targets, other robots, object) of the T = 2N + 1 tokens of a robot of N; other rows are zero."""
     table = torch.zeros(max_tokens + 1, max_tokens, 4)
     for t in range(3, max_tokens + 1, 2):
-        n = (t - 1) // 2
-        table[t, 0, 0] = 1.0
-        table[t, 1:n + 1, 1] = 1.0
-        table[t, n + 1:2 * n, 2] = 1.0
-        table[t, 2 * n, 3] = 1.0
+        table[t, :t] = F.one_hot(token_types((t - 1) // 2), 4).float()
     return table
 
 

@@ -74,7 +74,6 @@ def test_rows_aggregate_each_group_over_its_seeds():
     assert b["episodes_ci95"] == [50.0, 50.0]
 
 
-
 def test_finished_trials_are_summarised_without_starting_ray(tmp_path, monkeypatch):
     trials = grid_trials({"scenario": "paper-3", "total_episodes": 96}, [], [0, 1], tmp_path)
     for t, converged in zip(trials, (48, None), strict=True):
@@ -93,6 +92,7 @@ def test_finished_trials_are_summarised_without_starting_ray(tmp_path, monkeypat
     Path(trials[1].folder, "result.json").unlink()    # one left to run: that one needs Ray
     with pytest.raises(SweepError, match="Ray Tune, which is not installed"):
         run_trials(trials, tmp_path)
+
 
 def _sweep(out: Path, *extra: str, config: dict = TINY, **kw) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "stack.cli", "sweep", "--config", json.dumps(config), "--cpus", "2",
