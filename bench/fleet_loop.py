@@ -11,7 +11,8 @@ Controller process (this script): :class:`deploy.bridge.Bridge` with a trivial c
 (``a = -0.5 v``; the transport and the bridge are measured, not a policy).
 
 Peer in the same run (``peer_raw_zenoh``): the same N messages of 64 bytes per tick echoed by
-a bare Zenoh subscriber/publisher pair, without the wire format, validation or the bridge.
+a bare Zenoh subscriber/publisher pair, without the wire format, validation or the bridge (the
+same sessions and publisher settings: :func:`deploy.network.declare_data_publisher`).
 
 Through a router with mutual TLS (``tls_router``, ``--tls``): the same bridge and robots as
 clients of a ``formation router`` (:mod:`deploy.router`: TLS with the certificates of a fresh
@@ -50,7 +51,7 @@ from bench._common import (  # noqa: E402
 )
 from deploy.bridge import Bridge, BridgeConfig  # noqa: E402
 from deploy.certs import CONTROLLER, FLEET_SIM, ROUTER, NodeFiles, make_certs  # noqa: E402
-from deploy.network import TransportConfig, free_tcp_port  # noqa: E402
+from deploy.network import TransportConfig, declare_data_publisher, free_tcp_port  # noqa: E402
 from deploy.robot_link import RobotLink  # noqa: E402
 from deploy.router import Router, RouterConfig  # noqa: E402
 from deploy.wire import RobotRegistry  # noqa: E402
@@ -144,8 +145,7 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
                     pongs.notify_all()
 
         threading.Thread(target=drain, daemon=True).start()
-        pubs = [session.declare_publisher(f"fleetloop/raw/{i}/ping", express=True,
-                                          congestion_control=zenoh.CongestionControl.DROP)
+        pubs = [declare_data_publisher(session, f"fleetloop/raw/{i}/ping", zenoh.CongestionControl.DROP)
                 for i in range(n)]
         time.sleep(0.3)
         sent_count = [0]
@@ -218,8 +218,7 @@ def measure(n: int, ticks: int) -> dict:
                 return
             key = str(sample.key_expr).replace("/ping", "/pong")
             if key not in echo_pubs:
-                echo_pubs[key] = session.declare_publisher(
-                    key, express=True, congestion_control=zenoh.CongestionControl.DROP)
+                echo_pubs[key] = declare_data_publisher(session, key, zenoh.CongestionControl.DROP)
             echo_pubs[key].put(sample.payload)
 
     threading.Thread(target=echo, daemon=True).start()

@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 
 import zenoh
 
-from deploy.network import FleetKeys, TransportConfig
+from deploy.network import FleetKeys, TransportConfig, declare_data_publisher
 from deploy.streams import Stamper, WireDecoder
 from deploy.transport import NO_STATUS, ReceivedCommand, _Link
 from deploy.wire import (
@@ -90,9 +90,8 @@ class RobotLink(_Link):
         self._subscribe(s.liveliness().declare_subscriber(
             self.keys.ctrl_alive, zenoh.handlers.RingChannel(capacity), history=True),
             self._on_ctrl_liveliness, "ctrl-alive")
-        self._state_publisher = s.declare_publisher(
-            self.keys.state(self.robot), congestion_control=self.data_congestion_control,
-            priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+        self._state_publisher = declare_data_publisher(s, self.keys.state(self.robot),
+                                                       self.data_congestion_control)
         self._entities.append(self._state_publisher)
         self._entities.append(s.liveliness().declare_token(self.keys.robot_alive(self.robot)))
 

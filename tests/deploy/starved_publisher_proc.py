@@ -1,0 +1,58 @@
+"""A publisher on a starved CPU: bursts of one message per robot, as a controller sends its
+commands or a fleet simulation its states (run by tests/deploy/test_tx_queue.py).
+
+    python starved_publisher_proc.py PORT SETTINGS ROBOTS BURSTS CPU
+
+SETTINGS ``fleet``: the fleet's own (:func:`deploy.network.declare_data_publisher`, the transmit
+queue of :class:`deploy.network.TransportConfig`); ``express``: the settings before them (express
+publishers, Zenoh's default queue of two batches). The process pins itself and the threads it
+starts to one CPU at nice 19 before it opens its session, prints ``ready`` once its publishers
+are declared, waits for ``go`` on stdin (the test then loads that CPU), publishes ``BURSTS``
+bursts of ``ROBOTS`` messages 20 ms apart and prints ``sent N``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+
+def main(port: int, settings: str, robots: int, bursts: int, cpu: int) -> None:
+    os.sched_setaffinity(0, {cpu})
+    os.nice(19)
+    import zenoh
+
+    from deploy.network import TX_QUEUE_KEY, TransportConfig, declare_data_publisher
+
+    config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).to_zenoh()
+    if settings == "express":
+        config.insert_json5(TX_QUEUE_KEY, zenoh.Config().get_json(TX_QUEUE_KEY))
+    session = zenoh.open(config)
+    drop = zenoh.CongestionControl.DROP
+    keys = [f"starved/robot/r{i}/cmd" for i in range(robots)]
+    if settings == "fleet":
+        publishers = [declare_data_publisher(session, key, drop) for key in keys]
+    else:
+        publishers = [session.declare_publisher(key, congestion_control=drop, express=True,
+                                                priority=zenoh.Priority.INTERACTIVE_HIGH) for key in keys]
+    print("ready", flush=True)
+    sys.stdin.readline()
+    payload = json.dumps({"pad": "x" * 40}).encode()
+    sent = 0
+    for _ in range(bursts):
+        for publisher in publishers:
+            publisher.put(payload)
+            sent += 1
+        time.sleep(0.02)
+    time.sleep(0.5)
+    print(f"sent {sent}", flush=True)
+    session.close()
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5]))
