@@ -6,8 +6,10 @@ commands in flight). The rules they serve are in :mod:`deploy.bridge`'s docstrin
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
+from collections.abc import Collection
 
 import numpy as np
 
@@ -16,6 +18,18 @@ from deploy.wire import CmdMsg
 
 DRIFT_ALLOWANCE = 2e-4  # [s/s] clock-rate difference between hosts that the uplink floor follows
 MIN_ROUND_TRIPS = 8  # round trips needed before command_delay_s is reported
+
+
+def percentile(values: Collection[float], q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation between the order statistics around
+    ``q / 100 * (n - 1)``) from a partial sort: ~13 against ~60 us for the 256 round trips the
+    bridge reads every tick. ``values`` non-empty, ``q`` in [0, 100]."""
+    a = np.fromiter(values, np.float64, len(values))
+    pos = q / 100.0 * (len(a) - 1)
+    lo = math.floor(pos)
+    hi = min(lo + 1, len(a) - 1)
+    part = np.partition(a, (lo, hi))
+    return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
 
 
 class TickClock:
@@ -109,7 +123,7 @@ class RoundTrips:
         if len(self.samples) < MIN_ROUND_TRIPS:
             return None
         if self._bound is None:
-            self._bound = float(np.percentile(self.samples, self.percentile)) / 1e9
+            self._bound = percentile(self.samples, self.percentile) / 1e9
         return self._bound
 
     def summary(self) -> dict[str, float] | None:
@@ -120,4 +134,4 @@ class RoundTrips:
                 "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
 
-__all__ = ["DRIFT_ALLOWANCE", "MIN_ROUND_TRIPS", "RoundTrips", "TickClock", "UplinkExcess"]
+__all__ = ["DRIFT_ALLOWANCE", "MIN_ROUND_TRIPS", "RoundTrips", "TickClock", "UplinkExcess", "percentile"]
