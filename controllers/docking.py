@@ -102,8 +102,9 @@ class Docking:
         if not cfg.enabled or n == 0 or len(targets) != n:
             self._docking.clear()
             return a_nom, docking
-        dist = np.linalg.norm(pos[:, None] - targets[None], axis=-1)           # (robot, target)
-        if (dist.min(axis=1) >= cfg.release_radius).all():   # no robot near any target: the
+        diff = pos[:, None] - targets[None]
+        dist = np.hypot(diff[..., 0], diff[..., 1])                             # (robot, target)
+        if dist.min() >= cfg.release_radius:                 # no robot near any target: the
             self._docking.clear()                            # assignment cannot make one dock
             return a_nom, docking
         _, match = linear_sum_assignment(dist)                                 # rows come sorted
