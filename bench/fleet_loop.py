@@ -272,14 +272,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print_json(document)
         return 0
-    headers = ["robots", "path", "ticks", "p50 ms", "p99 ms", "max ms", "missed"]
+    headers = ["robots", "path", "ticks", "p50 ms", "p99 ms", "max ms", "missed", "of them unanswered"]
     rows = []
     for n in args.robots:
         paths = [("bridge+wire", document[str(n)]), ("raw zenoh", peer[str(n)])]
         if args.tls:
             paths.append(("bridge+wire, TLS via router", tls[str(n)]))
         for path, r in paths:
-            rows.append([n, path, r["ticks"], r["p50_ms"], r["p99_ms"], r["max_ms"], r["missed"]])
+            rows.append([n, path, r["ticks"], r["p50_ms"], r["p99_ms"], r["max_ms"], r["missed"],
+                         r["unanswered"]])
     print_table(headers, rows)
     return 0
 
