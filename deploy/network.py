@@ -30,42 +30,34 @@ KEY_ROOT = "formation"
 ENDPOINT_RE = re.compile(r"[a-z][a-z0-9\-]*/\S+")
 LOOPBACK_RE = re.compile(r"[a-z][a-z0-9\-]*/(127(\.\d{1,3}){3}|localhost|\[::1\]):\d+(#\S*)?")
 
-TX_QUEUE_BATCHES = 16
-"""Batches each priority's transmit queue holds (``transport/link/tx/queue/size``; Zenoh's
-default is 2, its maximum 16). Every node of the fleet (peer, client, router) uses it unless its
-``--zenoh-config`` file sets its own. A batch is allocated only when used (lazy allocation)."""
-TX_QUEUE_KEY = "transport/link/tx/queue/size"
-
-
 def declare_data_publisher(session: zenoh.Session, key: str,
                            congestion_control: zenoh.CongestionControl) -> zenoh.Publisher:
     """The publisher of one robot's states or commands: priority INTERACTIVE_HIGH, not express.
 
-    Why not express, and why :data:`TX_QUEUE_BATCHES`: an express message is a batch of its own,
-    and Zenoh drops a DROP message that waits more than 1 ms (``wait_before_drop``) for a free
-    batch. With Zenoh's default queue of two batches, a controller publishing its commands in a
-    burst, or a fleet simulation its states, lost whole messages whenever the one transmit thread
-    was descheduled for a millisecond: on this project's 2-core host ``bench/fleet_loop.py`` got
-    no answer within 100 ms on up to 52 ticks in 1000 at 5 robots and 13-122 at 50, each a robot
-    without a fresh command. Without express, the messages of one burst share a
-    batch (Zenoh sends a batch at once when the link is idle and batches only under
-    back-pressure), so a burst takes one slot of a queue of 16: the same runs, alternating with
-    the old settings, had no unanswered tick in 18 rows, and p50 fell at 50 robots (TLS router
-    9.8-11.7 against 15.7-17.6 ms), with no change at 5 (docs/results/fleet_loop_before_after_2026-12-03.json).
-    ``tests/deploy/test_tx_queue.py`` starves a publisher's CPU: 1000 of 1000 messages arrive,
-    against 98-211 with the old settings.
+    Why not express: an express message is a batch of its own, and Zenoh drops a DROP message
+    that waits more than 1 ms (``wait_before_drop``) for a free batch of its priority's queue (2
+    batches by default). So a controller publishing its commands in a burst, or a fleet
+    simulation its states, lost whole messages whenever the one transmit thread was descheduled
+    for a millisecond: on this project's 2-core host ``bench/fleet_loop.py`` got no answer within
+    100 ms on up to 52 ticks in 1000 at 5 robots and 13-122 at 50, each a robot without a fresh
+    command. Without express, the messages of one burst share a batch (Zenoh sends a batch at
+    once when the link is idle and batches only under back-pressure): the same runs had no
+    unanswered tick in 27 rows (9 as shipped, 18 with a 16-batch queue), and p50 fell at 50 robots (TLS router 9.8-11.7 against
+    15.7-17.6 ms), with no change at 5 (docs/results/fleet_loop_before_after_2026-12-03.json).
+    ``tests/deploy/test_data_publishers.py`` starves a publisher's CPU: 1000 of 1000 messages
+    arrive, against 98-211 with express publishers.
+
+    A longer transmit queue was tried as well (16 batches): it adds nothing once bursts share a
+    batch (the same 0 unanswered ticks, 1000 of 1000 under starvation), and on a link that is
+    truly too slow it only lets more old messages wait. Zenoh's default stays. On such a link
+    (``bench/link_congestion.py``: 50 messages every 20 ms over 1 Mbit/s) messages arrive late
+    either way, 0.6-0.9 s at the median (TCP and the shaper hold them before Zenoh can drop
+    any); these publishers deliver more of them than express ones (91-97 against 73-79 %), the
+    oldest older (p99 1.6-1.8 against 0.85-1.1 s). The bridge sees the delay in the round trips
+    it measures (``command_delay_s``), and the safety filter predicts every robot over it.
     """
     return session.declare_publisher(key, congestion_control=congestion_control,
                                       priority=zenoh.Priority.INTERACTIVE_HIGH, express=False)
-
-
-def set_tx_queue(config: zenoh.Config) -> zenoh.Config:
-    """Give ``config`` the fleet's transmit queue (:data:`TX_QUEUE_BATCHES` batches a priority)
-    unless it already holds a size other than Zenoh's default (a user's configuration file)."""
-    if json.loads(config.get_json(TX_QUEUE_KEY)) == json.loads(zenoh.Config().get_json(TX_QUEUE_KEY)):
-        sizes = json.loads(config.get_json(TX_QUEUE_KEY))
-        config.insert_json5(TX_QUEUE_KEY, json.dumps(dict.fromkeys(sizes, TX_QUEUE_BATCHES)))
-    return config
 
 
 class FleetKeys:
@@ -119,8 +111,7 @@ class TransportConfig:
             endpoint needs ``tls``: a fleet on a network is authenticated by default.
         zenoh_config: a Zenoh configuration file (JSON5) for any Zenoh setting. It is the base:
             the fields above are written over it only where they say something (endpoints
-            given, ``lease_ms``, ``tls``, client mode); scouting is then the file's, and so is
-            the transmit queue where the file sets one (else :data:`TX_QUEUE_BATCHES`).
+            given, ``lease_ms``, ``tls``, client mode); scouting is then the file's.
     """
 
     listen: tuple[str, ...] = ()
@@ -200,7 +191,7 @@ class TransportConfig:
             config.insert_json5("transport/link/tx/lease", str(self.lease_ms))
         if self.tls is not None:
             config.insert_json5("transport/link/tls", json.dumps(tls_block(self.tls)))
-        return set_tx_queue(config)
+        return config
 
     def open(self) -> zenoh.Session:
         return zenoh.open(self.to_zenoh())

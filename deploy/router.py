@@ -29,7 +29,7 @@ import zenoh
 
 from deploy.access_log import DIRECTIVES, AccessLog
 from deploy.certs import ROUTER, NodeFiles
-from deploy.network import ENDPOINT_RE, set_tx_queue
+from deploy.network import ENDPOINT_RE
 from deploy.reject_log import RejectLog
 from deploy.security import fleet_acl, tls_block
 from deploy.wire import check_name
@@ -77,7 +77,7 @@ class RouterConfig:
         config.insert_json5("access_control", json.dumps(fleet_acl(self.fleet, self.robots)))
         if self.lease_ms is not None:
             config.insert_json5("transport/link/tx/lease", str(self.lease_ms))
-        return set_tx_queue(config)
+        return config
 
 
 class Router:

@@ -3,9 +3,8 @@ commands or a fleet simulation its states (run by tests/deploy/test_tx_queue.py)
 
     python starved_publisher_proc.py PORT SETTINGS ROBOTS BURSTS CPU
 
-SETTINGS ``fleet``: the fleet's own (:func:`deploy.network.declare_data_publisher`, the transmit
-queue of :class:`deploy.network.TransportConfig`); ``express``: the settings before them (express
-publishers, Zenoh's default queue of two batches). The process pins itself and the threads it
+SETTINGS ``fleet``: the fleet's own publishers (:func:`deploy.network.declare_data_publisher`);
+``express``: the ones before them (express, otherwise the same). The process pins itself and the threads it
 starts to one CPU at nice 19 before it opens its session, prints ``ready`` once its publishers
 are declared, waits for ``go`` on stdin (the test then loads that CPU), publishes ``BURSTS``
 bursts of ``ROBOTS`` messages 20 ms apart and prints ``sent N``.
@@ -27,12 +26,9 @@ def main(port: int, settings: str, robots: int, bursts: int, cpu: int) -> None:
     os.nice(19)
     import zenoh
 
-    from deploy.network import TX_QUEUE_KEY, TransportConfig, declare_data_publisher
+    from deploy.network import TransportConfig, declare_data_publisher
 
-    config = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).to_zenoh()
-    if settings == "express":
-        config.insert_json5(TX_QUEUE_KEY, zenoh.Config().get_json(TX_QUEUE_KEY))
-    session = zenoh.open(config)
+    session = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).open()
     drop = zenoh.CongestionControl.DROP
     keys = [f"starved/robot/r{i}/cmd" for i in range(robots)]
     if settings == "fleet":
