@@ -46,6 +46,7 @@ SENDER, RECEIVER = "10.78.0.1", "10.78.0.2"
 PORT = 7447
 STAMP = struct.Struct("<qi")  # send time [ns, monotonic], tick
 PAD = bytes(40)
+DRAIN_S = 3.0  # [s] the receiver keeps listening after the sender has closed
 
 
 def _ip(*args: str) -> None:
@@ -86,8 +87,8 @@ class ShapedLink:
 
 
 # ---------------------------------------------------------------------- the two processes
-def receive(seconds: float) -> int:
-    """Receiver role: listen, print ``ready``, record ages for ``seconds``, print them as JSON."""
+def receive() -> int:
+    """Receiver role: listen, print ``ready``, record ages until a line on stdin, print them as JSON."""
     from deploy.network import TransportConfig
 
     ages: list[float] = []
@@ -101,7 +102,7 @@ def receive(seconds: float) -> int:
     with TransportConfig(listen=(f"tcp/{RECEIVER}:{PORT}",), insecure=True).open() as session:
         session.declare_subscriber("congestion/**", on_sample)
         print("ready", flush=True)
-        time.sleep(seconds)
+        sys.stdin.readline()
         with lock:
             print(json.dumps(ages), flush=True)
     return 0
@@ -135,15 +136,17 @@ def send(publishers: str, robots: int, ticks: int, period_s: float) -> int:
 def one_run(link: ShapedLink, publishers: str, robots: int, ticks: int, period_s: float) -> dict:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     me = [sys.executable, str(Path(__file__).resolve())]
-    listen_s = 1.5 + ticks * period_s + 4.0
-    receiver = subprocess.Popen(["ip", "netns", "exec", link.receiver, *me, "--role", "receive",
-                                 "--seconds", str(listen_s)], stdout=subprocess.PIPE, text=True, env=env)
+    receiver = subprocess.Popen(["ip", "netns", "exec", link.receiver, *me, "--role", "receive"],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
     try:
         if receiver.stdout.readline().strip() != "ready":
             raise RuntimeError("the receiver did not start")
         subprocess.run(["ip", "netns", "exec", link.sender, *me, "--role", "send", "--publishers",
                         publishers, "--robots", str(robots), "--ticks", str(ticks), "--period-ms",
-                        str(period_s * 1e3)], check=True, env=env, timeout=listen_s + 30)
+                        str(period_s * 1e3)], check=True, env=env, timeout=60 + 2 * ticks * period_s)
+        time.sleep(DRAIN_S)                      # what the link still holds arrives
+        receiver.stdin.write("done\n")
+        receiver.stdin.flush()
         ages = np.asarray(json.loads(receiver.stdout.readline()), dtype=float)
     finally:
         receiver.kill()
@@ -163,12 +166,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     parser.add_argument("--role", choices=["send", "receive"], help=argparse.SUPPRESS)
     parser.add_argument("--publishers", choices=["fleet", "express"], help=argparse.SUPPRESS)
-    parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if not args.period_ms > 0:
         parser.error(f"--period-ms must be > 0, got {args.period_ms}")
     if args.role == "receive":
-        return receive(args.seconds)
+        return receive()
     if args.role == "send":
         return send(args.publishers, args.robots, args.ticks, args.period_ms / 1e3)
     if os.geteuid() != 0 or not (shutil.which("ip") and shutil.which("tc")):

@@ -51,9 +51,9 @@ def declare_data_publisher(session: zenoh.Session, key: str,
     batch (the same 0 unanswered ticks, 1000 of 1000 under starvation), and on a link that is
     truly too slow it only lets more old messages wait. Zenoh's default stays. On such a link
     (``bench/link_congestion.py``: 50 messages every 20 ms over 1 Mbit/s) messages arrive late
-    either way, 0.6-0.9 s at the median (TCP and the shaper hold them before Zenoh can drop
-    any); these publishers deliver more of them than express ones (91-97 against 73-79 %), the
-    oldest older (p99 1.6-1.8 against 0.85-1.1 s). The bridge sees the delay in the round trips
+    either way, 0.6-1.0 s at the median (TCP and the shaper hold them before Zenoh can drop
+    any); these publishers deliver more of them than express ones (91-97 against 73-84 %, p99
+    age 1.6-1.8 against 0.85-1.9 s, six runs each). The bridge sees the delay in the round trips
     it measures (``command_delay_s``), and the safety filter predicts every robot over it.
     """
     return session.declare_publisher(key, congestion_control=congestion_control,

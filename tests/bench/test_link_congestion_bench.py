@@ -1,5 +1,6 @@
 """Smoke test of bench/link_congestion.py: a tiny run through two real network namespaces, the
-output shape, and that a link fast enough for the traffic delivers every message. No timing limits."""
+output shape, and that a link fast enough for the traffic delivers every message of the fleet's
+publishers. No timing limits."""
 
 from __future__ import annotations
 
@@ -26,9 +27,11 @@ def test_a_fast_link_delivers_every_message_and_the_json_has_a_row_per_run():
     document = json.loads(result.stdout.strip())
     assert {k: document[k] for k in ("rate_kbit", "robots", "period_ms", "ticks")} == \
         {"rate_kbit": 100000, "robots": 5, "period_ms": 20.0, "ticks": 20}
-    assert [r["publishers"] for r in document["rows"]] == ["fleet", "express"]
+    fleet, express = document["rows"]
+    assert (fleet["publishers"], express["publishers"]) == ("fleet", "express")
+    assert fleet["sent"] == fleet["received"] == 100
+    assert express["sent"] == 100 and 0 < express["received"] <= 100   # express may lose some
     for row in document["rows"]:
-        assert row["sent"] == row["received"] == 100
         assert 0 < row["age_ms"]["p50"] <= row["age_ms"]["p99"] <= row["age_ms"]["max"]
 
 
