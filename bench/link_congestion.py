@@ -117,11 +117,7 @@ def send(publishers: str, robots: int, ticks: int, period_s: float) -> int:
     drop = zenoh.CongestionControl.DROP
     with TransportConfig(connect=(f"tcp/{RECEIVER}:{PORT}",), insecure=True).open() as session:
         keys = [f"congestion/r{i}/cmd" for i in range(robots)]
-        if publishers == "fleet":
-            pubs = [declare_data_publisher(session, key, drop) for key in keys]
-        else:
-            pubs = [session.declare_publisher(key, congestion_control=drop, express=True,
-                                              priority=zenoh.Priority.INTERACTIVE_HIGH) for key in keys]
+        pubs = [declare_data_publisher(session, key, drop, express=publishers == "express") for key in keys]
         time.sleep(1.0)                                      # the receiver's subscription arrives
         next_time = time.monotonic()
         for tick in range(ticks):

@@ -30,34 +30,34 @@ KEY_ROOT = "formation"
 ENDPOINT_RE = re.compile(r"[a-z][a-z0-9\-]*/\S+")
 LOOPBACK_RE = re.compile(r"[a-z][a-z0-9\-]*/(127(\.\d{1,3}){3}|localhost|\[::1\]):\d+(#\S*)?")
 
-def declare_data_publisher(session: zenoh.Session, key: str,
-                           congestion_control: zenoh.CongestionControl) -> zenoh.Publisher:
-    """The publisher of one robot's states or commands: priority INTERACTIVE_HIGH, not express.
+def declare_data_publisher(session: zenoh.Session, key: str, congestion_control: zenoh.CongestionControl,
+                           express: bool = False) -> zenoh.Publisher:
+    """The publisher of one robot's states or commands: priority INTERACTIVE_HIGH, not express
+    (``express=True`` only to measure the settings the links had before 2026-12-03).
 
     Why not express: an express message is a batch of its own, and Zenoh drops a DROP message
     that waits more than 1 ms (``wait_before_drop``) for a free batch of its priority's queue (2
     batches by default). So a controller publishing its commands in a burst, or a fleet
     simulation its states, lost whole messages whenever the one transmit thread was descheduled
     for a millisecond: on this project's 2-core host ``bench/fleet_loop.py`` got no answer within
-    100 ms on up to 52 ticks in 1000 at 5 robots and 13-122 at 50, each a robot without a fresh
-    command. Without express, the messages of one burst share a batch (Zenoh sends a batch at
-    once when the link is idle and batches only under back-pressure): the same runs had no
-    unanswered tick in 27 rows (9 as shipped, 18 with a 16-batch queue), and p50 fell at 50 robots (TLS router 9.8-11.7 against
-    15.7-17.6 ms), with no change at 5 (docs/results/fleet_loop_before_after_2026-12-03.json).
+    100 ms on up to 52 ticks in 1000 at 5 robots and 13-122 at 50. Without express, the messages
+    of one burst share a batch (Zenoh sends a batch at once when the link is idle and batches
+    only under back-pressure): the same bench had no unanswered tick in 27 rows (9 as shipped, 18
+    with a 16-batch queue), and p50 fell at 50 robots (TLS router 9.8-11.7 against 15.7-17.6 ms),
+    with no change at 5 (docs/results/fleet_loop_before_after_2026-12-03.json).
     ``tests/deploy/test_data_publishers.py`` starves a publisher's CPU: 1000 of 1000 messages
     arrive, against 98-211 with express publishers.
 
-    A longer transmit queue was tried as well (16 batches): it adds nothing once bursts share a
-    batch (the same 0 unanswered ticks, 1000 of 1000 under starvation), and on a link that is
-    truly too slow it only lets more old messages wait. Zenoh's default stays. On such a link
-    (``bench/link_congestion.py``: 50 messages every 20 ms over 1 Mbit/s) messages arrive late
-    either way, 0.6-1.0 s at the median (TCP and the shaper hold them before Zenoh can drop
+    A longer transmit queue (16 batches) adds nothing once bursts share a batch, and on a link
+    too slow for the traffic it only lets more old messages wait: Zenoh's default stays. On such
+    a link (``bench/link_congestion.py``: 50 messages every 20 ms over 1 Mbit/s) messages arrive
+    late either way, 0.6-1.0 s at the median (TCP and the shaper hold them before Zenoh can drop
     any); these publishers deliver more of them than express ones (91-97 against 73-84 %, p99
     age 1.6-1.8 against 0.85-1.9 s, six runs each). The bridge sees the delay in the round trips
     it measures (``command_delay_s``), and the safety filter predicts every robot over it.
     """
     return session.declare_publisher(key, congestion_control=congestion_control,
-                                      priority=zenoh.Priority.INTERACTIVE_HIGH, express=False)
+                                      priority=zenoh.Priority.INTERACTIVE_HIGH, express=express)
 
 
 class FleetKeys:

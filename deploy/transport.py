@@ -28,10 +28,10 @@ queued behind older ones, and the next tick's message replaces it. A stalled pip
 network: a starved CPU is enough (180-tick lock-step runs with four busy loops on two cores
 lost an answer on up to 54 ticks). The publishers are not express
 (:func:`deploy.network.declare_data_publisher` says why), so a burst of one tick's messages
-shares a batch and a scheduling hiccup of a millisecond no longer loses any. A lock-stepped simulation waits for every answer, so there a
-lost message stalls the tick until the lock-step timeout and the robot acts one tick late:
-links opened with ``lossless=True`` publish with BLOCK instead (the sender waits for room).
-The e-stop is always BLOCK.
+shares a batch and a scheduling hiccup of a millisecond no longer loses any. A lock-stepped
+simulation waits for every answer, so there a lost message stalls the tick until the lock-step
+timeout and the robot acts one tick late: links opened with ``lossless=True`` publish with
+BLOCK instead (the sender waits for room). The e-stop is always BLOCK.
 """
 
 from __future__ import annotations

@@ -31,11 +31,8 @@ def main(port: int, settings: str, robots: int, bursts: int, cpu: int) -> None:
     session = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",)).open()
     drop = zenoh.CongestionControl.DROP
     keys = [f"starved/robot/r{i}/cmd" for i in range(robots)]
-    if settings == "fleet":
-        publishers = [declare_data_publisher(session, key, drop) for key in keys]
-    else:
-        publishers = [session.declare_publisher(key, congestion_control=drop, express=True,
-                                                priority=zenoh.Priority.INTERACTIVE_HIGH) for key in keys]
+    publishers = [declare_data_publisher(session, key, drop, express=settings == "express")
+                  for key in keys]
     print("ready", flush=True)
     sys.stdin.readline()
     payload = json.dumps({"pad": "x" * 40}).encode()
