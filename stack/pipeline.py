@@ -69,6 +69,7 @@ import torch
 from torch import nn
 
 from controllers.docking import Docking, DockingConfig
+from controllers.jit import warm_up
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
 from controllers.position_estimator import PositionEstimator
 from controllers.safety import (
@@ -261,6 +262,7 @@ class ControlStack:
                         if self.config.docking.enabled else None)
         self._last_known = LastKnown()
         self.num_robots: int | None = None
+        warm_up()                       # compile or load the kernels now, not at the first tick
 
     def reset(self) -> None:
         """Start a new episode: forget the compensator's estimate and any callable's plan."""
