@@ -114,6 +114,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.checks import check_numbers
+from controllers.safety import latency_kernels
 from controllers.safety.silent_reach import SilentPaths, silent_paths
 from sim.scenario import Dynamics, clip_norm
 
@@ -210,6 +211,11 @@ def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarra
     return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
 
 
+def _f64(x: np.ndarray) -> np.ndarray:
+    """``x`` as a C-contiguous float64 array (what the compiled kernels take)."""
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
 VELOCITY_NOISE_BOUND = 3.0
 """A measured velocity noise of standard deviation sigma counts as an error bound of 3 sigma."""
 
@@ -303,16 +309,6 @@ class LatencyPredictor:
         self._delay_seen, self._jitter_left = seen, left
         self._paths = {rid: paths for rid, paths in self._paths.items() if rid in ids}
 
-    def _jittering(self, pending: np.ndarray, ages: np.ndarray) -> np.ndarray:
-        """(N,) bool: robots whose observed command delay (pending commands less the ticks
-        the state aged) changed within the last ``depth`` ticks; updates the record."""
-        known = pending >= 0
-        delay = np.where(known, pending - np.rint(ages / self.dynamics.dt).astype(np.int64), -1)
-        changed = known & (self._delay_seen >= 0) & (delay != self._delay_seen)
-        self._jitter_left = np.where(changed, self.depth, np.maximum(self._jitter_left - 1, 0))
-        self._delay_seen = np.where(known, delay, self._delay_seen)
-        return self._jitter_left > 0
-
     def late(self, ages: np.ndarray, pending: np.ndarray | None, measured_delay_s: float | None = None) -> np.ndarray:
         """(N,) bool: robots whose pending commands outnumber the ticks the latency bound allows
         (``pending_i > ceil((tau_i + L) / dt)``): they act on commands older than the bound, so
@@ -344,31 +340,20 @@ class LatencyPredictor:
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
         delay = self._max_delay(measured_delay_s)
-        horizon = horizon_ticks(ages, delay, dyn.dt)
-        pending = np.full(len(ages), -1) if pending is None else np.asarray(pending)
-        stale = (ages > cfg.stale_after_s) | (pending > horizon)          # old, or late (:meth:`late`)
-        given_fixed = np.zeros(len(ages), dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
-        fixed = stale | given_fixed
-        h = np.where(fixed, 0, np.minimum(horizon, self.depth - 1))
-        known = pending >= 0
-        m = np.where(known, np.minimum(pending, h), h)
-        p, v = self._roll_forward(pos, vel, m)
-        lo, hi = self._window_box(h, m, known, a_nom)
-        jittering = self._jittering(pending, ages)
-        unsure = jittering | ~known                           # the delay may change under it
-        spread = np.hypot(hi[:, 0] - lo[:, 0], hi[:, 1] - lo[:, 1])
-        weight = np.where(unsure, max(cfg.jitter_spread_weight, cfg.spread_weight), cfg.spread_weight)
-        accel = weight * spread + cfg.accel_uncertainty
-        sigma_p = cfg.position_noise + (0.0 if position_noise is None else np.asarray(position_noise))
-        grow = accel * dyn.dt**2 * h * (h + 1) / 2 + cfg.velocity_noise * dyn.dt * h + sigma_p
-        closing = accel * dyn.dt * h + cfg.velocity_noise
-        steps = int(h.max(initial=0))
-        largest = np.hypot(a_nom[:, 0], a_nom[:, 1])            # the largest command of the window
-        if steps:
-            recent = self._history[self.depth - steps:]
-            largest = np.maximum(largest, np.sqrt((recent * recent).sum(axis=2)).max(axis=0))
-        fresh_bound = np.minimum(largest + cfg.accel_uncertainty, dyn.accel_limit)
-        self._accel_bound = np.where(fixed, self._accel_bound, fresh_bound)
+        n = len(ages)
+        pending = np.full(n, -1, dtype=np.int64) if pending is None else np.asarray(pending, dtype=np.int64)
+        given_fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+        sigma_p = cfg.position_noise + (np.zeros(n) if position_noise is None
+                                        else np.asarray(position_noise, dtype=np.float64))
+        p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
+        fixed, h, jittering = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
+        latency_kernels.predict_listening(
+            _f64(pos), _f64(vel), _f64(ages), _f64(a_nom), pending, given_fixed, _f64(sigma_p),
+            self._history, self._delay_seen, self._jitter_left, self._accel_bound, delay, dyn.dt,
+            cfg.stale_after_s, dyn.damping, dyn.speed_limit, dyn.accel_limit, cfg.spread_weight,
+            cfg.jitter_spread_weight, cfg.accel_uncertainty, cfg.velocity_noise,
+            p, v, grow, closing, fixed, h, jittering)
+        unsure = jittering | (pending < 0)                    # the delay may change under it
         if fixed.any():
             sigma = np.broadcast_to(sigma_p, (len(p),))
             by_ball = fixed.copy()
@@ -423,40 +408,6 @@ class LatencyPredictor:
         self._paths[rid] = silent_paths(pos, vel, sequences, hold, cfg.accel_uncertainty + spread_weight * spread,
                                         cfg.accel_uncertainty, measured_at, dyn)
         return self._paths[rid]
-
-    def _roll_forward(self, pos: np.ndarray, vel: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Each robot ``i`` through the newest ``m_i`` recorded commands, oldest first (module
-        docstring, Prediction)."""
-        dyn, depth = self.dynamics, self.depth
-        steps = int(m.max(initial=0))
-        p, v = pos.copy(), vel.copy()
-        if steps and (m == steps).all():                                 # the common case
-            keep, vmax2 = 1.0 - dyn.damping * dyn.dt, dyn.speed_limit ** 2
-            for u in self._history[depth - steps:]:  # Dynamics.step_np; u is clipped when recorded
-                v = keep * v + dyn.dt * u
-                sq = v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]
-                if sq.max() > vmax2:
-                    v = v * np.minimum(1.0, dyn.speed_limit / np.sqrt(np.maximum(sq, 1e-300)))[:, None]
-                p = p + dyn.dt * v
-            return p, v
-        rows = np.arange(len(m))
-        for t in range(steps):
-            p1, v1 = dyn.step_np(p, v, self._history[np.minimum(depth - m + t, depth - 1), rows])
-            active = (t < m)[:, None]
-            p, v = np.where(active, p1, p), np.where(active, v1, v)
-        return p, v
-
-    def _window_box(self, h: np.ndarray, m: np.ndarray, known: np.ndarray,
-                    a_nom: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-axis box ``lo, hi`` (N, 2) of the commands that may act before the new one: the
-        newest ``max(h_i, m_i + 1)`` recorded (``h_i`` where the count is unknown) and ``a_nom``
-        (module docstring, Tightening)."""
-        depth = self.depth
-        start = np.where(known, depth - np.maximum(h, m + 1), depth - h)     # >= 0: m <= h < depth
-        window = ((np.arange(depth)[:, None] >= start[None, :]) & (h > 0)[None, :])[..., None]
-        lo = np.minimum(np.where(window, self._history, np.inf).min(axis=0), a_nom)
-        hi = np.maximum(np.where(window, self._history, -np.inf).max(axis=0), a_nom)
-        return lo, hi
 
     def record(self, ids: tuple[str, ...], accel: np.ndarray, braking: np.ndarray | None = None) -> None:
         """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last),

@@ -1,0 +1,65 @@
+"""The compiled latency prediction equals its numpy formulation bit for bit, on any sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controllers.safety.latency import LatencyConfig, LatencyPredictor
+from sim.scenario import Dynamics, clip_norm
+from tests.controllers.safety.latency_reference import NumpyPredictor
+
+DYN = Dynamics()
+FIELDS = ("pos", "vel", "grow", "closing", "fixed", "horizon", "brake_vel", "velocity_error", "unsure")
+
+
+def _ticks(seed: int, count: int):
+    """Per tick: ids, pos, vel, ages, a_nom, pending (or None), fixed (or None), position and
+    velocity noise (or None), the measured delay, and the commands then recorded. Robots join,
+    leave and reorder; ages run from fresh to stale; pending counts are unknown, equal for all
+    (the fast path), mixed, or beyond the bound (late robots); speeds reach the limit."""
+    rng = np.random.default_rng(seed)
+    pool = [f"r{k}" for k in range(6)]
+    ids = tuple(pool[:3])
+    for _ in range(count):
+        if rng.random() < 0.1:
+            ids = tuple(str(r) for r in rng.permutation(pool)[: rng.integers(1, len(pool) + 1)])
+        n = len(ids)
+        pos = rng.uniform(0.0, 1.0, (n, 2))
+        vel = rng.uniform(-0.5, 0.5, (n, 2))
+        ages = rng.choice([0.0, 0.02, 0.04, 0.05, 0.1, 0.2, 0.4], n, p=[0.45, 0.1, 0.1, 0.15, 0.1, 0.05, 0.05])
+        a_nom = clip_norm(rng.uniform(-1.5, 1.5, (n, 2)), DYN.accel_limit)
+        kind = rng.integers(4)
+        pending = (None if kind == 0 else np.full(n, rng.integers(0, 4)) if kind == 1
+                   else rng.integers(-1, 6, n))
+        fixed = rng.random(n) < 0.15 if rng.random() < 0.3 else None
+        position_noise = rng.uniform(0.0, 0.01, n) if rng.random() < 0.5 else None
+        velocity_noise = rng.uniform(0.0, 0.02, n) if rng.random() < 0.5 else None
+        measured = rng.choice([None, 0.0, 0.1, 0.3])
+        recorded = clip_norm(rng.uniform(-1.5, 1.5, (n, 2)), DYN.accel_limit)
+        braking = rng.random(n) < 0.2
+        yield ids, pos, vel, ages, a_nom, pending, fixed, position_noise, velocity_noise, measured, recorded, braking
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), delay=st.sampled_from([0.0, 0.05, 0.15]),
+       noise=st.sampled_from([(0.0, 0.0), (0.01, 0.02)]), with_now=st.booleans())
+def test_compiled_prediction_equals_numpy_formulation(seed, delay, noise, with_now):
+    config = LatencyConfig(command_delay_s=delay, position_noise=noise[0], velocity_noise=noise[1])
+    compiled, reference = LatencyPredictor(DYN, config), NumpyPredictor(DYN, config)
+    for t, (ids, pos, vel, ages, a_nom, pending, fixed, pn, vn, measured, recorded, braking) in \
+            enumerate(_ticks(seed, 50)):
+        now = 0.05 * t if with_now else None
+        outs = [pred.predict(ids, pos, vel, ages, a_nom, measured, fixed=fixed, pending=pending,
+                             position_noise=pn, velocity_noise=vn, now=now) for pred in (compiled, reference)]
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(outs[0], name), getattr(outs[1], name), err_msg=name)
+        for name in ("_accel_bound", "_delay_seen", "_jitter_left"):
+            np.testing.assert_array_equal(getattr(compiled, name), getattr(reference, name), err_msg=name)
+        compiled.record(ids, recorded, braking)
+        reference.record(ids, recorded, braking)
+
+
+def test_the_reference_is_not_the_compiled_code():
+    assert NumpyPredictor.predict is not LatencyPredictor.predict
