@@ -20,15 +20,21 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import numba
+import numpy as np
 
 F = TypeVar("F", bound=Callable)
 
 _WARM_UPS: list[Callable[[], object]] = []
+KERNELS: list[numba.core.registry.CPUDispatcher] = []
+"""Every kernel defined so far. Each should end up with one compiled signature: its callers pass
+fixed types (C-contiguous float64/int64/bool arrays, float scalars), so no tick compiles."""
 
 
 def kernel(fn: F) -> F:
     """Compile ``fn`` with numba (no Python objects, no fast-math: IEEE results, cached on disk)."""
-    return numba.njit(cache=True, nogil=True, fastmath=False)(fn)
+    compiled = numba.njit(cache=True, nogil=True, fastmath=False)(fn)
+    KERNELS.append(compiled)
+    return compiled
 
 
 def register_warm_up(fn: Callable[[], object]) -> Callable[[], object]:
@@ -37,10 +43,18 @@ def register_warm_up(fn: Callable[[], object]) -> Callable[[], object]:
     return fn
 
 
+def require_shapes(where: str, **arrays: tuple[np.ndarray, tuple[int, ...]]) -> None:
+    """Raise ValueError naming the first ``name=(array, shape)`` whose shape differs: a kernel
+    reads its arrays unchecked, so its caller checks them."""
+    for name, (array, shape) in arrays.items():
+        if np.shape(array) != shape:
+            raise ValueError(f"{where}: {name} must have shape {shape}, got {np.shape(array)}")
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every registered kernel now, not at the first tick."""
     for fn in _WARM_UPS:
         fn()
 
 
-__all__ = ["kernel", "register_warm_up", "warm_up"]
+__all__ = ["KERNELS", "kernel", "register_warm_up", "require_shapes", "warm_up"]

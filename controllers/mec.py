@@ -260,8 +260,13 @@ class ModelErrorCompensator:
         self.hypotheses = self.config.max_delay_ticks + 1
         self.gate_level = self.config.gate_ratio * 2.0 * self.level_var / (1.0 - self.config.forget)
         c_dt = dynamics.damping * dynamics.dt
-        self._keep, self._noise_scale = 1.0 - c_dt, 1.0 + (2.0 - c_dt) ** 2 + (1.0 - c_dt) ** 2
-        self._design_var = self.config.velocity_noise**2
+        # the kernels' scalars, typed once (a new type would compile a new kernel mid-run)
+        self._observe_consts = tuple(float(x) for x in (
+            dynamics.dt, 1.0 - c_dt, 1.0 + (2.0 - c_dt) ** 2 + (1.0 - c_dt) ** 2, dynamics.speed_limit,
+            self.max_disturbance, self.config.forget, self.config.switch_ratio, NOISE_FORGET))
+        self._compensate_consts = (float(self.config.velocity_noise**2), float(SIGNIFICANCE),
+                                   float(NOISE_UPPER_SIGMAS), int(WARMUP_UPDATES), bool(self.config.adapt_noise),
+                                   float(dynamics.accel_limit))
         self.reset()
 
     def reset(self) -> None:
@@ -323,12 +328,10 @@ class ModelErrorCompensator:
         if not self._all_valid:
             vel = np.where(valid[:, None], vel, 0.0)
         v_out = np.empty((n, 2))
-        dyn, cfg = self.dynamics, self.config
         mec_kernels.observe(np.ascontiguousarray(vel), valid & ~fresh, not self._reset_tick, self.v_hat,
                             self.d_hat, self.score, self.sent, self.charge, self.level, self.noise_var,
                             self.noise_count, self.y_prev, self.r_prev, self.level_gain,
-                            self.level_midpoints, dyn.dt, self._keep, self._noise_scale, dyn.speed_limit,
-                            self.max_disturbance, cfg.forget, cfg.switch_ratio, NOISE_FORGET, v_out)
+                            self.level_midpoints, *self._observe_consts, v_out)
         self._update_s = time.perf_counter() - start
         return v_out
 
@@ -346,9 +349,8 @@ class ModelErrorCompensator:
         gated = np.empty(n, dtype=bool)
         good_all, clipped = mec_kernels.compensate(
             np.ascontiguousarray(target), self.d_hat, self.score, self.sent, self.charge, self.level,
-            self.noise_var, self.noise_count, self.gate_level, self.level_wander, self._design_var,
-            SIGNIFICANCE, NOISE_UPPER_SIGMAS, WARMUP_UPDATES, self.config.adapt_noise,
-            self.dynamics.accel_limit, a_cmd, d_hat, gated, compensation)
+            self.noise_var, self.noise_count, self.gate_level, self.level_wander, *self._compensate_consts,
+            a_cmd, d_hat, gated, compensation)
         status = MecStatus.RESET if self._reset_tick else MecStatus.OK
         if not good_all:
             status = MecStatus.INVALID_COMMAND

@@ -114,6 +114,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.checks import check_numbers
+from controllers.jit import require_shapes
 from controllers.safety import latency_kernels
 from controllers.safety.silent_reach import SilentPaths, silent_paths
 from sim.scenario import Dynamics, clip_norm
@@ -271,6 +272,11 @@ class LatencyPredictor:
         # deep enough for the commands a robot may still act on when it first counts as stale
         max_age = self.config.stale_after_s + dynamics.dt
         self.depth = int(horizon_ticks(np.array([max_age]), self._max_delay(None), dynamics.dt)[0]) + 2
+        # the kernel's scalars, typed once (a new type would compile a new kernel mid-run)
+        cfg = self.config
+        self._kernel_consts = tuple(float(x) for x in (
+            dynamics.dt, cfg.stale_after_s, dynamics.damping, dynamics.speed_limit, dynamics.accel_limit,
+            cfg.spread_weight, cfg.jitter_spread_weight, cfg.accel_uncertainty, cfg.velocity_noise))
         self.reset()
 
     def reset(self) -> None:
@@ -341,18 +347,20 @@ class LatencyPredictor:
         self._align(tuple(ids))
         delay = self._max_delay(measured_delay_s)
         n = len(ages)
-        pending = np.full(n, -1, dtype=np.int64) if pending is None else np.asarray(pending, dtype=np.int64)
-        given_fixed = np.zeros(n, dtype=bool) if fixed is None else np.asarray(fixed, dtype=bool)
+        pending = (np.full(n, -1, dtype=np.int64) if pending is None
+                   else np.ascontiguousarray(pending, dtype=np.int64))
+        given_fixed = np.zeros(n, dtype=bool) if fixed is None else np.ascontiguousarray(fixed, dtype=bool)
         sigma_p = cfg.position_noise + (np.zeros(n) if position_noise is None
                                         else np.asarray(position_noise, dtype=np.float64))
+        require_shapes("LatencyPredictor.predict", ids=(ids, (n,)), pos=(pos, (n, 2)), vel=(vel, (n, 2)),
+                       a_nom=(a_nom, (n, 2)), pending=(pending, (n,)), fixed=(given_fixed, (n,)),
+                       position_noise=(sigma_p, (n,)))
         p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
         fixed, h, jittering = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
         latency_kernels.predict_listening(
             _f64(pos), _f64(vel), _f64(ages), _f64(a_nom), pending, given_fixed, _f64(sigma_p),
-            self._history, self._delay_seen, self._jitter_left, self._accel_bound, delay, dyn.dt,
-            cfg.stale_after_s, dyn.damping, dyn.speed_limit, dyn.accel_limit, cfg.spread_weight,
-            cfg.jitter_spread_weight, cfg.accel_uncertainty, cfg.velocity_noise,
-            p, v, grow, closing, fixed, h, jittering)
+            self._history, self._delay_seen, self._jitter_left, self._accel_bound, float(delay),
+            *self._kernel_consts, p, v, grow, closing, fixed, h, jittering)
         unsure = jittering | (pending < 0)                    # the delay may change under it
         if fixed.any():
             sigma = np.broadcast_to(sigma_p, (len(p),))
