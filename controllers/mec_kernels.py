@@ -82,7 +82,7 @@ def _scale_rows(x, limit):
     for k in range(x.shape[0]):
         for i in range(x.shape[1]):
             sq = x[k, i, 0] * x[k, i, 0] + x[k, i, 1] * x[k, i, 1]
-            scale = min(1.0, limit / math.sqrt(max(sq, 1e-300)))
+            scale = np.minimum(1.0, limit / math.sqrt(np.maximum(sq, 1e-300)))
             x[k, i, 0] *= scale
             x[k, i, 1] *= scale
 
@@ -101,7 +101,7 @@ def _track_noise(vel, update, sent, charge, level, noise_var, noise_count, y_pre
         good = update[i] and math.isfinite(own)
         if good:
             noise_count[i] += 1.0
-        weight = max(1.0 - noise_forget, 1.0 / max(noise_count[i], 1.0))
+        weight = np.maximum(1.0 - noise_forget, 1.0 / np.maximum(noise_count[i], 1.0))
         if good:
             noise_var[i] = (1 - weight) * noise_var[i] + weight * own
         if update[i]:
@@ -141,9 +141,9 @@ def compensate(target, d_hat, score, sent, charge, level, noise_var, noise_count
         gated[i] = score[k, i] > gate_level[level[i]]
         threshold = 0.0
         if adapt:
-            upper = noise_var[i] * (1.0 + upper_sigmas / math.sqrt(max(noise_count[i], 1.0)))
-            threshold = significance * level_wander[level[i]] * math.sqrt(max(upper - design_var, 0.0))
-        keep = max(0.0, 1.0 - threshold / max(math.hypot(dx, dy), 1e-300))
+            upper = noise_var[i] * (1.0 + upper_sigmas / math.sqrt(np.maximum(noise_count[i], 1.0)))
+            threshold = significance * level_wander[level[i]] * math.sqrt(np.maximum(upper - design_var, 0.0))
+        keep = np.maximum(0.0, 1.0 - threshold / np.maximum(math.hypot(dx, dy), 1e-300))
         off = gated[i] or (adapt and noise_count[i] < warmup)
         compensation[i, 0], compensation[i, 1] = (0.0, 0.0) if off else (dx * keep, dy * keep)
         if math.isfinite(target[i, 0]) and math.isfinite(target[i, 1]):
@@ -153,7 +153,7 @@ def compensate(target, d_hat, score, sent, charge, level, noise_var, noise_count
         norm = math.hypot(a_cmd[i, 0], a_cmd[i, 1])
         if norm > accel_limit:
             clipped_any = True
-            scale = min(1.0, accel_limit / max(norm, 1e-300))
+            scale = np.minimum(1.0, accel_limit / np.maximum(norm, 1e-300))
             a_cmd[i, 0] *= scale
             a_cmd[i, 1] *= scale
     for k in range(sent.shape[0] - 1):

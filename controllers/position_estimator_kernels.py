@@ -44,13 +44,13 @@ def estimate(pos, vel, time_s, new, velocity_noise_var, dt, forget, floor_var, r
         good = step[i] and abs(gap - dt) < 0.5 * dt and math.isfinite(own)
         if good:
             count[i] += 1.0
-        weight = max(1.0 - forget, 1.0 / max(count[i], 1.0))
+        weight = np.maximum(1.0 - forget, 1.0 / np.maximum(count[i], 1.0))
         if good:
             noise_var[i] = (1 - weight) * noise_var[i] + weight * own
         quiet = quiet and fresh[i] and noise_var[i] <= floor_var
     for i in range(n):
         r = noise_var[i]
-        wary = 1.0 + 2.0 / math.sqrt(max(count[i], 1.0))
+        wary = 1.0 + 2.0 / math.sqrt(np.maximum(count[i], 1.0))
         if quiet:                                           # an exact link: pass through
             p_hat[i, 0], p_hat[i, 1], var[i], passed[i] = pos[i, 0], pos[i, 1], r, True
             y_prev[i, 0], y_prev[i, 1], t_prev[i] = pos[i, 0], pos[i, 1], time_s[i]
@@ -59,9 +59,9 @@ def estimate(pos, vel, time_s, new, velocity_noise_var, dt, forget, floor_var, r
         g = gaps[i] if step[i] else 0.0
         prior0, prior1 = p_hat[i, 0] + g * vel[i, 0], p_hat[i, 1] + g * vel[i, 1]
         v_prior = (r if passed[i] else var[i]) + g * g * velocity_noise_var[i]
-        gain = v_prior / max(v_prior + r, 1e-300)
+        gain = v_prior / np.maximum(v_prior + r, 1e-300)
         e0, e1 = pos[i, 0] - prior0, pos[i, 1] - prior1
-        out_of_model = max(e0 * e0, e1 * e1) > reset_sigmas2 * (v_prior + r)
+        out_of_model = np.maximum(e0 * e0, e1 * e1) > reset_sigmas2 * (v_prior + r)
         exact = r <= floor_var or out_of_model or not step[i]
         if fresh[i]:
             if exact:

@@ -53,7 +53,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel, row_gamma
+from controllers.safety import fused_kernels
+from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
 from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
 from controllers.safety.latency import Prediction
 from controllers.safety.postcheck import (
@@ -67,6 +68,10 @@ from sim.scenario import Dynamics
 _SLACK = 1e-9
 """[m] added to the travel bounds of the sweep check, so that rounding can only make it ask the
 exact tests more often, never less."""
+
+
+def _f64(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 def _clip_rows(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -145,6 +150,11 @@ class FusedScene:
         self._wall_normal = WALL_NORMALS.copy()
         self._wall_normal_xy = np.tile(WALL_NORMALS.T, n)                    # (2, 4N) fixed
         self._wall_zeros = np.zeros(4 * n)
+        self._zeros, self._false = np.zeros(n), np.zeros(n, dtype=bool)
+        self.pair_i, self.pair_j = self.pair_i.astype(np.int64), self.pair_j.astype(np.int64)
+        self._row_consts = (float(self.share_alpha), float(config.margin), float(config.margin + config.sqrt_floor),
+                            float(dynamics.damping), float(config.gamma), float(config.gamma_unsure),
+                            config.class_k != "linear")
 
     # ------------------------------------------------------------------ polygon
     def _set_polygon(self, polygon: np.ndarray) -> None:
@@ -154,12 +164,16 @@ class FusedScene:
         bx, by = np.roll(ax, -1, axis=1), np.roll(ay, -1, axis=1)
         ex, ey = bx - ax, by - ay
         self._edges = (ax, ay, by, ex, ey, 1.0 / (ex * ex + ey * ey), ex / np.where(ey == 0, 1.0, ey))
+        self._edge_rows = tuple(np.ascontiguousarray(x[0]) for x in self._edges)    # (M,) each
         self._convex = is_convex_ccw(polygon)
         self._m = len(polygon)
         lo, hi = polygon.min(axis=0), polygon.max(axis=0)
         on_box = ((polygon == lo) | (polygon == hi)).all(axis=1)
         self._box = len(polygon) == 4 and self._convex and bool(on_box.all())
         self._box_center, self._box_half = (lo + hi) / 2, (hi - lo) / 2
+        self._shape_args = (*self._edge_rows, bool(self._convex), bool(self._box),
+                            np.ascontiguousarray(self._box_center, dtype=np.float64),
+                            np.ascontiguousarray(self._box_half, dtype=np.float64), self.radius)
 
     def object_geometry(self, pos: np.ndarray, polygon: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -173,37 +187,11 @@ class FusedScene:
         """
         if polygon is not self._polygon:
             self._set_polygon(polygon)
-        if self._box:
-            rel = pos - self._box_center
-            out = np.maximum(np.abs(rel) - self._box_half, 0.0)
-            rho = np.hypot(out[:, 0], out[:, 1])
-            if rho.min() > 1e-12:                                             # all outside
-                normal = np.copysign(out, rel) / rho[:, None]
-                vertex = out.all(axis=1)                                      # both components > 0
-                return rho - self.radius, normal, np.where(vertex, 1.0 / np.maximum(rho, 1e-9), 0.0)
-        ax, ay, by, ex, ey, inv_len2, ex_over_ey = self._edges
-        px, py = pos[:, :1], pos[:, 1:]
-        rx, ry = px - ax, py - ay                                            # (N, M)
-        t = np.minimum(np.maximum((rx * ex + ry * ey) * inv_len2, 0.0), 1.0)
-        dx, dy = rx - t * ex, ry - t * ey                                    # centre - projection
-        d2 = dx * dx + dy * dy
-        flat = self.rows * self._m + d2.argmin(axis=1)
-        ddx, ddy, t_best = dx.take(flat), dy.take(flat), t.take(flat)
-        rho = np.sqrt(d2.take(flat))
-        if self._convex:
-            inside = (ex * ry - ey * rx > 0).all(axis=1)
-        else:
-            straddles = (ay > py) != (by > py)
-            inside = np.count_nonzero(straddles & (rx < ry * ex_over_ey), axis=1) % 2 == 1
-        sign = np.where(inside, -1.0, 1.0)
-        safe = np.where(rho > 1e-12, rho, 1.0)
-        scale = sign / safe
-        normal = np.stack((ddx * scale, ddy * scale), axis=1)
-        if not rho.min() > 1e-12:                                            # centre on the boundary
-            normal[rho <= 1e-12] = (1.0, 0.0)
-        vertex = ((t_best <= 0.0) | (t_best >= 1.0)) & ~inside & (rho > 0)
-        curvature = np.where(vertex, 1.0 / np.maximum(rho, 1e-9), 0.0)
-        return sign * rho - self.radius, normal, curvature
+        n = len(pos)
+        s_out, normal, curvature = np.empty(n), np.empty((n, 2)), np.empty(n)
+        fused_kernels.object_rows(np.ascontiguousarray(pos, dtype=np.float64), *self._shape_args,
+                                  s_out, normal, curvature)
+        return s_out, normal, curvature
 
     # ------------------------------------------------------------------ barrier
     def terms(self, pos: np.ndarray, vel: np.ndarray, polygon: np.ndarray,
@@ -221,47 +209,22 @@ class FusedScene:
         braking alone (``alpha`` of a static obstacle), a row of two fixed robots is dropped
         (bound -inf).
         """
-        p, cfg = self.p, self.config
-        # pairs
-        delta = pos.T @ self.pair_gather_t                                   # (2, P)
-        centre = np.hypot(delta[0], delta[1])
-        pair_normal = delta / np.maximum(centre, 1e-12)
-        if p and not centre.min() > 1e-12:                                  # coincident centres
-            pair_normal[:, centre <= 1e-12] = np.array([[1.0], [0.0]])
-        # object, walls; then every row side by side
-        obj_s, obj_n, obj_k = self.object_geometry(pos, polygon)
-        walls = pos @ self.wall_map + self.wall_offset                       # (N, 4)
-        normal = np.concatenate((pair_normal, obj_n.T, self._wall_normal_xy), axis=1)
-        dist = np.concatenate((centre - 2.0 * self.radius, obj_s, walls.ravel()))
-        curv = np.concatenate((1.0 / np.maximum(centre, 1e-9), obj_k, self._wall_zeros))
-        # barrier (controllers.safety.barrier)
-        w = vel.T @ self.gather_t                                            # (2, K)
-        sdot = (normal * w).sum(axis=0)
-        tang = np.maximum((w * w).sum(axis=0) - sdot * sdot, 0.0)
-        alpha, two_alpha, dropped, gamma = self.alpha, self.two_alpha, None, cfg.gamma
-        sdot_drift = sdot
-        if prediction is not None:
-            gamma = row_gamma(cfg, prediction, lambda x: x @ self.gather_abs_t)
-            dist = dist - prediction.grow @ self.gather_abs_t
-            allowance = prediction.closing @ self.gather_abs_t
-            sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)
-            sdot = sdot - allowance
-            if prediction.fixed.any():
-                free = (~prediction.fixed).astype(np.float64) @ self.gather_abs_t     # (K,) 0, 1, 2
-                dropped = free == 0
-                alpha = self.share_alpha * np.maximum(free, 1.0)
-                two_alpha = 2.0 * alpha
-        # phi with its linear floor: s_c = max(s, m + z_f), phi = sqrt(2 alpha (s_c - m)) + phi' (s - s_c)
-        clamped = np.maximum(dist, cfg.margin + cfg.sqrt_floor)
-        root = np.sqrt(two_alpha * (clamped - cfg.margin))
-        slope = alpha / root
-        h = root + slope * (dist - clamped) + sdot
-        drift = (slope - self.dynamics.damping) * sdot_drift + curv * tang
-        k_of_h = gamma * (h if cfg.class_k == "linear" else h * h * h)
-        bound = -k_of_h - drift
-        if dropped is not None and dropped.any():
-            bound[dropped] = -np.inf
-            h = np.where(dropped, np.inf, h)
+        p, k, n = self.p, self.k, self.n
+        if polygon is not self._polygon:
+            self._set_polygon(polygon)
+        normal, dist, h = np.empty((2, k)), np.empty(k), np.empty(k)
+        drift, bound, delta, obj_n = np.empty(k), np.empty(k), np.empty((2, p)), np.empty((n, 2))
+        if prediction is None:
+            grow = closing = self._zeros
+            unsure = fixed = self._false
+        else:
+            grow, closing = _f64(prediction.grow), _f64(prediction.closing)
+            fixed = np.ascontiguousarray(prediction.fixed, dtype=bool)
+            unsure = self._false if prediction.unsure is None else np.ascontiguousarray(prediction.unsure, dtype=bool)
+        fused_kernels.barrier_rows(
+            _f64(pos), _f64(vel), self.pair_i, self.pair_j, *self._shape_args, self.wall_offset,
+            self._wall_normal_xy, self.alpha, self.two_alpha, prediction is not None, grow, closing, unsure,
+            fixed, *self._row_consts, normal, dist, h, drift, bound, delta, obj_n)
         return FusedTerms(pair_i=self.pair_i, pair_j=self.pair_j, pair_normal=normal[:, :p].T,
                           object_normal=obj_n, wall_normal=self._wall_normal, h=h, drift=drift,
                           bound=bound, normal_xy=normal, gather_t=self.gather_t,

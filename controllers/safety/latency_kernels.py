@@ -18,7 +18,7 @@ from controllers.jit import kernel, register_warm_up
 @kernel
 def _clip_factor(x, y, limit):
     """``limit / max(|(x, y)|, limit)``: the factor of :func:`sim.scenario.clip_norm`."""
-    return limit / max(math.hypot(x, y), limit)
+    return limit / np.maximum(math.hypot(x, y), limit)
 
 
 @kernel
@@ -67,20 +67,20 @@ def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, hist
         lo0, lo1, hi0, hi1 = np.inf, np.inf, -np.inf, -np.inf
         if h[i] > 0:
             for t in range(start, depth):
-                lo0, lo1 = min(lo0, history[t, i, 0]), min(lo1, history[t, i, 1])
-                hi0, hi1 = max(hi0, history[t, i, 0]), max(hi1, history[t, i, 1])
-        lo0, lo1 = min(lo0, a_nom[i, 0]), min(lo1, a_nom[i, 1])
-        hi0, hi1 = max(hi0, a_nom[i, 0]), max(hi1, a_nom[i, 1])
+                lo0, lo1 = np.minimum(lo0, history[t, i, 0]), np.minimum(lo1, history[t, i, 1])
+                hi0, hi1 = np.maximum(hi0, history[t, i, 0]), np.maximum(hi1, history[t, i, 1])
+        lo0, lo1 = np.minimum(lo0, a_nom[i, 0]), np.minimum(lo1, a_nom[i, 1])
+        hi0, hi1 = np.maximum(hi0, a_nom[i, 0]), np.maximum(hi1, a_nom[i, 1])
         weight = w_unsure if (jittering[i] or not known) else spread_weight
         accel = weight * math.hypot(hi0 - lo0, hi1 - lo1) + accel_uncertainty
         grow[i] = accel * dt2 * h[i] * (h[i] + 1) / 2 + velocity_noise * dt * h[i] + sigma_p[i]
         closing[i] = accel * dt * h[i] + velocity_noise
         largest = math.hypot(a_nom[i, 0], a_nom[i, 1])
         for t in range(depth - steps, depth):
-            largest = max(largest, math.sqrt(history[t, i, 0] * history[t, i, 0]
+            largest = np.maximum(largest, math.sqrt(history[t, i, 0] * history[t, i, 0]
                                              + history[t, i, 1] * history[t, i, 1]))
         if not fixed[i]:
-            accel_bound[i] = min(largest + accel_uncertainty, accel_limit)
+            accel_bound[i] = np.minimum(largest + accel_uncertainty, accel_limit)
 
 
 @kernel
@@ -105,7 +105,7 @@ def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, accel_
             for i in range(n):
                 if over:
                     sq = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1]
-                    scale = min(1.0, speed_limit / math.sqrt(max(sq, 1e-300)))
+                    scale = np.minimum(1.0, speed_limit / math.sqrt(np.maximum(sq, 1e-300)))
                     v[i, 0] *= scale
                     v[i, 1] *= scale
                 p[i, 0] = p[i, 0] + dt * v[i, 0]

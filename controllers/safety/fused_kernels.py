@@ -1,0 +1,165 @@
+"""The fused path's barrier rows compiled (:mod:`controllers.jit`).
+
+The maths is that of :mod:`controllers.safety.fused` (its docstring: row layout, geometry,
+barrier) and of the latency tightening (:meth:`controllers.safety.fused.FusedScene.terms`);
+these loops compute it with the same operations in the same order as its numpy formulation
+(kept by the tests as the reference). Row layout, K = P + N + 4N: pairs ``i < j`` in
+``np.triu_indices`` order, robot-object rows, robot-wall rows robot-major.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controllers.jit import kernel, register_warm_up
+
+
+@kernel
+def object_rows(pos, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box, box_center, box_half,
+                radius, s_out, n_out, k_out):
+    """Disc-object signed distances ``s_out`` (N,), unit normals ``n_out`` (N, 2) and curvatures
+    ``k_out`` (N,) of (N, 2) centres (:meth:`controllers.safety.fused.FusedScene.object_geometry`).
+
+    ``ax .. ex_over_ey`` (M,): per-edge constants of the counter-clockwise polygon; ``box``: it
+    is an axis-aligned box of ``box_center``, ``box_half`` (2,), whose closed form applies while
+    every centre is outside it.
+    """
+    n, m = pos.shape[0], ax.shape[0]
+    if box:
+        outside = True
+        for i in range(n):
+            o0 = np.maximum(abs(pos[i, 0] - box_center[0]) - box_half[0], 0.0)
+            o1 = np.maximum(abs(pos[i, 1] - box_center[1]) - box_half[1], 0.0)
+            outside = outside and math.hypot(o0, o1) > 1e-12
+        if outside:
+            for i in range(n):
+                r0, r1 = pos[i, 0] - box_center[0], pos[i, 1] - box_center[1]
+                o0, o1 = np.maximum(abs(r0) - box_half[0], 0.0), np.maximum(abs(r1) - box_half[1], 0.0)
+                rho = math.hypot(o0, o1)
+                n_out[i, 0], n_out[i, 1] = math.copysign(o0, r0) / rho, math.copysign(o1, r1) / rho
+                k_out[i] = 1.0 / np.maximum(rho, 1e-9) if (o0 != 0.0 and o1 != 0.0) else 0.0
+                s_out[i] = rho - radius
+            return
+    for i in range(n):
+        px, py = pos[i, 0], pos[i, 1]
+        best_d2, best_dx, best_dy, best_t = np.inf, 0.0, 0.0, 0.0
+        all_left, crossings = True, 0
+        for e in range(m):
+            rx, ry = px - ax[e], py - ay[e]
+            t = np.minimum(np.maximum((rx * ex[e] + ry * ey[e]) * inv_len2[e], 0.0), 1.0)
+            dx, dy = rx - t * ex[e], ry - t * ey[e]
+            d2 = dx * dx + dy * dy
+            if e == 0 or d2 < best_d2:
+                best_d2, best_dx, best_dy, best_t = d2, dx, dy, t
+            all_left = all_left and ex[e] * ry - ey[e] * rx > 0
+            if ((ay[e] > py) != (by[e] > py)) and rx < ry * ex_over_ey[e]:
+                crossings += 1
+        rho = math.sqrt(best_d2)
+        inside = all_left if convex else crossings % 2 == 1
+        sign = -1.0 if inside else 1.0
+        scale = sign / (rho if rho > 1e-12 else 1.0)
+        if rho > 1e-12:
+            n_out[i, 0], n_out[i, 1] = best_dx * scale, best_dy * scale
+        else:                                                    # centre on the boundary
+            n_out[i, 0], n_out[i, 1] = 1.0, 0.0
+        vertex = (best_t <= 0.0 or best_t >= 1.0) and not inside and rho > 0
+        k_out[i] = 1.0 / np.maximum(rho, 1e-9) if vertex else 0.0
+        s_out[i] = sign * rho - radius
+
+
+@kernel
+def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box,
+                 box_center, box_half, radius, wall_offset, wall_normal_xy, alpha, two_alpha,
+                 predicted, grow, closing, unsure, fixed, share_alpha, margin, floor_s, damping,
+                 gamma, gamma_unsure, cubic, normal_xy, dist, h, drift, bound, pair_delta, obj_n):
+    """Every row's normal, distance, ``h``, drift and bound (module docstring of
+    :mod:`controllers.safety.fused`; ``predicted``: tightened by ``grow``, ``closing``,
+    ``unsure`` and ``fixed`` (N,) of a prediction).
+
+    Args:
+        wall_offset: (4,) ``(0, W, 0, H) - r``; wall_normal_xy: (2, 4N) fixed wall normals.
+        alpha, two_alpha: (K,) braking allowances of the rows without fixed robots.
+        floor_s: ``margin + sqrt_floor`` [m]; cubic: the class-K function is ``h^3``.
+        normal_xy (2, K), dist, h, drift, bound (K,), pair_delta (2, P), obj_n (N, 2): written.
+    """
+    n, p = pos.shape[0], pair_i.shape[0]
+    k_rows = p + 5 * n
+    curv = np.empty(k_rows)
+    s_obj, k_obj = np.empty(n), np.empty(n)
+    object_rows(pos, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box, box_center, box_half,
+                radius, s_obj, obj_n, k_obj)
+    any_fixed, any_unsure = False, False
+    if predicted:
+        for i in range(n):
+            any_fixed, any_unsure = any_fixed or fixed[i], any_unsure or unsure[i]
+    for k in range(k_rows):
+        if k < p:
+            i, j = pair_i[k], pair_j[k]
+            d0, d1 = pos[i, 0] - pos[j, 0], pos[i, 1] - pos[j, 1]
+            pair_delta[0, k], pair_delta[1, k] = d0, d1
+            centre = math.hypot(d0, d1)
+            if centre > 1e-12:
+                normal_xy[0, k], normal_xy[1, k] = d0 / np.maximum(centre, 1e-12), d1 / np.maximum(centre, 1e-12)
+            else:                                                # coincident centres
+                normal_xy[0, k], normal_xy[1, k] = 1.0, 0.0
+            dist[k] = centre - 2.0 * radius
+            curv[k] = 1.0 / np.maximum(centre, 1e-9)
+            w0, w1 = vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1]
+        elif k < p + n:
+            i, j = k - p, -1
+            normal_xy[0, k], normal_xy[1, k] = obj_n[i, 0], obj_n[i, 1]
+            dist[k], curv[k] = s_obj[i], k_obj[i]
+            w0, w1 = vel[i, 0], vel[i, 1]
+        else:
+            i, j = (k - p - n) // 4, -1
+            wall = (k - p - n) % 4
+            normal_xy[0, k], normal_xy[1, k] = wall_normal_xy[0, k - p - n], wall_normal_xy[1, k - p - n]
+            coord = pos[i, 0] if wall < 2 else pos[i, 1]
+            dist[k] = (coord if wall % 2 == 0 else -coord) + wall_offset[wall]
+            curv[k] = 0.0
+            w0, w1 = vel[i, 0], vel[i, 1]
+        sdot = normal_xy[0, k] * w0 + normal_xy[1, k] * w1
+        tang = np.maximum((w0 * w0 + w1 * w1) - sdot * sdot, 0.0)
+        sdot_drift, row_alpha, row_two_alpha, row_gamma, dropped = sdot, alpha[k], two_alpha[k], gamma, False
+        if predicted:
+            if any_unsure and (unsure[i] or (j >= 0 and unsure[j])):
+                row_gamma = gamma_unsure
+            dist[k] = dist[k] - (grow[i] + grow[j] if j >= 0 else grow[i])
+            allowance = closing[i] + closing[j] if j >= 0 else closing[i]
+            sdot_drift = sdot - np.minimum(np.maximum(sdot, 0.0), allowance)
+            sdot = sdot - allowance
+            if any_fixed:
+                free = (0.0 if fixed[i] else 1.0) + ((0.0 if fixed[j] else 1.0) if j >= 0 else 0.0)
+                dropped = free == 0
+                row_alpha = share_alpha * np.maximum(free, 1.0)
+                row_two_alpha = 2.0 * row_alpha
+        clamped = np.maximum(dist[k], floor_s)
+        root = math.sqrt(row_two_alpha * (clamped - margin))
+        slope = row_alpha / root
+        h[k] = root + slope * (dist[k] - clamped) + sdot
+        drift[k] = (slope - damping) * sdot_drift + curv[k] * tang
+        bound[k] = -(row_gamma * (h[k] * h[k] * h[k] if cubic else h[k])) - drift[k]
+        if dropped:
+            bound[k], h[k] = -np.inf, np.inf
+
+
+@register_warm_up
+def _warm_up() -> None:
+    n, m = 2, 4
+    pos, vel = np.array([[0.2, 0.2], [0.8, 0.8]]), np.zeros((n, 2))
+    edges = [np.ones(m) for _ in range(7)]
+    pair_i, pair_j = np.triu_indices(n, 1)
+    k = 1 + 5 * n
+    z, b = np.zeros(n), np.zeros(n, dtype=bool)
+    barrier_rows(pos, vel, pair_i.astype(np.int64), pair_j.astype(np.int64), *edges, True, True,
+                 np.full(2, 0.5), np.full(2, 0.1), 0.04, np.zeros(4), np.zeros((2, 4 * n)), np.ones(k),
+                 np.ones(k), True, z, z, b, b, 0.5, 0.005, 0.01, 0.5, 5.0, 10.0, False,
+                 np.empty((2, k)), np.empty(k), np.empty(k), np.empty(k), np.empty(k), np.empty((2, 1)),
+                 np.empty((n, 2)))
+    object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
+                np.empty((n, 2)), np.empty(n))
+
+
+__all__ = ["barrier_rows", "object_rows"]

@@ -1,0 +1,59 @@
+"""The compiled barrier rows equal their numpy formulation bit for bit, on any scene."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from controllers.safety.barrier import SafetyConfig
+from controllers.safety.fused import FusedScene
+from controllers.safety.latency import Prediction
+from sim.scenario import Dynamics, make_scenario
+from tests.controllers.safety.fused_reference import NumpyFusedScene
+
+DYN = Dynamics()
+SCENARIO = make_scenario("paper-5")
+R = SCENARIO.robot_radius
+FIELDS = ("h", "drift", "bound", "normal_xy", "distance", "pair_delta", "pair_normal", "object_normal")
+SHAPES = {
+    "box": np.asarray(SCENARIO.polygon),
+    "rotated box": np.array([[0.5, 0.35], [0.65, 0.5], [0.5, 0.65], [0.35, 0.5]]),
+    "L (not convex)": np.array([[0.35, 0.35], [0.65, 0.35], [0.65, 0.45], [0.45, 0.45], [0.45, 0.65],
+                                [0.35, 0.65]]),
+}
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), shape=st.sampled_from(sorted(SHAPES)),
+       speed=st.sampled_from([0.0, 0.3, 1e3, 1e160]), predicted=st.booleans(), cubic=st.booleans())
+def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted, cubic):
+    """Centres anywhere (inside the object, on each other, near the walls), speeds up to far out
+    of range, predictions with grown discs, fixed and unsure robots, both class-K functions."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0.0, 1.0, (n, 2))
+    if n > 1 and rng.random() < 0.2:
+        pos[1] = pos[0]                                         # coincident centres
+    if rng.random() < 0.2:
+        pos[0] = SHAPES[shape][0]                               # on a vertex
+    vel = rng.normal(0.0, speed + 1e-12, (n, 2))
+    prediction = None
+    if predicted:
+        prediction = Prediction(pos=pos, vel=vel, grow=rng.uniform(0, 0.02, n), closing=rng.uniform(0, 0.1, n),
+                                fixed=rng.random(n) < 0.3, horizon=np.full(n, 3),
+                                unsure=rng.random(n) < 0.5 if rng.random() < 0.7 else None)
+    config = SafetyConfig(class_k="cubic" if cubic else "linear")
+    polygon = SHAPES[shape]
+    args = (R, SCENARIO.arena, DYN, config, n)
+    with np.errstate(all="ignore"):
+        got = FusedScene(*args).terms(pos, vel, polygon, prediction)
+        want = NumpyFusedScene(*args).terms(pos, vel, polygon, prediction)
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    geometry = FusedScene(*args).object_geometry(pos, polygon), NumpyFusedScene(*args).object_geometry(pos, polygon)
+    for a, b in zip(*geometry, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_reference_is_not_the_compiled_code():
+    assert NumpyFusedScene.terms is not FusedScene.terms
