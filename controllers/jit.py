@@ -47,8 +47,9 @@ def require_shapes(where: str, **arrays: tuple[np.ndarray, tuple[int, ...]]) -> 
     """Raise ValueError naming the first ``name=(array, shape)`` whose shape differs: a kernel
     reads its arrays unchecked, so its caller checks them."""
     for name, (array, shape) in arrays.items():
-        if np.shape(array) != shape:
-            raise ValueError(f"{where}: {name} must have shape {shape}, got {np.shape(array)}")
+        got = array.shape if isinstance(array, np.ndarray) else np.shape(array)
+        if got != shape:
+            raise ValueError(f"{where}: {name} must have shape {shape}, got {got}")
 
 
 def warm_up() -> None:

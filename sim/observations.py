@@ -176,6 +176,17 @@ def _polygon_constants(polygon: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarra
     return hit
 
 
+def object_token_constants(polygon: np.ndarray) -> tuple:
+    """The object's constants of the token layout as flat arrays, for compiled code:
+    ``(centroid (2,), a_x, a_y, e_x, e_y, 1/|e|^2 (M,), box, box centre (2,), box half size (2,))``
+    (``box``: an axis-aligned box, whose clamp gives the nearest point; see :func:`_nearest_offset`)."""
+    centroid, edges = _polygon_constants(polygon)
+    box = len(edges) == 7
+    centre, half = (edges[5], edges[6]) if box else (np.zeros(2), np.zeros(2))
+    return (np.ascontiguousarray(centroid, dtype=np.float64), *(np.ascontiguousarray(e[0]) for e in edges[:5]),
+            box, np.ascontiguousarray(centre, dtype=np.float64), np.ascontiguousarray(half, dtype=np.float64))
+
+
 def _nearest_offset(points: np.ndarray, edges: tuple[np.ndarray, ...]) -> np.ndarray:
     """(K, 2) ``s - p``: from each of the (K, 2) points to its nearest polygon boundary point.
 

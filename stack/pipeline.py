@@ -24,7 +24,8 @@ every per-robot estimate is keyed by robot id)::
                    (:class:`deploy.export.ExportedPolicy`, its rows ``(N, 2N+1, 4)``, rows it
                    flags not valid count as non-finite); or a plain callable FleetState -> (N, 2)
                    => a_nom (N, 2) [m/s^2]
-                   (the tick writes the tokens into a float32 buffer kept per N and, every token
+                   (the tick writes the tokens, compiled (:mod:`controllers.observation_kernels`),
+                   into a float32 buffer kept per N and, every token
                    being valid, passes ``mask=None`` to a network whose forward accepts it, else
                    an all-true mask kept per N; a TorchScript forward is called directly)
       -> docking:  controllers.docking.Docking: a robot near its free matched target gets a PD
@@ -71,6 +72,7 @@ from torch import nn
 from controllers.docking import Docking, DockingConfig
 from controllers.jit import warm_up
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
+from controllers.observation_kernels import fleet_tokens
 from controllers.position_estimator import PositionEstimator
 from controllers.safety import (
     SafetyConfig,
@@ -83,7 +85,7 @@ from controllers.safety.latency import LatencyConfig, LatencyPredictor, Predicti
 from controllers.safety.recheck import recheck
 from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
-from sim.observations import flat, fleet_tokens_np
+from sim.observations import flat, fleet_tokens_np, object_token_constants
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
@@ -242,6 +244,8 @@ class ControlStack:
             raise StackError(f"policy must be an nn.Module, a TorchScript/checkpoint path or a "
                              f"callable FleetState -> (N, 2); got {type(policy).__name__}")
         self._polygon = scenario.polygon
+        self._token_constants = (*object_token_constants(np.asarray(self._polygon)),
+                                 float(scenario.arena[0] / 2), float(scenario.arena[1] / 2))
         self._static_pose_list = [*map(float, scenario.object_center), 0.0]
         # Per-N buffers of the tick: float32 tokens (numpy and a torch view of the same memory)
         # and the mask to pass (None when the network accepts it: every token is valid).
@@ -313,8 +317,8 @@ class ControlStack:
             mask = None if self._mask_optional else torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
             buffers = self._buffers[n] = (array, torch.from_numpy(array).unsqueeze(0), mask)
         array, tensor, mask = buffers
-        fleet_tokens_np(state.positions, state.velocities, state.targets, self._polygon,
-                        self.scenario.arena, array)
+        fleet_tokens(*(np.ascontiguousarray(x) for x in (state.positions, state.velocities, state.targets)),
+                     *self._token_constants, array)
         return tensor, mask
 
     def brake(self, vel: np.ndarray) -> np.ndarray:

@@ -270,10 +270,10 @@ class SafetyFilter:
             if fixed.any():
                 a_nom = np.where(fixed[:, None], 0.0, a_nom)
         dist: SceneDistances | None = None
-        with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
-            if fused:
-                terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose), prediction)
-            else:
+        if fused:                                  # compiled: no floating-point warnings
+            terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose), prediction)
+        else:
+            with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
                 dist = self.distances(pos, object_pose)
                 terms = barrier_terms(dist, vel, self.dynamics, self.config, prediction)
         clearance = float(terms.distance.min()) if fused else dist.min_clearance()

@@ -352,7 +352,7 @@ class LatencyPredictor:
         given_fixed = np.zeros(n, dtype=bool) if fixed is None else np.ascontiguousarray(fixed, dtype=bool)
         sigma_p = cfg.position_noise + (np.zeros(n) if position_noise is None
                                         else np.asarray(position_noise, dtype=np.float64))
-        require_shapes("LatencyPredictor.predict", ids=(ids, (n,)), pos=(pos, (n, 2)), vel=(vel, (n, 2)),
+        require_shapes("LatencyPredictor.predict", ids=(np.empty(len(ids)), (n,)), pos=(pos, (n, 2)), vel=(vel, (n, 2)),
                        a_nom=(a_nom, (n, 2)), pending=(pending, (n,)), fixed=(given_fixed, (n,)),
                        position_noise=(sigma_p, (n,)))
         p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
