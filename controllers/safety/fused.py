@@ -74,17 +74,6 @@ def _f64(x: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
-def _clip_rows(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(clip_norm(x, limit), row norms after clipping)`` for (N, 2) ``x``: the numbers of
-    :func:`sim.scenario.clip_norm` (``x`` itself when no row exceeds the limit, where its factor
-    is exactly 1); the norms of clipped rows are ``norm * factor`` (equal up to rounding)."""
-    norm = np.hypot(x[:, 0], x[:, 1])
-    if norm.max() <= limit:
-        return x, norm
-    scale = limit / np.maximum(norm, limit)
-    return x * scale[:, None], norm * scale
-
-
 @dataclass
 class FusedTerms(BarrierTerms):
     """:class:`BarrierTerms` of the fused path, plus what the sweep check reuses.
@@ -151,6 +140,8 @@ class FusedScene:
         self._wall_normal_xy = np.tile(WALL_NORMALS.T, n)                    # (2, 4N) fixed
         self._wall_zeros = np.zeros(4 * n)
         self._zeros, self._false = np.zeros(n), np.zeros(n, dtype=bool)
+        self._sweep_consts = (float(dynamics.dt), float(0.5 * dynamics.dt**2), float(dynamics.damping),
+                              float(dynamics.accel_limit), float(dynamics.speed_limit))
         self.pair_i, self.pair_j = self.pair_i.astype(np.int64), self.pair_j.astype(np.int64)
         self._row_consts = (float(self.share_alpha), float(config.margin), float(config.margin + config.sqrt_floor),
                             float(dynamics.damping), float(config.gamma), float(config.gamma_unsure),
@@ -244,31 +235,17 @@ class FusedScene:
         ``grow`` (N,) [m] widens each robot's disc (a prediction's; ``terms`` already hold the
         grown start distances); ``vel_error`` (N,) [m/s] bounds the error of ``vel``; ``brake``
         (N, 2), what failing robots would get (None: no excuses)."""
-        dyn, r, m, p, n = self.dynamics, self.radius, checker.margin, self.p, self.n
-        widen = np.zeros(n) if grow is None else grow
-        a = _clip_rows(acc, dyn.accel_limit)[0]
-        a_eff = a - dyn.damping * vel
-        bulge = (0.5 * dyn.dt**2) * np.hypot(a_eff[:, 0], a_eff[:, 1])
-        v1, speed = _clip_rows(vel + dyn.dt * a_eff, dyn.speed_limit)
-        end = pos + dyn.dt * v1
-        travel = dyn.dt * speed + bulge
+        dyn, r, m, n = self.dynamics, self.radius, checker.margin, self.n
+        widen = self._zeros if grow is None else _f64(grow)
+        end, bulge, travel = np.empty((n, 2)), np.empty(n), np.empty(n)
+        hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
         bad = np.zeros(n, dtype=bool)
-        reach = travel.max() + m + _SLACK         # start distances in terms are grown already
-        if terms.distance[p:].min() >= reach and (not p or terms.distance[:p].min() >= 2.0 * reach):
+        clear = fused_kernels.sweep_rows(
+            _f64(pos), _f64(vel), _f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
+            self.wall_offset, r, float(m), _SLACK, *self._sweep_consts, end, bulge, travel, hit,
+            wall_hit)
+        if clear:
             return bad
-        hit = np.zeros(p, dtype=bool)
-        if p:
-            start = terms.pair_delta                                          # (2, P)
-            chord = end.T @ self.pair_gather_t - start
-            dd = chord[0] * chord[0] + chord[1] * chord[1]
-            along = -(start[0] * chord[0] + start[1] * chord[1]) / np.where(dd > 0, dd, 1.0)
-            t = np.minimum(np.maximum(along, 0.0), 1.0)
-            gap = np.hypot(start[0] + t * chord[0], start[1] + t * chord[1])
-            hit = gap < 2 * r + (bulge + widen) @ self.pair_both_t + m
-        # walls: s of both chord ends against the widening (s + r < r + e + m)
-        start_walls = terms.distance[p + n:].reshape(n, 4)
-        end_walls = end @ self.wall_map + self.wall_offset - widen[:, None]
-        wall_hit = np.minimum(start_walls, end_walls) < (bulge + m)[:, None]
         if brake is not None and (hit.any() or wall_hit.any()):
             pair_ok, wall_ok = excuses(pos, vel, acc, brake, self.pair_i, self.pair_j, grow,
                                        vel_error, dyn)

@@ -145,6 +145,76 @@ def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over
             bound[k], h[k] = -np.inf, np.inf
 
 
+@kernel
+def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_offset, radius, margin,
+               slack, dt, half_dt2, damping, accel_limit, speed_limit, end, bulge, travel, hit, wall_hit):
+    """The one-tick sweep of every robot against the pairs and walls
+    (:meth:`controllers.safety.fused.FusedScene.failing`, whose numpy formulation it matches).
+
+    Args:
+        acc: (N, 2) commands [m/s^2]; widen: (N,) disc growth [m]; distance: (K,) the rows'
+            start distances (grown already); pair_delta: (2, P) start centre differences;
+            half_dt2: ``0.5 dt^2`` [s^2] (as the caller computes it).
+        end (N, 2), bulge, travel (N,), hit (P,) bool, wall_hit (N, 4) bool: written.
+
+    Returns:
+        True when the travel bound alone clears every pair and wall row (then ``hit`` and
+        ``wall_hit`` are all False and were not computed).
+    """
+    n, p = pos.shape[0], pair_i.shape[0]
+    a_max, v_max = 0.0, 0.0
+    a = np.empty((n, 2))
+    v1 = np.empty((n, 2))
+    for i in range(n):
+        a[i, 0], a[i, 1] = acc[i, 0], acc[i, 1]
+        a_max = np.maximum(a_max, math.hypot(acc[i, 0], acc[i, 1]))
+    if not a_max <= accel_limit:
+        for i in range(n):
+            scale = accel_limit / np.maximum(math.hypot(acc[i, 0], acc[i, 1]), accel_limit)
+            a[i, 0], a[i, 1] = acc[i, 0] * scale, acc[i, 1] * scale
+    for i in range(n):
+        e0, e1 = a[i, 0] - damping * vel[i, 0], a[i, 1] - damping * vel[i, 1]
+        bulge[i] = half_dt2 * math.hypot(e0, e1)
+        v1[i, 0], v1[i, 1] = vel[i, 0] + dt * e0, vel[i, 1] + dt * e1
+        travel[i] = math.hypot(v1[i, 0], v1[i, 1])
+        v_max = np.maximum(v_max, travel[i])
+    clip = not v_max <= speed_limit
+    reach = -np.inf
+    for i in range(n):
+        speed = travel[i]
+        if clip:
+            scale = speed_limit / np.maximum(speed, speed_limit)
+            v1[i, 0], v1[i, 1], speed = v1[i, 0] * scale, v1[i, 1] * scale, speed * scale
+        end[i, 0], end[i, 1] = pos[i, 0] + dt * v1[i, 0], pos[i, 1] + dt * v1[i, 1]
+        travel[i] = dt * speed + bulge[i]
+        reach = np.maximum(reach, travel[i])
+    reach = reach + margin + slack
+    low_static, low_pair = np.inf, np.inf
+    for k in range(p, distance.shape[0]):
+        low_static = np.minimum(low_static, distance[k])
+    for k in range(p):
+        low_pair = np.minimum(low_pair, distance[k])
+    if low_static >= reach and (p == 0 or low_pair >= 2.0 * reach):
+        hit[:] = False
+        wall_hit[:] = False
+        return True
+    for k in range(p):
+        i, j = pair_i[k], pair_j[k]
+        s0, s1 = pair_delta[0, k], pair_delta[1, k]
+        c0, c1 = end[i, 0] - end[j, 0] - s0, end[i, 1] - end[j, 1] - s1
+        dd = c0 * c0 + c1 * c1
+        along = -(s0 * c0 + s1 * c1) / (dd if dd > 0 else 1.0)
+        t = np.minimum(np.maximum(along, 0.0), 1.0)
+        gap = math.hypot(s0 + t * c0, s1 + t * c1)
+        hit[k] = gap < 2 * radius + ((bulge[i] + widen[i]) + (bulge[j] + widen[j])) + margin
+    for i in range(n):
+        for w in range(4):
+            coord = end[i, 0] if w < 2 else end[i, 1]
+            end_wall = ((coord if w % 2 == 0 else -coord) + wall_offset[w]) - widen[i]
+            wall_hit[i, w] = np.minimum(distance[p + n + 4 * i + w], end_wall) < bulge[i] + margin
+    return False
+
+
 @register_warm_up
 def _warm_up() -> None:
     n, m = 2, 4
@@ -160,6 +230,9 @@ def _warm_up() -> None:
                  np.empty((n, 2)))
     object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
                 np.empty((n, 2)), np.empty(n))
+    sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i.astype(np.int64), pair_j.astype(np.int64),
+               np.zeros(4), 0.04, 0.005, 1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
+               np.empty(1, dtype=bool), np.empty((n, 4), dtype=bool))
 
 
-__all__ = ["barrier_rows", "object_rows"]
+__all__ = ["barrier_rows", "object_rows", "sweep_rows"]

@@ -275,7 +275,7 @@ class LatencyPredictor:
         # the kernel's scalars, typed once (a new type would compile a new kernel mid-run)
         cfg = self.config
         self._kernel_consts = tuple(float(x) for x in (
-            dynamics.dt, cfg.stale_after_s, dynamics.damping, dynamics.speed_limit, dynamics.accel_limit,
+            dynamics.dt, dynamics.dt**2, dynamics.speed_limit ** 2, cfg.stale_after_s, dynamics.damping, dynamics.speed_limit, dynamics.accel_limit,
             cfg.spread_weight, cfg.jitter_spread_weight, cfg.accel_uncertainty, cfg.velocity_noise))
         self.reset()
 

@@ -23,9 +23,9 @@ def _clip_factor(x, y, limit):
 
 @kernel
 def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, history, delay_seen,
-                      jitter_left, accel_bound, delay, dt, stale_after, damping, speed_limit,
-                      accel_limit, spread_weight, jitter_weight, accel_uncertainty, velocity_noise,
-                      p, v, grow, closing, fixed, h, jittering):
+                      jitter_left, accel_bound, delay, dt, dt2, speed_limit2, stale_after, damping,
+                      speed_limit, accel_limit, spread_weight, jitter_weight, accel_uncertainty,
+                      velocity_noise, p, v, grow, closing, fixed, h, jittering):
     """Every robot through its pending commands, with its tightening (module docstring).
 
     Args:
@@ -36,11 +36,11 @@ def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, hist
         history: (D, N, 2) commands asked, oldest first [m/s^2].
         delay_seen, jitter_left: (N,) int64, the jitter record, updated in place.
         accel_bound: (N,) updated in place for robots not fixed [m/s^2].
+        dt2, speed_limit2: ``dt**2`` and ``speed_limit**2`` as the caller computes them.
         p, v (N, 2), grow, closing (N,), fixed, jittering (N,) bool, h (N,) int64: written.
     """
     depth, n = history.shape[0], history.shape[1]
     w_unsure = max(jitter_weight, spread_weight)
-    dt2 = dt**2
     steps = 0
     for i in range(n):
         horizon = max(np.int64(math.ceil((ages[i] + delay) / dt - 1e-9)), 0)
@@ -52,7 +52,8 @@ def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, hist
     for i in range(n):
         m[i] = min(pending[i], h[i]) if pending[i] >= 0 else h[i]
         common = common and m[i] == m[0]
-    _roll_forward(pos, vel, m, history, common and m[0] > 0, dt, damping, speed_limit, accel_limit, p, v)
+    _roll_forward(pos, vel, m, history, common and m[0] > 0, dt, damping, speed_limit, speed_limit2,
+                  accel_limit, p, v)
     for i in range(n):
         known = pending[i] >= 0
         # the jitter record: the observed delay is the pending count less the ticks the state aged
@@ -84,7 +85,7 @@ def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, hist
 
 
 @kernel
-def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, accel_limit, p, v):
+def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, speed_limit2, accel_limit, p, v):
     """Each robot ``i`` through the newest ``m_i`` recorded commands, oldest first, into ``p, v``.
 
     ``common`` (every ``m_i`` equal and positive): the damped step on the already clipped
@@ -95,7 +96,7 @@ def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, accel_
     p[:] = pos
     v[:] = vel
     if common:
-        keep, vmax2 = 1.0 - damping * dt, speed_limit**2
+        keep, vmax2 = 1.0 - damping * dt, speed_limit2
         for t in range(depth - m[0], depth):
             over = False
             for i in range(n):
@@ -129,7 +130,7 @@ def _warm_up() -> None:
     z2, z1 = np.zeros((n, 2)), np.zeros(n)
     predict_listening(z2, z2, z1, z2, np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=bool), z1,
                       np.zeros((depth, n, 2)), np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=np.int64),
-                      np.ones(n), 0.15, 0.05, 0.15, 0.5, 0.4, 1.0, 0.25, 0.5, 0.05, 0.0,
+                      np.ones(n), 0.15, 0.05, 0.0025, 0.16, 0.15, 0.5, 0.4, 1.0, 0.25, 0.5, 0.05, 0.0,
                       np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n, dtype=bool),
                       np.empty(n, dtype=np.int64), np.empty(n, dtype=bool))
 

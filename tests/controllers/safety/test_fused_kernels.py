@@ -8,7 +8,9 @@ from hypothesis import strategies as st
 
 from controllers.safety.barrier import SafetyConfig
 from controllers.safety.fused import FusedScene
+from controllers.safety.geometry import CollisionScene
 from controllers.safety.latency import Prediction
+from controllers.safety.postcheck import SweepChecker, braking_acceleration
 from sim.scenario import Dynamics, make_scenario
 from tests.controllers.safety.fused_reference import NumpyFusedScene
 
@@ -57,3 +59,35 @@ def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted,
 
 def test_the_reference_is_not_the_compiled_code():
     assert NumpyFusedScene.terms is not FusedScene.terms
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 7), spread=st.sampled_from([0.0, 0.15, 0.4, 1.0, "chain"]),
+       speed=st.sampled_from([0.1, 0.4, 0.8]), widened=st.booleans(), excused=st.booleans(),
+       margin=st.sampled_from([0.0, 0.003]))
+def test_compiled_sweep_equals_numpy_formulation(seed, n, spread, speed, widened, excused, margin):
+    """Crowded and spread scenes, and chains of robots (along the bottom wall: ``spread`` 0; in
+    the open: "chain") whose gaps and wall clearances lie within a few millimetres of the
+    margins; robots at and beyond
+    the speed limit, commands beyond the actuator limit, grown discs, with and without the
+    braking excuses."""
+    rng = np.random.default_rng(seed)
+    if spread in (0.0, "chain"):
+        x = 0.1 + np.cumsum(2 * R + rng.uniform(-0.004, 0.012, n))
+        pos = np.stack((x, (R if spread == 0.0 else 0.25) + rng.uniform(-0.002, 0.01, n)), axis=1)
+    else:
+        pos = 0.5 + spread * rng.uniform(-0.5 + R, 0.5 - R, (n, 2))
+    vel = rng.normal(0.0, speed, (n, 2))
+    acc = rng.normal(0.0, 1.0, (n, 2))
+    grow = rng.uniform(0.0, 0.01, n) if widened else None
+    vel_error = rng.uniform(0.0, 0.05, n) if widened else None
+    coll = CollisionScene(SCENARIO, n)
+    coll.update(pos)
+    checker = SweepChecker(coll.object_parts, R, SCENARIO.arena, DYN, margin)
+    compiled, reference = FusedScene(R, SCENARIO.arena, DYN, SafetyConfig(), n), \
+        NumpyFusedScene(R, SCENARIO.arena, DYN, SafetyConfig(), n)
+    terms = compiled.terms(pos, vel, coll.polygon)
+    brake = braking_acceleration(vel, DYN) if excused else None
+    got = compiled.failing(checker, pos, vel, acc, terms, grow, vel_error, brake)
+    want = reference.failing(checker, pos, vel, acc, terms, grow, vel_error, brake)
+    np.testing.assert_array_equal(got, want)
