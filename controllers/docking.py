@@ -41,8 +41,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from controllers import docking_kernels
 from controllers.checks import check_numbers
-from sim.scenario import clip_norm
+from controllers.jit import require_shapes
 
 
 class DockingConfigError(ValueError):
@@ -85,6 +86,10 @@ class Docking:
     def __init__(self, robot_radius: float, accel_limit: float, config: DockingConfig | None = None):
         self.radius, self.accel_limit = float(robot_radius), float(accel_limit)
         self.config = config or DockingConfig()
+        cfg = self.config
+        self._consts = tuple(float(x) for x in (cfg.capture_radius, cfg.release_radius,
+                                                 2 * self.radius + cfg.free_margin, cfg.capture_speed,
+                                                 cfg.kp, cfg.kd, self.accel_limit))
         self.reset()
 
     def reset(self) -> None:
@@ -102,28 +107,27 @@ class Docking:
         if not cfg.enabled or n == 0 or len(targets) != n:
             self._docking.clear()
             return a_nom, docking
-        diff = pos[:, None] - targets[None]
-        dist = np.hypot(diff[..., 0], diff[..., 1])                             # (robot, target)
-        if dist.min() >= cfg.release_radius:                 # no robot near any target: the
-            self._docking.clear()                            # assignment cannot make one dock
+        require_shapes("Docking", pos=(pos, (n, 2)), vel=(vel, (n, 2)), targets=(targets, (n, 2)),
+                       a_nom=(a_nom, (n, 2)))
+        pos, vel, targets = _f64(pos), _f64(vel), _f64(targets)
+        dist = np.empty((n, n))
+        if docking_kernels.target_distances(pos, targets, dist) >= cfg.release_radius:
+            self._docking.clear()            # no robot near any target: the assignment cannot make one dock
             return a_nom, docking
-        _, match = linear_sum_assignment(dist)                                 # rows come sorted
-        gap = dist[np.arange(n), match]
-        near = dist[:, match].T < 2 * self.radius + cfg.free_margin            # (target of i, robot)
-        np.fill_diagonal(near, False)
-        taken = near.any(axis=1)
-        matched = targets[match]
+        match = np.empty(n, dtype=np.int64)
+        if not docking_kernels.strict_nearest_matching(dist, match):
+            match[:] = linear_sum_assignment(dist)[1]                          # rows come sorted
         was = np.array([rid in self._docking for rid in ids], dtype=bool)
-        radius = np.where(was, cfg.release_radius, cfg.capture_radius)
-        settling = was | (np.hypot(vel[:, 0], vel[:, 1]) < cfg.capture_speed)
-        docking = (gap < radius) & ~taken & settling
-        if movable is not None:
-            docking &= np.asarray(movable, dtype=bool)
+        movable = np.ones(n, dtype=bool) if movable is None else np.ascontiguousarray(movable, dtype=bool)
+        out = np.empty((n, 2))
+        anyone = docking_kernels.dock(pos, vel, targets, dist, match, was, movable, *self._consts, _f64(a_nom),
+                                      out, docking)
         self._docking = {rid for rid, d in zip(ids, docking, strict=True) if d}
-        if not docking.any():
-            return a_nom, docking
-        law = clip_norm(cfg.kp * (matched - pos) - cfg.kd * vel, self.accel_limit)
-        return np.where(docking[:, None], law, a_nom), docking
+        return (out if anyone else a_nom), docking
+
+
+def _f64(x: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 __all__ = ["Docking", "DockingConfig", "DockingConfigError"]

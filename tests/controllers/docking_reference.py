@@ -1,0 +1,49 @@
+"""Docking's tick in its numpy formulation: the reference its compiled kernels
+(:mod:`controllers.docking_kernels`) must match to the last bit (tests/controllers/test_docking_kernels.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from controllers.docking import Docking
+from sim.scenario import clip_norm
+
+
+class NumpyDocking(Docking):
+    """:class:`Docking` with the tick computed by numpy expressions and scipy's assignment."""
+
+    def __call__(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
+                 a_nom: np.ndarray, movable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) commands with docking robots' rows replaced, and (N,) bool of those rows.
+
+        ``pos``, ``vel``, ``targets``, ``a_nom``: (N, 2) [m, m/s, m, m/s^2]; ``movable`` (N,)
+        bool: robots that may dock (default all; stale robots are braked by the stack anyway).
+        """
+        cfg, n = self.config, len(pos)
+        docking = np.zeros(n, dtype=bool)
+        if not cfg.enabled or n == 0 or len(targets) != n:
+            self._docking.clear()
+            return a_nom, docking
+        diff = pos[:, None] - targets[None]
+        dist = np.hypot(diff[..., 0], diff[..., 1])                             # (robot, target)
+        if dist.min() >= cfg.release_radius:                 # no robot near any target: the
+            self._docking.clear()                            # assignment cannot make one dock
+            return a_nom, docking
+        _, match = linear_sum_assignment(dist)                                 # rows come sorted
+        gap = dist[np.arange(n), match]
+        near = dist[:, match].T < 2 * self.radius + cfg.free_margin            # (target of i, robot)
+        np.fill_diagonal(near, False)
+        taken = near.any(axis=1)
+        matched = targets[match]
+        was = np.array([rid in self._docking for rid in ids], dtype=bool)
+        radius = np.where(was, cfg.release_radius, cfg.capture_radius)
+        settling = was | (np.hypot(vel[:, 0], vel[:, 1]) < cfg.capture_speed)
+        docking = (gap < radius) & ~taken & settling
+        if movable is not None:
+            docking &= np.asarray(movable, dtype=bool)
+        self._docking = {rid for rid, d in zip(ids, docking, strict=True) if d}
+        if not docking.any():
+            return a_nom, docking
+        law = clip_norm(cfg.kp * (matched - pos) - cfg.kd * vel, self.accel_limit)
+        return np.where(docking[:, None], law, a_nom), docking
