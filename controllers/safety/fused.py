@@ -91,8 +91,13 @@ class FusedTerms(BarrierTerms):
     pair_delta: np.ndarray = None       # type: ignore[assignment]
 
     def rows_times(self, u: np.ndarray) -> np.ndarray:
-        """(K,) row values ``n_k . (G u)_k`` for (N, 2) accelerations ``u`` (one product)."""
-        return (self.normal_xy * (u.T @ self.gather_t)).sum(axis=0)
+        """(K,) row values ``n_k . (G u)_k`` for (N, 2) accelerations ``u`` (compiled)."""
+        if u.shape != (self.gather_t.shape[0], 2):
+            raise ValueError(f"FusedTerms.rows_times: u must have shape ({self.gather_t.shape[0]}, 2), "
+                             f"got {u.shape}")
+        out = np.empty(self.normal_xy.shape[1])
+        fused_kernels.rows_times(self.normal_xy, self.pair_i, self.pair_j, _f64(u), out)
+        return out
 
     def object_distance(self) -> np.ndarray:
         """(N,) disc-object signed distances [m]."""

@@ -215,6 +215,20 @@ def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_
     return False
 
 
+@kernel
+def rows_times(normal_xy, pair_i, pair_j, u, out):
+    """``out[k] = n_k . (G u)_k`` (K,) for (N, 2) accelerations ``u`` (the module docstring's
+    gather: ``u_i - u_j`` on pair rows, ``u_i`` on object and wall rows)."""
+    n, p = u.shape[0], pair_i.shape[0]
+    for k in range(normal_xy.shape[1]):
+        if k < p:
+            w0, w1 = u[pair_i[k], 0] - u[pair_j[k], 0], u[pair_i[k], 1] - u[pair_j[k], 1]
+        else:
+            i = k - p if k < p + n else (k - p - n) // 4
+            w0, w1 = u[i, 0], u[i, 1]
+        out[k] = normal_xy[0, k] * w0 + normal_xy[1, k] * w1
+
+
 @register_warm_up
 def _warm_up() -> None:
     n, m = 2, 4
@@ -230,9 +244,10 @@ def _warm_up() -> None:
                  np.empty((n, 2)))
     object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
                 np.empty((n, 2)), np.empty(n))
+    rows_times(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, np.empty(k))
     sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i.astype(np.int64), pair_j.astype(np.int64),
                np.zeros(4), 0.04, 0.005, 1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
                np.empty(1, dtype=bool), np.empty((n, 4), dtype=bool))
 
 
-__all__ = ["barrier_rows", "object_rows", "sweep_rows"]
+__all__ = ["barrier_rows", "object_rows", "rows_times", "sweep_rows"]

@@ -52,6 +52,8 @@ def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted,
         want = NumpyFusedScene(*args).terms(pos, vel, polygon, prediction)
     for name in FIELDS:
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    u = rng.normal(0.0, 1.0, (n, 2))                             # the rows' values: one product in numpy
+    np.testing.assert_array_equal(got.rows_times(u), (want.normal_xy * (u.T @ want.gather_t)).sum(axis=0))
     geometry = FusedScene(*args).object_geometry(pos, polygon), NumpyFusedScene(*args).object_geometry(pos, polygon)
     for a, b in zip(*geometry, strict=True):
         np.testing.assert_array_equal(a, b)
