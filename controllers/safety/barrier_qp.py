@@ -246,7 +246,7 @@ class SafetyFilter:
                 (the caller brakes them) and are obstacles only.
         """
         start = time.perf_counter()
-        pos, vel, a_nom = (np.asarray(x, dtype=np.float64) for x in (pos, vel, a_nom))
+        pos, vel, a_nom = np.asarray(pos, np.float64), np.asarray(vel, np.float64), np.asarray(a_nom, np.float64)
         n = len(pos)
         if not pos.shape == vel.shape == a_nom.shape == (n, 2):
             for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom)):
@@ -278,7 +278,7 @@ class SafetyFilter:
                 terms = barrier_terms(dist, vel, self.dynamics, self.config, prediction)
         clearance = float(terms.distance.min()) if fused else dist.min_clearance()
         # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too (dropped rows: -inf)
-        if np.isnan(terms.bound).any() or (terms.bound == np.inf).any():
+        if not (terms.bound < np.inf).all():                  # NaN or +inf (dropped rows are -inf)
             return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
                                    clearance, prediction=prediction)
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
