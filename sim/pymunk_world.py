@@ -58,11 +58,12 @@ tick, counted as onsets (robot, step) per kind like the batched world.
 Randomness: ``reset(seed)`` seeds four independent numpy streams (start jitter, per-robot gain,
 disturbance noise, measurement noise) spawned from ``numpy.random.SeedSequence(seed)``, so turning
 one knob never changes the draws of another. ``reset()`` without a seed continues the streams.
-Within a process an episode repeats bit for bit. Across processes a tick with several contacts
-may differ in the last bits: Chipmunk keys its contact cache by shape pointers, so the order it
-resolves contacts in follows memory addresses (seen once in 12 open-loop replays with jittering
-delay; the episode then drifts by ~1e-7 of its tracking error). Seeded runs reproduce to rounding
-where contacts pile up, exactly elsewhere.
+The same seed does not always repeat an episode bit for bit in another process: Chipmunk keys
+its contact cache by shape pointers (``CP_HASH_PAIR`` of the two shapes), so the order in which
+it resolves the contacts of a tick follows memory addresses. Seen in one of 12 open-loop replays
+with jittering delay, in 2 of 6 processes: the last bits of one tick differed and the episode's
+tracking error then by ~1e-7 of itself. Seeded runs reproduce to rounding where several contacts
+meet.
 """
 
 from __future__ import annotations
