@@ -61,7 +61,9 @@ wall; from the previous tick's motion).
 Clock: on one host (``shared_clock``; by default when every endpoint is on loopback) a robot
 refuses a CMD sent more than 100 ms ahead of its clock (FROM_FUTURE) and, in real time, one older
 than its ttl (EXPIRED), as ``docs/wire-format.md`` asks; lock-step runs on sim time, where a
-command's wall-clock age says nothing, so only FROM_FUTURE applies there.
+command's wall-clock age says nothing, so only FROM_FUTURE applies there. In real time a robot
+also refuses a CMD answering a STATE it sent more than ``MAX_ANSWER_AGE_S`` (0.5 s) ago by its
+own clock (STALE_ANSWER, :class:`deploy.robot_link.RobotLink`): on any link, shared clock or not.
 
 Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
 lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
@@ -85,7 +87,7 @@ import zenoh
 
 from deploy.network import TransportConfig
 from deploy.reject_log import RejectLog
-from deploy.robot_link import RobotLink
+from deploy.robot_link import MAX_ANSWER_AGE_S, RobotLink
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.files import atomic_write_text
 from sim.pymunk_world import ModelError, PymunkWorld
@@ -222,7 +224,8 @@ class FleetSim:
     def _open_link(self, robot: _Robot) -> None:
         robot.link = RobotLink(self.config.fleet, robot.name, self.registry, self.session,
                                shared_clock=self.config.clock_is_shared(), expiry=not self.lossless,
-                               lossless=self.lossless)
+                               lossless=self.lossless,
+                               max_answer_age_s=None if self.lossless else MAX_ANSWER_AGE_S)
         robot.seen = (0, 0)
 
     def _close_link(self, robot: _Robot) -> None:

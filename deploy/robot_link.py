@@ -5,6 +5,7 @@ delivery rules and the e-stop latch: :mod:`deploy.transport`).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -16,9 +17,11 @@ from deploy.streams import Stamper, WireDecoder
 from deploy.transport import NO_STATUS, ReceivedCommand, _Link
 from deploy.wire import (
     ROBOT_ALL,
+    CmdFlags,
     CmdMsg,
     EstopMsg,
     MsgType,
+    Reason,
     RobotRegistry,
     StateMsg,
     StateStatus,
@@ -29,6 +32,14 @@ from deploy.wire import (
 COMMAND_RING = 1024
 """Ring size of a robot's command channel: a burst of this many junk messages still cannot push
 out a valid command before the driver thread has decoded it."""
+
+
+MAX_ANSWER_AGE_S = 0.5
+"""[s] default oldest STATE a robot acts on a command for: the filter's default latency bound
+(0.15 s state age plus 0.15 s command delay), a 20 Hz tick's wait, and room for a loaded host."""
+
+PUBLISHED_KEPT = 256
+"""STATE send times a link remembers (12.8 s at 20 Hz; older answers are refused anyway)."""
 
 
 class RobotLink(_Link):
@@ -47,13 +58,19 @@ class RobotLink(_Link):
         estop_query_timeout_s: how long one query for the latched e-stop waits for replies.
         lossless: publish states with congestion control BLOCK instead of DROP (module
             docstring, Delivery): for a lock-stepped simulation, where every state is awaited.
+        max_answer_age_s: refuse (STALE_ANSWER) a CMD whose ``state_seq`` names a STATE this link
+            published longer ago than this, by the robot's own clock, or none it published in
+            this epoch; a CMD with ``state_seq`` 0 answers no state and is judged by its ttl
+            only, and BRAKE or STOP always pass (they act on the robot's own state). None: off (a robot on sim time, as a lock-stepped simulation is). It needs no
+            shared clock: on a link that queues commands (a congested router) it is what stops
+            a robot acting on a command computed from where it was a second ago.
     """
 
     def __init__(self, fleet: str, robot: str, registry: RobotRegistry,
                  transport: TransportConfig | zenoh.Session, *,
                  clock_ns: Callable[[], int] = time.monotonic_ns, shared_clock: bool = False,
                  expiry: bool = True, queue_capacity: int = 16, estop_query_timeout_s: float = 1.0,
-                 lossless: bool = False):
+                 lossless: bool = False, max_answer_age_s: float | None = MAX_ANSWER_AGE_S):
         self.keys = FleetKeys(fleet)
         self.robot = check_name(robot)
         robot_id = registry.id_of(robot)
@@ -66,6 +83,11 @@ class RobotLink(_Link):
         self.decoder = WireDecoder(registry, clock_ns if shared_clock else None,
                                    counter=self.rejects, check_expiry=expiry)
         self.estop_query_timeout_s = estop_query_timeout_s
+        if max_answer_age_s is not None and not (math.isfinite(max_answer_age_s) and max_answer_age_s > 0):
+            raise ValueError(f"max_answer_age_s must be a positive number of seconds or None, "
+                             f"got {max_answer_age_s!r}")
+        self._max_answer_ns = None if max_answer_age_s is None else int(max_answer_age_s * 1e9)
+        self._published: dict[int, int] = {}      # seq -> send time of this epoch's recent STATEs
         self._stamper = Stamper(clock_ns)
         self._command: ReceivedCommand | None = None
         self.missed_commands = 0   # valid commands never seen: gaps in the controller's seq
@@ -101,6 +123,9 @@ class RobotLink(_Link):
         payload = sample.payload.to_bytes()
         with self._cond:
             msg = self.decoder.decode(payload, MsgType.CMD, self.robot_id)
+            if isinstance(msg, CmdMsg) and self._answers_too_old(msg, now):
+                self.rejects.add(Reason.STALE_ANSWER)
+                return
             if isinstance(msg, CmdMsg):
                 last = self._command.msg if self._command is not None else None
                 if last is not None and last.epoch == msg.epoch:   # the controller numbers 1, 2, ...
@@ -110,6 +135,14 @@ class RobotLink(_Link):
                     expires = min(expires, msg.send_time_ns + msg.ttl_ms * 1_000_000)
                 self._command = ReceivedCommand(msg, now, expires)
                 self._cond.notify_all()
+
+    def _answers_too_old(self, msg: CmdMsg, now: int) -> bool:
+        """The CMD names a STATE older than ``max_answer_age_s``, or one not sent in this epoch;
+        BRAKE and STOP always pass (they use the robot's own state, never the controller's)."""
+        if self._max_answer_ns is None or msg.state_seq == 0 or msg.flags & (CmdFlags.BRAKE | CmdFlags.STOP):
+            return False
+        sent = self._published.get(msg.state_seq)
+        return sent is None or now - sent > self._max_answer_ns
 
     def _on_estop(self, payload: bytes) -> None:
         with self._cond:
@@ -229,8 +262,14 @@ class RobotLink(_Link):
         epoch, seq, now = self._stamper.next()
         msg = StateMsg(self.robot_id, epoch, seq, now, tuple(position), tuple(velocity), status,
                        last_cmd_seq)
+        with self._cond:
+            if seq == 1:                              # a new epoch: its seqs start over
+                self._published.clear()
+            self._published[seq] = now
+            if len(self._published) > PUBLISHED_KEPT:
+                del self._published[next(iter(self._published))]
         self._state_publisher.put(encode(msg))
         return msg
 
 
-__all__ = ["COMMAND_RING", "RobotLink"]
+__all__ = ["COMMAND_RING", "MAX_ANSWER_AGE_S", "RobotLink"]

@@ -111,6 +111,7 @@ class Reason(IntEnum):
     EXPIRED = 15  # CMD older than its ttl (receiver clock shared with the sender)
     FROM_FUTURE = 16  # send time ahead of the receiver's clock by more than the tolerance
     BAD_KEY = 17  # key expression does not follow the fleet layout
+    STALE_ANSWER = 18  # CMD answering a STATE the robot sent longer ago than it accepts (or never)
 
 
 class Rejection(NamedTuple):

@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 from deploy.network import FleetKeys, TransportConfig, free_tcp_port
-from deploy.robot_link import RobotLink
+from deploy.robot_link import MAX_ANSWER_AGE_S, RobotLink
 from deploy.transport import FleetLink
 from deploy.wire import (
     CmdFlags,
@@ -385,3 +385,43 @@ def test_a_zenoh_config_file_is_the_base_and_the_flags_are_written_over_it(tmp_p
     path.write_text("{ this is not json5")
     with pytest.raises(ValueError, match="zenoh.json5"):
         TransportConfig(zenoh_config=str(path)).to_zenoh()
+
+
+def _takes(robot: RobotLink, msg) -> bool:
+    """The robot's latest accepted command becomes ``msg`` within WAIT_S."""
+    return robot.wait_for(lambda: robot.latest_command is not None and robot.latest_command.msg == msg, WAIT_S)
+
+
+@pytest.mark.parametrize("bound", [MAX_ANSWER_AGE_S, None])
+def test_a_robot_refuses_commands_answering_a_state_it_sent_too_long_ago(controller, port, bound):
+    """By the robot's own clock (no shared clock needed): a CMD answering its STATE of 0.6 s
+    ago is STALE_ANSWER (default bound 0.5 s), as is one naming a STATE it never sent; one
+    answering its newest STATE, one answering none (state_seq 0) and BRAKE pass. With the rule
+    off (None) the late command is taken: what a congested link would make a robot do."""
+    clock = [10**12]
+    with robot_link(port, "r0", clock_ns=lambda: clock[0], max_answer_age_s=bound) as r0:
+        connected(controller, r0)
+        first = r0.publish_state((0.5, 0.5), (0.0, 0.0))
+        answered = controller.send_command("r0", (0.5, 0.0), ttl_ms=500, state_seq=first.seq)
+        assert _takes(r0, answered)
+        clock[0] += 600_000_000                                           # 0.6 s later
+        controller.send_command("r0", (0.9, 0.0), ttl_ms=500, state_seq=first.seq)
+        never = controller.send_command("r0", (0.9, 0.0), ttl_ms=500, state_seq=first.seq + 50)
+        if bound is None:
+            assert _takes(r0, never)
+        else:
+            assert r0.wait_for(lambda: r0.rejects.total == 2, WAIT_S)
+            assert r0.latest_command.msg == answered
+        expected = {} if bound is None else {"STALE_ANSWER": 2}
+        assert r0.rejects.snapshot() == expected
+        assert _takes(r0, controller.send_command("r0", (0.0, 0.0), ttl_ms=500, flags=CmdFlags.BRAKE,
+                                                  state_seq=first.seq))
+        assert _takes(r0, controller.send_command("r0", (0.2, 0.0), ttl_ms=500))
+        fresh = r0.publish_state((0.5, 0.5), (0.0, 0.0))
+        assert _takes(r0, controller.send_command("r0", (0.3, 0.0), ttl_ms=500, state_seq=fresh.seq))
+        assert r0.rejects.snapshot() == expected
+
+
+def test_an_answer_age_bound_that_cannot_work_is_refused(port):
+    with pytest.raises(ValueError, match="max_answer_age_s must be a positive number of seconds"):
+        robot_link(port, "r0", max_answer_age_s=0.0)
