@@ -242,13 +242,8 @@ class FusedScene:
         (N, 2), what failing robots would get (None: no excuses)."""
         dyn, r, m, n = self.dynamics, self.radius, checker.margin, self.n
         widen = self._zeros if grow is None else _f64(grow)
-        end, bulge, travel = np.empty((n, 2)), np.empty(n), np.empty(n)
-        hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
         bad = np.zeros(n, dtype=bool)
-        clear = fused_kernels.sweep_rows(
-            _f64(pos), _f64(vel), _f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
-            self.wall_offset, r, float(m), _SLACK, *self._sweep_consts, end, bulge, travel, hit,
-            wall_hit)
+        clear, end, bulge, travel, hit, wall_hit = self._sweep(pos, vel, acc, widen, terms, m)
         if clear:
             return bad
         if brake is not None and (hit.any() or wall_hit.any()):
@@ -264,6 +259,20 @@ class FusedScene:
             for i in np.flatnonzero(near):
                 bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m
         return bad
+
+    def _sweep(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, widen: np.ndarray,
+               terms: FusedTerms, margin: float) -> tuple[bool, np.ndarray, ...]:
+        """``(clear, end (N, 2), bulge (N,), travel (N,), hit (P,), wall_hit (N, 4))`` of
+        :meth:`failing`, compiled (:func:`controllers.safety.fused_kernels.sweep_rows`): ``clear``
+        when the travel bound rules every pair and wall out (``hit``, ``wall_hit`` then all False)."""
+        n = self.n
+        end, bulge, travel = np.empty((n, 2)), np.empty(n), np.empty(n)
+        hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
+        clear = fused_kernels.sweep_rows(
+            _f64(pos), _f64(vel), _f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
+            self.wall_offset, self.radius, float(margin), _SLACK, *self._sweep_consts, end, bulge, travel,
+            hit, wall_hit)
+        return clear, end, bulge, travel, hit, wall_hit
 
     def check(self, checker: SweepChecker, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
               terms: FusedTerms, prediction: Prediction | None = None) -> PostcheckResult:

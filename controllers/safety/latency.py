@@ -355,12 +355,8 @@ class LatencyPredictor:
         require_shapes("LatencyPredictor.predict", ids=(np.empty(len(ids)), (n,)), pos=(pos, (n, 2)), vel=(vel, (n, 2)),
                        a_nom=(a_nom, (n, 2)), pending=(pending, (n,)), fixed=(given_fixed, (n,)),
                        position_noise=(sigma_p, (n,)))
-        p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
-        fixed, h, jittering = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
-        latency_kernels.predict_listening(
-            _f64(pos), _f64(vel), _f64(ages), _f64(a_nom), pending, given_fixed, _f64(sigma_p),
-            self._history, self._delay_seen, self._jitter_left, self._accel_bound, float(delay),
-            *self._kernel_consts, p, v, grow, closing, fixed, h, jittering)
+        p, v, grow, closing, fixed, h, jittering = self._listening(pos, vel, ages, a_nom, pending, given_fixed,
+                                                                   sigma_p, delay)
         unsure = jittering | (pending < 0)                    # the delay may change under it
         if fixed.any():
             sigma = np.broadcast_to(sigma_p, (len(p),))
@@ -391,6 +387,22 @@ class LatencyPredictor:
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
                           brake_vel=brake_vel, velocity_error=velocity_error,
                           unsure=unsure)
+
+    def _listening(self, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray, a_nom: np.ndarray,
+                   pending: np.ndarray, given_fixed: np.ndarray, sigma_p: np.ndarray,
+                   delay: float) -> tuple[np.ndarray, ...]:
+        """``(p, v, grow, closing, fixed, h, jittering)`` of every robot through its pending
+        commands with its tightening (module docstring; fixed robots get ``h = 0`` and are
+        bounded by the caller), compiled (:mod:`controllers.safety.latency_kernels`); updates the
+        jitter record and the acceleration bounds of the robots not fixed."""
+        n = len(ages)
+        p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
+        fixed, h, jittering = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
+        latency_kernels.predict_listening(
+            _f64(pos), _f64(vel), _f64(ages), _f64(a_nom), pending, given_fixed, _f64(sigma_p),
+            self._history, self._delay_seen, self._jitter_left, self._accel_bound, float(delay),
+            *self._kernel_consts, p, v, grow, closing, fixed, h, jittering)
+        return p, v, grow, closing, fixed, h, jittering
 
     def _silent_paths(self, i: int, pos: np.ndarray, vel: np.ndarray, measured_at: float, pending: int,
                       age: float, delay: float, spread_weight: float) -> SilentPaths | None:

@@ -9,7 +9,6 @@ import numpy as np
 from controllers.safety.barrier import row_gamma
 from controllers.safety.fused import _SLACK, FusedScene, FusedTerms
 from controllers.safety.latency import Prediction
-from controllers.safety.postcheck import SweepChecker, excuses
 
 
 def _clip_rows(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
@@ -131,32 +130,20 @@ class NumpyFusedScene(FusedScene):
                           bound=bound, normal_xy=normal, gather_t=self.gather_t,
                           distance=dist, pair_delta=delta)
 
-    def failing(self, checker: SweepChecker, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
-                terms: FusedTerms, grow: np.ndarray | None = None,
-                vel_error: np.ndarray | None = None, brake: np.ndarray | None = None) -> np.ndarray:
-        """(N,) bool: robots whose one-tick sweep touches something; the checks and maths of
-        :meth:`controllers.safety.postcheck.SweepChecker.failing` (same end points, widening and
-        excuses, bit for bit), with the start-of-tick geometry taken from ``terms``, and one
-        shortcut: with ``T = max_i (|p'_i - p_i| + e_i)``, every check passes when each static
-        row has ``s >= T + m`` and each pair row ``s >= 2 T + m`` (a chord end moves at most
-        ``|p' - p|`` from its start, a relative chord at most the sum of two), so none runs.
-        Object: the FCL capsule test wherever the travel bound cannot rule out contact.
-        ``grow`` (N,) [m] widens each robot's disc (a prediction's; ``terms`` already hold the
-        grown start distances); ``vel_error`` (N,) [m/s] bounds the error of ``vel``; ``brake``
-        (N, 2), what failing robots would get (None: no excuses)."""
-        dyn, r, m, p, n = self.dynamics, self.radius, checker.margin, self.p, self.n
-        widen = np.zeros(n) if grow is None else grow
+    def _sweep(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, widen: np.ndarray,
+               terms: FusedTerms, margin: float) -> tuple[bool, np.ndarray, ...]:
+        """:meth:`FusedScene._sweep` by numpy expressions."""
+        dyn, r, m, p, n = self.dynamics, self.radius, margin, self.p, self.n
         a = _clip_rows(acc, dyn.accel_limit)[0]
         a_eff = a - dyn.damping * vel
         bulge = (0.5 * dyn.dt**2) * np.hypot(a_eff[:, 0], a_eff[:, 1])
         v1, speed = _clip_rows(vel + dyn.dt * a_eff, dyn.speed_limit)
         end = pos + dyn.dt * v1
         travel = dyn.dt * speed + bulge
-        bad = np.zeros(n, dtype=bool)
         reach = travel.max() + m + _SLACK         # start distances in terms are grown already
+        hit, wall_hit = np.zeros(p, dtype=bool), np.zeros((n, 4), dtype=bool)
         if terms.distance[p:].min() >= reach and (not p or terms.distance[:p].min() >= 2.0 * reach):
-            return bad
-        hit = np.zeros(p, dtype=bool)
+            return True, end, bulge, travel, hit, wall_hit
         if p:
             start = terms.pair_delta                                          # (2, P)
             chord = end.T @ self.pair_gather_t - start
@@ -169,16 +156,4 @@ class NumpyFusedScene(FusedScene):
         start_walls = terms.distance[p + n:].reshape(n, 4)
         end_walls = end @ self.wall_map + self.wall_offset - widen[:, None]
         wall_hit = np.minimum(start_walls, end_walls) < (bulge + m)[:, None]
-        if brake is not None and (hit.any() or wall_hit.any()):
-            pair_ok, wall_ok = excuses(pos, vel, acc, brake, self.pair_i, self.pair_j, grow,
-                                       vel_error, dyn)
-            hit &= ~pair_ok
-            wall_hit &= ~wall_ok
-        bad[self.pair_i[hit]] = True
-        bad[self.pair_j[hit]] = True
-        bad |= wall_hit.any(axis=1)
-        near = terms.object_distance() - m <= travel + _SLACK
-        if near.any():
-            for i in np.flatnonzero(near):
-                bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m
-        return bad
+        return False, end, bulge, travel, hit, wall_hit
