@@ -327,12 +327,19 @@ class ModelErrorCompensator:
         self._reset_tick = bool(fresh.all())
         if not self._all_valid:
             vel = np.where(valid[:, None], vel, 0.0)
-        v_out = np.empty((n, 2))
-        mec_kernels.observe(np.ascontiguousarray(vel), valid & ~fresh, not self._reset_tick, self.v_hat,
-                            self.d_hat, self.score, self.sent, self.charge, self.level, self.noise_var,
-                            self.noise_count, self.y_prev, self.r_prev, self.level_gain,
-                            self.level_midpoints, *self._observe_consts, v_out)
+        v_out = self._observe(vel, valid & ~fresh)
         self._update_s = time.perf_counter() - start
+        return v_out
+
+    def _observe(self, vel: np.ndarray, update: np.ndarray) -> np.ndarray:
+        """Predict/update every hypothesis for the (N,) robots in ``update`` (none on a reset
+        tick), then choose the one in charge; (N, 2) velocity estimate of that one. Compiled
+        (:func:`controllers.mec_kernels.observe`); ``vel`` (N, 2) is 0 where not ``update``."""
+        v_out = np.empty((len(vel), 2))
+        mec_kernels.observe(np.ascontiguousarray(vel), update, not self._reset_tick, self.v_hat, self.d_hat,
+                            self.score, self.sent, self.charge, self.level, self.noise_var, self.noise_count,
+                            self.y_prev, self.r_prev, self.level_gain, self.level_midpoints,
+                            *self._observe_consts, v_out)
         return v_out
 
     def compensate(self, a_safe: np.ndarray) -> MecResult:
@@ -344,13 +351,7 @@ class ModelErrorCompensator:
             raise ValueError(f"ModelErrorCompensator.compensate: velocity and a_safe must both have "
                              f"shape (num_robots, 2) = ({0 if self.ids is None else len(self.ids)}, 2), "
                              f"got {target.shape}; call update first")
-        n = len(target)
-        a_cmd, d_hat, compensation = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
-        gated = np.empty(n, dtype=bool)
-        good_all, clipped = mec_kernels.compensate(
-            np.ascontiguousarray(target), self.d_hat, self.score, self.sent, self.charge, self.level,
-            self.noise_var, self.noise_count, self.gate_level, self.level_wander, *self._compensate_consts,
-            a_cmd, d_hat, gated, compensation)
+        a_cmd, d_hat, gated, compensation, good_all, clipped = self._compensate(target)
         status = MecStatus.RESET if self._reset_tick else MecStatus.OK
         if not good_all:
             status = MecStatus.INVALID_COMMAND
@@ -363,6 +364,19 @@ class ModelErrorCompensator:
         return MecResult(a_cmd=a_cmd, d_hat=d_hat, status=status,
                          time_s=self._update_s + time.perf_counter() - start, delay_ticks=self.charge.copy(),
                          gated=gated, compensation=compensation)
+
+    def _compensate(self, target: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(a_cmd, d_hat, gated, compensation, all targets finite, some command clipped)`` for
+        (N, 2) ``target`` (module docstring, Noise), and ``a_cmd`` recorded as the newest command
+        sent. Compiled (:func:`controllers.mec_kernels.compensate`)."""
+        n = len(target)
+        a_cmd, d_hat, compensation = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+        gated = np.empty(n, dtype=bool)
+        good_all, clipped = mec_kernels.compensate(
+            np.ascontiguousarray(target), self.d_hat, self.score, self.sent, self.charge, self.level,
+            self.noise_var, self.noise_count, self.gate_level, self.level_wander, *self._compensate_consts,
+            a_cmd, d_hat, gated, compensation)
+        return a_cmd, d_hat, gated, compensation, good_all, clipped
 
     def replace_last_command(self, a_cmd: np.ndarray, shift: bool = False) -> None:
         """Tell the observers the (N, 2) command actually sent this tick (``shift``: a new tick)."""

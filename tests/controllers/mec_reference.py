@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from controllers.mec import (
@@ -12,8 +10,6 @@ from controllers.mec import (
     NOISE_UPPER_SIGMAS,
     SIGNIFICANCE,
     WARMUP_UPDATES,
-    MecResult,
-    MecStatus,
     ModelErrorCompensator,
 )
 
@@ -36,42 +32,21 @@ def _clip_norm(x: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 class NumpyMec(ModelErrorCompensator):
-    """:class:`ModelErrorCompensator` with the tick computed by numpy expressions."""
+    """:class:`ModelErrorCompensator` with the observer bank and the compensation computed by
+    numpy expressions (validation, re-keying and the status are the class's own)."""
 
-    def update(self, velocity: np.ndarray, ids: tuple[str, ...] | None = None) -> np.ndarray:
-        """Take this tick's measured (N, 2) velocities (NaN rows: no new measurement, predict
-        only); returns the (N, 2) velocity estimate of the hypothesis in charge [m/s]."""
-        start = time.perf_counter()
-        vel = np.asarray(velocity, dtype=np.float64)
-        if vel.ndim != 2 or vel.shape[1] != 2:
-            raise ValueError(f"ModelErrorCompensator.update: velocity must have shape (num_robots, 2), "
-                             f"got {vel.shape}")
-        n = len(vel)
-        ids = tuple(ids) if ids is not None else tuple(f"r{i}" for i in range(n))
-        if len(ids) != n:
-            raise ValueError(f"ModelErrorCompensator.update: {len(ids)} ids for {n} robots")
-        self._all_valid = bool(np.isfinite(vel).all())
-        valid = np.ones(n, dtype=bool) if self._all_valid else np.isfinite(vel).all(axis=1)
-        fresh = self._align(ids, vel, valid) if ids != self.ids else np.zeros(n, dtype=bool)
-        self._reset_tick = bool(fresh.all())
+    def _observe(self, vel: np.ndarray, update: np.ndarray) -> np.ndarray:
+        """:meth:`ModelErrorCompensator._observe` by numpy expressions."""
         if not self._reset_tick:
-            self._update(np.where(valid[:, None], vel, 0.0), valid & ~fresh)
-        rows = np.arange(n)
+            self._update(vel, update)
+        rows = np.arange(len(vel))
         best = np.argmin(self.score, axis=0)                            # (N,)
         take = self.score[best, rows] < self.config.switch_ratio * self.score[self.charge, rows]
         self.charge = np.where(take, best, self.charge)
-        self._update_s = time.perf_counter() - start
         return self.v_hat[self.charge, rows]
 
-    def compensate(self, a_safe: np.ndarray) -> MecResult:
-        """``a_cmd = clip_norm(a_safe - c, accel_limit)`` for (N, 2) ``a_safe`` (after :meth:`update`;
-        ``time_s`` of the result is the time of both calls)."""
-        start = time.perf_counter()
-        target = np.asarray(a_safe, dtype=np.float64)
-        if self.ids is None or target.shape != (len(self.ids), 2):
-            raise ValueError(f"ModelErrorCompensator.compensate: velocity and a_safe must both have "
-                             f"shape (num_robots, 2) = ({0 if self.ids is None else len(self.ids)}, 2), "
-                             f"got {target.shape}; call update first")
+    def _compensate(self, target: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`ModelErrorCompensator._compensate` by numpy expressions."""
         rows = np.arange(len(target))
         best = self.charge
         d_hat = self.d_hat[best, rows]
@@ -92,18 +67,7 @@ class NumpyMec(ModelErrorCompensator):
             desired = np.where(np.isfinite(target).all(axis=1)[:, None], desired, 0.0)
         a_cmd, clipped = _clip_norm(desired, self.dynamics.accel_limit)
         self.replace_last_command(a_cmd, shift=True)
-        status = MecStatus.RESET if self._reset_tick else MecStatus.OK
-        if not good_all:
-            status = MecStatus.INVALID_COMMAND
-        elif not self._all_valid:
-            status = MecStatus.INVALID_MEASUREMENT
-        elif status is MecStatus.OK and gated.any():
-            status = MecStatus.GATED
-        elif status is MecStatus.OK and clipped.any():
-            status = MecStatus.CLIPPED
-        return MecResult(a_cmd=a_cmd, d_hat=d_hat.copy(), status=status,
-                         time_s=self._update_s + time.perf_counter() - start, delay_ticks=best.copy(), gated=gated,
-                         compensation=compensation)
+        return a_cmd, d_hat.copy(), gated, compensation, good_all, bool(clipped.any())
 
     def _update(self, vel: np.ndarray, update: np.ndarray) -> None:
         """One predict/update of every hypothesis for the (N,) robots in ``update``."""

@@ -66,5 +66,5 @@ def test_compiled_tick_equals_numpy_formulation(seed, delay, adapt, max_disturba
 
 def test_the_reference_is_not_the_compiled_code():
     """The parity test compares two implementations: the reference's tick is numpy's own."""
-    assert NumpyMec.update is not ModelErrorCompensator.update
-    assert NumpyMec.compensate is not ModelErrorCompensator.compensate
+    assert NumpyMec._observe is not ModelErrorCompensator._observe
+    assert NumpyMec._compensate is not ModelErrorCompensator._compensate
