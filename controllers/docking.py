@@ -109,7 +109,14 @@ class Docking:
             return a_nom, docking
         require_shapes("Docking", pos=(pos, (n, 2)), vel=(vel, (n, 2)), targets=(targets, (n, 2)),
                        a_nom=(a_nom, (n, 2)))
-        pos, vel, targets = _f64(pos), _f64(vel), _f64(targets)
+        return self._dock(ids, _f64(pos), _f64(vel), _f64(targets), a_nom, movable)
+
+    def _dock(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
+              a_nom: np.ndarray, movable: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`__call__` for N >= 1 robots with N targets, compiled
+        (:mod:`controllers.docking_kernels`), scipy's assignment where the nearest targets clash."""
+        cfg, n = self.config, len(pos)
+        docking = np.zeros(n, dtype=bool)
         dist = np.empty((n, n))
         if docking_kernels.target_distances(pos, targets, dist) >= cfg.release_radius:
             self._docking.clear()            # no robot near any target: the assignment cannot make one dock

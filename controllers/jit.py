@@ -53,9 +53,10 @@ def require_shapes(where: str, **arrays: tuple[np.ndarray, tuple[int, ...]]) -> 
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every registered kernel now, not at the first tick."""
-    for fn in _WARM_UPS:
-        fn()
+    """Compile (or load from the cache) every registered kernel now, not at the first tick; each
+    module's kernels once per process (a kernel keeps what it compiled)."""
+    while _WARM_UPS:
+        _WARM_UPS.pop(0)()
 
 
 __all__ = ["KERNELS", "kernel", "register_warm_up", "require_shapes", "warm_up"]

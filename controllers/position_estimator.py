@@ -116,6 +116,13 @@ class PositionEstimator:
         n = len(ids)
         require_shapes("PositionEstimator.update", pos=(pos, (n, 2)), vel=(vel, (n, 2)), time_s=(time_s, (n,)),
                        new=(new, (n,)), velocity_noise_var=(velocity_noise_var, (n,)))
+        return self._estimate(pos, vel, time_s, new, velocity_noise_var)
+
+    def _estimate(self, pos: np.ndarray, vel: np.ndarray, time_s: np.ndarray, new: np.ndarray,
+                  velocity_noise_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`update` for rows already keyed to the robots, compiled
+        (:func:`controllers.position_estimator_kernels.estimate`)."""
+        n = len(pos)
         out_pos, out_std = np.empty((n, 2)), np.empty(n)
         position_estimator_kernels.estimate(
             _f64(pos), _f64(vel), _f64(time_s), np.ascontiguousarray(new, dtype=bool),

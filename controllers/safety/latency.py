@@ -352,9 +352,10 @@ class LatencyPredictor:
         given_fixed = np.zeros(n, dtype=bool) if fixed is None else np.ascontiguousarray(fixed, dtype=bool)
         sigma_p = cfg.position_noise + (np.zeros(n) if position_noise is None
                                         else np.asarray(position_noise, dtype=np.float64))
-        require_shapes("LatencyPredictor.predict", ids=(np.empty(len(ids)), (n,)), pos=(pos, (n, 2)), vel=(vel, (n, 2)),
-                       a_nom=(a_nom, (n, 2)), pending=(pending, (n,)), fixed=(given_fixed, (n,)),
-                       position_noise=(sigma_p, (n,)))
+        if len(ids) != n:
+            raise ValueError(f"LatencyPredictor.predict: {len(ids)} ids for {n} ages")
+        require_shapes("LatencyPredictor.predict", pos=(pos, (n, 2)), vel=(vel, (n, 2)), a_nom=(a_nom, (n, 2)),
+                       pending=(pending, (n,)), fixed=(given_fixed, (n,)), position_noise=(sigma_p, (n,)))
         p, v, grow, closing, fixed, h, jittering = self._listening(pos, vel, ages, a_nom, pending, given_fixed,
                                                                    sigma_p, delay)
         unsure = jittering | (pending < 0)                    # the delay may change under it

@@ -11,20 +11,14 @@ from sim.scenario import clip_norm
 
 
 class NumpyDocking(Docking):
-    """:class:`Docking` with the tick computed by numpy expressions and scipy's assignment."""
+    """:class:`Docking` with the tick computed by numpy expressions and scipy's assignment (the
+    checks before it are the class's own)."""
 
-    def __call__(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
-                 a_nom: np.ndarray, movable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 2) commands with docking robots' rows replaced, and (N,) bool of those rows.
-
-        ``pos``, ``vel``, ``targets``, ``a_nom``: (N, 2) [m, m/s, m, m/s^2]; ``movable`` (N,)
-        bool: robots that may dock (default all; stale robots are braked by the stack anyway).
-        """
+    def _dock(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
+              a_nom: np.ndarray, movable: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`Docking._dock` by numpy expressions and scipy's assignment."""
         cfg, n = self.config, len(pos)
         docking = np.zeros(n, dtype=bool)
-        if not cfg.enabled or n == 0 or len(targets) != n:
-            self._docking.clear()
-            return a_nom, docking
         diff = pos[:, None] - targets[None]
         dist = np.hypot(diff[..., 0], diff[..., 1])                             # (robot, target)
         if dist.min() >= cfg.release_radius:                 # no robot near any target: the

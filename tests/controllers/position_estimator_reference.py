@@ -10,27 +10,12 @@ from controllers.position_estimator import FORGET, NOISE_FLOOR, RESET_SIGMAS, Po
 
 
 class NumpyPositionEstimator(PositionEstimator):
-    """:class:`PositionEstimator` with the tick computed by numpy expressions."""
+    """:class:`PositionEstimator` with the tick computed by numpy expressions (re-keying and the
+    shape checks are the class's own)."""
 
-    def update(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, time_s: np.ndarray,
-               new: np.ndarray, velocity_noise_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One tick for N robots.
-
-        Args:
-            ids: (N,) robot names.
-            pos: (N, 2) measured positions [m] (finite where ``new``).
-            vel: (N, 2) measured velocities (the input ``v_k`` and the noise residual's) [m/s].
-            time_s: (N,) measurement times [s].
-            new: (N,) bool, rows that carry a measurement not seen before.
-            velocity_noise_var: (N,) ``sigma_v^2`` per axis [m^2/s^2].
-
-        Returns:
-            ``(positions (N, 2), std (N,))``: the estimate at each robot's last measurement
-            (rows not ``new`` keep it; unseen rows: ``pos``) and its standard deviation per axis [m].
-        """
-        ids = tuple(ids)
-        if ids != self.ids:
-            self._align(ids)
+    def _estimate(self, pos: np.ndarray, vel: np.ndarray, time_s: np.ndarray, new: np.ndarray,
+                  velocity_noise_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`PositionEstimator._estimate` by numpy expressions."""
         pos, vel, time_s = np.asarray(pos, np.float64), np.asarray(vel, np.float64), np.asarray(time_s, np.float64)
         new = np.asarray(new, dtype=bool) & np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1)
         gap = time_s - self.t_prev

@@ -42,4 +42,4 @@ def test_compiled_docking_equals_numpy_formulation(seed, n, crowded, ties):
 
 
 def test_the_reference_is_not_the_compiled_code():
-    assert NumpyDocking.__call__ is not Docking.__call__
+    assert NumpyDocking._dock is not Docking._dock

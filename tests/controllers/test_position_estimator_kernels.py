@@ -53,4 +53,4 @@ def test_rows_of_the_wrong_length_are_refused_with_the_field_named():
 
 
 def test_the_reference_is_not_the_compiled_code():
-    assert NumpyPositionEstimator.update is not PositionEstimator.update
+    assert NumpyPositionEstimator._estimate is not PositionEstimator._estimate
