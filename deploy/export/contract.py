@@ -13,7 +13,7 @@ robot that calls it directly gets the same guarantees as the ControlStack:
   anything, NaN included). Token 0 (the robot itself) is always read.
 * a row whose read features are not all finite is answered with ``accel = 0`` and
   ``valid = False``: brake (the robot's own braking law), never act on it;
-* ``accel = a * min(1, limit / |a|)``: bounded in norm by ``accel_limit`` (the actor bounds each
+* ``accel = a / max(1, |a| / limit)``: bounded in norm by ``accel_limit`` (the actor bounds each
   component; the norm of a corner reached 1.31 m/s^2 at a 1.0 limit);
 * parameters are frozen (``requires_grad=False``): any grad mode runs it.
 
@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from controllers.policy import TypedSDPAActor
@@ -100,17 +101,18 @@ class PolicyContract(nn.Module):
 
     def forward(self, tokens: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # rows are independent (attention runs within a row), so a non-finite row spoils only
-        # its own output; s - s == 0 holds for finite s only (NaN - NaN and inf - inf are NaN)
-        read = torch.cat((torch.ones_like(mask[:, :1]), mask[:, 1:]), 1)
+        # its own output; s - s == 0 holds for finite s only (NaN - NaN and inf - inf are NaN).
+        # |a| stands for the actions in the check: the actor bounds them, so it is finite iff a is
+        read = F.pad(mask[:, 1:], (1, 0), value=True)
         f = torch.where(read.unsqueeze(-1), tokens, torch.zeros((), dtype=tokens.dtype))
-        total = f.sum((1, 2))
         a = self.actor.rows(f, read)
-        total = total + a.sum(-1)
+        norm = torch.linalg.vector_norm(a, dim=-1)
+        total = f.sum((1, 2)) + norm
         valid = (total - total) == 0
-        a = torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype))
-        norm = torch.linalg.vector_norm(a, dim=-1, keepdim=True)
-        scale = torch.clamp(self.accel_limit / torch.clamp(norm, min=1e-12), max=1.0)
-        return a * scale, valid
+        if self.accel_limit != 1.0:
+            norm = norm * (1.0 / self.accel_limit)
+        a = a / torch.clamp(norm, min=1.0).unsqueeze(-1)
+        return torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype)), valid
 
 
 def canonical_json(meta: dict[str, Any]) -> bytes:
