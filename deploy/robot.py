@@ -117,23 +117,31 @@ def robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon,
     return out
 
 
-def open_onnx(path: str | Path, threads: int = 1):
-    """``(onnxruntime.InferenceSession, meta)`` of an exported ONNX file, its digest and format
-    checked; raises RobotPolicyError naming what is wrong."""
+def onnx_session(data: bytes, threads: int = 1):
+    """An ``onnxruntime.InferenceSession`` of a serialized model with the control path's options:
+    ``threads`` intra-op threads, the basic graph optimizations, the CPU provider."""
     import onnxruntime as ort
 
-    path = Path(path)
-    if not path.is_file():
-        raise RobotPolicyError(f"policy file {str(path)!r} does not exist")
-    data = path.read_bytes()
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.log_severity_level = 3
     # the extended fusions regroup float32 sums: 1.3e-5 off the eager actor where basic keeps 9e-6
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    return ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
+
+
+def open_onnx(path: str | Path, threads: int = 1):
+    """``(onnxruntime.InferenceSession, meta)`` of an exported ONNX file, its digest and format
+    checked; raises RobotPolicyError naming what is wrong."""
+    import onnxruntime  # noqa: F401  (a missing runtime raises ImportError here, not "a bad file")
+
+    path = Path(path)
+    if not path.is_file():
+        raise RobotPolicyError(f"policy file {str(path)!r} does not exist")
+    data = path.read_bytes()
     try:
-        session = ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
+        session = onnx_session(data, threads)
         meta = json.loads(session.get_modelmeta().custom_metadata_map[META_KEY])
     except Exception as err:
         raise RobotPolicyError(f"{str(path)!r} is not an exported ONNX policy "
@@ -214,4 +222,4 @@ class RobotPolicy:
         return Action(accel[0], bool(valid[0]))
 
 
-__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "onnx_content_ok", "open_onnx", "robot_tokens"]
+__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "onnx_content_ok", "onnx_session", "open_onnx", "robot_tokens"]

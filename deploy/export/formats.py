@@ -168,6 +168,16 @@ class Pt2Format:
         return _torch_runner(program.module()), meta
 
 
+def onnx_model(contract: torch.nn.Module, fixed_n: int | None):
+    """The ONNX ``ModelProto`` of ``contract`` (inputs ``tokens``, ``mask``; outputs ``accel``,
+    ``valid``; B, and T unless ``fixed_n``, dynamic), without metadata."""
+    with quiet():
+        program = torch.onnx.export(contract, example_inputs(fixed_n), dynamo=True,
+                                    dynamic_shapes=dynamic_shapes(fixed_n), verbose=False,
+                                    input_names=["tokens", "mask"], output_names=["accel", "valid"])
+    return program.model_proto
+
+
 class OnnxFormat:
     name, suffix = "onnx", ".onnx"
 
@@ -175,11 +185,7 @@ class OnnxFormat:
     def write(contract: PolicyContract, path: Path, meta: dict[str, Any], fixed_n: int | None) -> None:
         import onnx
 
-        with quiet():
-            program = torch.onnx.export(contract, example_inputs(fixed_n), dynamo=True,
-                                        dynamic_shapes=dynamic_shapes(fixed_n), verbose=False,
-                                        input_names=["tokens", "mask"], output_names=["accel", "valid"])
-        proto = program.model_proto
+        proto = onnx_model(contract, fixed_n)
         del proto.metadata_props[:]
         entry = proto.metadata_props.add()
         entry.key, entry.value = META_KEY, onnx_meta_json(meta | {HASH_FIELD: PLACEHOLDER})
@@ -200,10 +206,10 @@ class OnnxFormat:
             raise ExportError("onnxruntime is not installed: `pip install onnxruntime` to run "
                               f"{str(path)!r}") from None
         check_meta(meta, repr(str(path)), ExportError)
-        return _BoundRunner(session), meta
+        return BoundRunner(session), meta
 
 
-class _BoundRunner:
+class BoundRunner:
     """ONNX Runtime through an IO binding kept per input buffer (a control loop passes the same
     arrays every tick: ~10 % of the call saved); other inputs are bound afresh."""
 
@@ -264,5 +270,5 @@ def sniff_format(path: Path) -> str:
     return name
 
 
-__all__ = ["ExportError", "FORMATS", "META_FILE", "Runner", "dynamic_shapes", "example_inputs",
-           "file_format", "quiet", "sniff_format"]
+__all__ = ["BoundRunner", "ExportError", "FORMATS", "META_FILE", "Runner", "dynamic_shapes", "example_inputs",
+           "file_format", "onnx_model", "quiet", "sniff_format"]
