@@ -121,6 +121,33 @@ def test_actions_are_bounded_in_norm_inside_the_file(exported):
         assert np.linalg.norm(accel, axis=1).max() <= 1.0 + 1e-6, name
 
 
+def test_the_onnx_runner_answers_buffers_refilled_in_place_swapped_and_resized(exported):
+    """The runner binds each input buffer once (a control loop passes the same arrays every
+    tick): refilling them in place, passing other arrays of the same shape and another team
+    size each give what a fresh session gives for those values."""
+    from deploy.robot import open_onnx
+
+    _, files, _ = exported
+    policy, (session, _) = load_exported(files["onnx"]), open_onnx(files["onnx"])
+    rng = np.random.default_rng(1)
+
+    def fresh(toks, mask):
+        return session.run(None, {"tokens": toks, "mask": mask})[0]
+
+    toks, mask = rng.normal(0, 0.3, (5, 11, 4)).astype(np.float32), np.ones((5, 11), dtype=bool)
+    first, _ = policy.run(toks, mask)
+    toks[:] = rng.normal(0, 0.3, toks.shape)          # refilled in place: same object
+    mask[2, 5] = False
+    second, _ = policy.run(toks, mask)
+    assert np.abs(second - first).max() > 1e-3
+    assert np.array_equal(second, fresh(toks, mask))
+    other = rng.normal(0, 0.3, (5, 11, 4)).astype(np.float32)
+    assert np.array_equal(policy.run(other, np.ones((5, 11), dtype=bool))[0], fresh(other, np.ones((5, 11), dtype=bool)))
+    small = rng.normal(0, 0.3, (3, 7, 4)).astype(np.float32)
+    assert np.array_equal(policy.run(small, np.ones((3, 7), dtype=bool))[0], fresh(small, np.ones((3, 7), dtype=bool)))
+    assert np.array_equal(policy.run(toks, mask)[0], second)     # back to the first buffers
+
+
 @pytest.mark.parametrize("name", DEFAULT_FORMATS)
 def test_non_finite_rows_are_flagged_with_zero_acceleration(exported, name):
     _, files, _ = exported
