@@ -74,6 +74,7 @@ lossless (Zenoh congestion control BLOCK).
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import threading
@@ -192,6 +193,17 @@ class BridgeStats:
     longest_stall_s: float = 0.0
     estop_robot: str | None = None  # the robot whose silence raised the e-stop
     estop_silence_s: float | None = None
+    heap_frozen: int = 0  # objects moved out of the collector's reach when the loop started
+
+
+def freeze_start_up_heap() -> int:
+    """Collect once, then move every object alive (torch, the modules, the control stack) out of
+    the garbage collector's reach and return how many: a full collection of a bridge process
+    (~280k objects) takes ~120 ms, 2.4 ticks at 20 Hz, and Python starts one whenever enough
+    objects have survived. Afterwards the collector scans only what the loop allocates itself."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 @dataclass
@@ -464,7 +476,9 @@ class Bridge:
 
     def run(self, max_ticks: int | None = None,
             on_tick: Callable[[TickRecord], Any] | None = None) -> BridgeStats:
-        """Tick until :meth:`stop` (e.g. from a signal handler) or ``max_ticks`` answered."""
+        """Tick until :meth:`stop` (e.g. from a signal handler) or ``max_ticks`` answered; the
+        start-up heap is frozen first (:func:`freeze_start_up_heap`)."""
+        self.stats.heap_frozen = freeze_start_up_heap()
         while not self._stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
             record = self.step()
             self._reject_log.poll()
@@ -481,7 +495,7 @@ class Bridge:
                 "lockstep": self.config.lockstep, "shared_clock": self.link.shared_clock,
                 "silent_marks": s.silent_marks, "silent_counts": s.silent_counts,
                 "nonfinite_brakes": s.nonfinite_brakes, "unknown_brakes": s.unknown_brakes,
-                "stalls": s.stalls, "longest_stall_s": s.longest_stall_s,
+                "stalls": s.stalls, "longest_stall_s": s.longest_stall_s, "heap_frozen": s.heap_frozen,
                 "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
                 "command_delay_s": self.round_trips.bound_s(),
                 "round_trip_ms": self.round_trips.summary(), **self.rearm.summary()}
@@ -497,4 +511,5 @@ class Bridge:
 
 
 __all__ = ["ESTOP_OPERATOR", "ESTOP_STALE_PICTURE", "Bridge", "BridgeConfig", "BridgeStats",
-           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "row_flags"]
+           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "freeze_start_up_heap",
+           "row_flags"]
