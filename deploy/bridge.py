@@ -200,7 +200,9 @@ def freeze_start_up_heap() -> int:
     """Collect once, then move every object alive (torch, the modules, the control stack) out of
     the garbage collector's reach and return how many: a full collection of a bridge process
     (~280k objects) takes ~120 ms, 2.4 ticks at 20 Hz, and Python starts one whenever enough
-    objects have survived. Afterwards the collector scans only what the loop allocates itself."""
+    objects have survived. Afterwards the collector scans only what the loop allocates itself.
+    ``formation bridge`` calls it once the control stack is built, before it opens the link (a
+    pause once states flow would make the first tick answer a partial burst)."""
     gc.collect()
     gc.freeze()
     return gc.get_freeze_count()
@@ -476,9 +478,7 @@ class Bridge:
 
     def run(self, max_ticks: int | None = None,
             on_tick: Callable[[TickRecord], Any] | None = None) -> BridgeStats:
-        """Tick until :meth:`stop` (e.g. from a signal handler) or ``max_ticks`` answered; the
-        start-up heap is frozen first (:func:`freeze_start_up_heap`)."""
-        self.stats.heap_frozen = freeze_start_up_heap()
+        """Tick until :meth:`stop` (e.g. from a signal handler) or ``max_ticks`` answered."""
         while not self._stop.is_set() and (max_ticks is None or self.stats.ticks < max_ticks):
             record = self.step()
             self._reject_log.poll()

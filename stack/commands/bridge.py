@@ -33,7 +33,7 @@ import torch
 import zenoh
 
 from controllers.scripted import ScriptedController
-from deploy.bridge import Bridge, BridgeConfig
+from deploy.bridge import Bridge, BridgeConfig, freeze_start_up_heap
 from deploy.fleet_sim import robot_names, write_json
 from deploy.wire import RobotRegistry
 from sim.fleet import FleetState
@@ -234,6 +234,7 @@ def run(args) -> int:
                               delay_window=args.delay_window, shared_clock=args.shared_clock,
                               rearm_alarm_after=args.rearm_alarm_after)
         c = scenario.object_center
+        frozen = freeze_start_up_heap()
         bridge = Bridge(args.fleet, RobotRegistry(names), transport, controller,
                         targets=dict(zip(names, scenario.targets, strict=True)),
                         object_pose=np.array([c[0], c[1], 0.0]), config=config,
@@ -242,6 +243,7 @@ def run(args) -> int:
     except (ValueError, OSError, zenoh.ZError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    bridge.stats.heap_frozen = frozen
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: bridge.stop())
     print(f"bridge {args.fleet}: {scenario.name}, policy {args.policy}", file=sys.stderr, flush=True)
