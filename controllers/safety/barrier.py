@@ -117,6 +117,9 @@ class SafetyConfig:
             :class:`~controllers.safety.postcheck.SweepChecker`. All three give the same answers.
         postcheck: check the one-tick sweep and brake robots that would touch.
         postcheck_margin: clearance the post-check demands [m] (0 = no contact).
+        exact_projection: answer the QP in closed form when its broken rows share no robot
+            (:mod:`controllers.safety.projection`; the optimum itself, checked before use), else
+            OSQP; False: OSQP always.
     """
 
     margin: float = 0.01
@@ -133,6 +136,7 @@ class SafetyConfig:
     geometry: str = "fused"
     postcheck: bool = True
     postcheck_margin: float = 0.0
+    exact_projection: bool = True
 
     def __post_init__(self) -> None:
         check_numbers(self, ("gamma", "gamma_unsure", "braking_share", "sqrt_floor", "accel_fraction", "eps", "slack_weight"),
@@ -195,6 +199,11 @@ class BarrierTerms:
         obj = np.sum(self.object_normal * u, axis=1)
         wall = u @ self.wall_normal.T                                  # (N, 4)
         return np.concatenate([pair, obj, wall.ravel()])
+
+    def row_normals(self) -> np.ndarray:
+        """(K, 2) the normal ``n_k`` of every row, in the row layout."""
+        n = len(self.object_normal)
+        return np.concatenate([self.pair_normal, self.object_normal, np.tile(self.wall_normal, (n, 1))])
 
     def dense(self, num_robots: int) -> np.ndarray:
         """(K, 2N) dense row matrix (for tests and the fallback QP)."""

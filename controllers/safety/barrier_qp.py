@@ -20,7 +20,11 @@ path (``"fcl"``: the FCL scene, or ``"analytic"``; then :func:`barrier_terms` an
 Solve path, every outcome an explicit :class:`SafetyStatus`:
 
 1. ``UNCHANGED``: the clipped nominal command already satisfies every barrier row; returned as is.
-2. ``INTERVENED``: OSQP (one problem per N, set up once with a fixed sparsity pattern, then only
+2. ``INTERVENED``: when the rows the nominal breaks share no robot, the QP's optimum in closed
+   form (:mod:`controllers.safety.projection`: each broken row moves its robots along its own
+   normal, every other robot goes to the nearest point of its octagon), used only when it meets
+   every tightened row and every octagon (then it is the optimum; ``solver="projection"``);
+   otherwise OSQP (one problem per N, set up once with a fixed sparsity pattern, then only
    ``update(q=, l=, Ax=)`` per tick, warm-started, eps 1e-7 with polishing; no setup on the hot
    path) solved and its answer satisfies
    every row within 1e-6.
@@ -54,6 +58,7 @@ from controllers.safety.fused import FusedScene, FusedTerms
 from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
 from controllers.safety.latency import Prediction, row_sums
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
+from controllers.safety.projection import inside_octagon, separable_answer
 from sim.scenario import Scenario
 
 _ROW_CHECK_TOL = 1e-6
@@ -78,6 +83,9 @@ class SafetyResult:
         a_safe: (N, 2) safe accelerations [m/s^2], finite and within the actuator limit.
         status: see :class:`SafetyStatus`.
         reason: why the status is not ``UNCHANGED`` / ``INTERVENED`` ("" otherwise).
+        solver: what answered the QP: ``"projection"`` (its closed form, when the broken rows
+            share no robot: :mod:`controllers.safety.projection`), ``"osqp"``, ``"daqp"`` (the
+            slack QP); "" when none ran.
         braked: (N,) bool, robots commanded to brake by the fallback or the post-check.
         contact: (N,) bool, robots the post-check predicts to touch something even when braking.
         min_barrier: smallest barrier value h over all rows [m/s] (nan when not computed).
@@ -91,6 +99,7 @@ class SafetyResult:
     a_safe: np.ndarray
     status: SafetyStatus
     reason: str = ""
+    solver: str = ""
     braked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     contact: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     min_barrier: float = math.nan
@@ -213,6 +222,20 @@ class SafetyFilter:
             self._problems[n] = _Problem(self.scenario, n, self.config)
         return self._problems[n]
 
+    def _projection(self, terms: BarrierTerms, nominal: np.ndarray, prob: _Problem,
+                    fixed: np.ndarray | None) -> np.ndarray | None:
+        """The QP's answer in closed form (:mod:`controllers.safety.projection`) when it is one:
+        the broken rows share no robot and the projection meets every tightened row and every
+        octagon; None otherwise (and with robots held fixed), and OSQP answers."""
+        if not self.config.exact_projection or (fixed is not None and fixed.any()):
+            return None
+        lower = terms.bound + self.config.tighten
+        u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, terms.rows_times(nominal),
+                             lower, nominal, prob.a_box)
+        if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, prob.a_box).all():
+            return None
+        return u
+
     def distances(self, pos: np.ndarray, object_pose: np.ndarray | None = None) -> SceneDistances:
         """Signed distances of (N, 2) centres: the FCL scene for ``geometry="fcl"``, else closed form."""
         prob = self.problem(len(pos))
@@ -283,16 +306,20 @@ class SafetyFilter:
                                    clearance, prediction=prediction)
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
         status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
+        solver = ""
         if (terms.rows_times(nominal) >= terms.bound).all():
             a = nominal
         else:
             t_solve = time.perf_counter()
-            a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
-            status = SafetyStatus.INTERVENED
+            status, solver, osqp_status = SafetyStatus.INTERVENED, "projection", ""
+            a = self._projection(terms, nominal, prob, fixed)
+            if a is None:
+                a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
+                solver = "osqp"
             if a is None:
                 a, slack, reason = self._slack_qp(terms, nominal, prob, fixed)
                 reason = f"OSQP: {osqp_status}; {reason}"
-                status = SafetyStatus.SLACK
+                status, solver = SafetyStatus.SLACK, "daqp"
             solve_time = time.perf_counter() - t_solve
             if a is None:
                 return self._brake_all(vel, reason, start, clearance, terms, solve_time, prediction)
@@ -310,7 +337,7 @@ class SafetyFilter:
                 status = SafetyStatus.FALLBACK_BRAKE
                 reason = (reason + "; " if reason else "") + (
                     f"post-check braked robots {np.flatnonzero(braked).tolist()}")
-        return SafetyResult(a_safe=a, status=status, reason=reason, braked=braked, contact=contact,
+        return SafetyResult(a_safe=a, status=status, reason=reason, solver=solver, braked=braked, contact=contact,
                             min_barrier=float(terms.h.min()), min_clearance=clearance,
                             max_slack=slack, solve_time_s=solve_time,
                             total_time_s=time.perf_counter() - start, terms=terms)

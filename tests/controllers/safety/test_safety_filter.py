@@ -78,6 +78,26 @@ def test_permuting_robots_permutes_outputs():
         np.testing.assert_allclose(permuted.a_safe, base.a_safe[perm], atol=1e-5)
 
 
+def test_the_closed_form_answers_as_osqp_does_and_osqp_the_rest():
+    """Random safe states, every robot at full thrust towards its nearest neighbour: the filter
+    with the closed-form projection gives OSQP's answers (to OSQP's tolerance), answering part
+    of the ticks itself and leaving rows that share a robot to OSQP."""
+    rng = np.random.default_rng(7)
+    both = SafetyFilter(SCENARIO)
+    osqp_only = SafetyFilter(SCENARIO, SafetyConfig(exact_projection=False))
+    solvers = []
+    for _ in range(60):
+        n = int(rng.integers(2, 7))
+        pos, vel = random_state(rng, n, both)
+        a_nom = toward_neighbours(pos) * rng.uniform(0.2, 1.0)
+        got, want = both.filter(pos, vel, a_nom), osqp_only.filter(pos, vel, a_nom)
+        assert got.status is want.status
+        np.testing.assert_allclose(got.a_safe, want.a_safe, atol=1e-5)
+        solvers.append(got.solver)
+        assert want.solver in ("", "osqp")
+    assert solvers.count("projection") >= 5 and solvers.count("osqp") >= 1, solvers
+
+
 def test_robots_already_closing_too_fast_get_slack_and_bounded_commands():
     # two robots 0.1 m apart (clearance 0.02 m) closing at 0.8 m/s: h < 0, no command can satisfy it
     pos = np.array([[0.2, 0.2], [0.3, 0.2], [0.8, 0.8]])
@@ -103,7 +123,7 @@ def test_osqp_failure_falls_back_to_the_exact_slack_qp():
     rng = np.random.default_rng(3)
     # gamma 3: this state and push make the barrier rows bind (with 6 the nominal is already safe)
     exact = SafetyFilter(SCENARIO, SafetyConfig(gamma=3.0))
-    starved = SafetyFilter(SCENARIO, SafetyConfig(gamma=3.0, max_iter=1))
+    starved = SafetyFilter(SCENARIO, SafetyConfig(gamma=3.0, max_iter=1, exact_projection=False))
     pos, vel = random_state(rng, 5, exact)
     a_nom = toward_neighbours(pos)
     want = exact.filter(pos, vel, a_nom)
