@@ -74,7 +74,6 @@ lossless (Zenoh congestion control BLOCK).
 
 from __future__ import annotations
 
-import gc
 import logging
 import math
 import threading
@@ -194,18 +193,6 @@ class BridgeStats:
     estop_robot: str | None = None  # the robot whose silence raised the e-stop
     estop_silence_s: float | None = None
     heap_frozen: int = 0  # objects moved out of the collector's reach when the loop started
-
-
-def freeze_start_up_heap() -> int:
-    """Collect once, then move every object alive (torch, the modules, the control stack) out of
-    the garbage collector's reach and return how many: a full collection of a bridge process
-    (~280k objects) takes ~120 ms, 2.4 ticks at 20 Hz, and Python starts one whenever enough
-    objects have survived. Afterwards the collector scans only what the loop allocates itself.
-    ``formation bridge`` calls it once the control stack is built, before it opens the link (a
-    pause once states flow would make the first tick answer a partial burst)."""
-    gc.collect()
-    gc.freeze()
-    return gc.get_freeze_count()
 
 
 @dataclass
@@ -511,5 +498,4 @@ class Bridge:
 
 
 __all__ = ["ESTOP_OPERATOR", "ESTOP_STALE_PICTURE", "Bridge", "BridgeConfig", "BridgeStats",
-           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "freeze_start_up_heap",
-           "row_flags"]
+           "Controller", "RoundTrips", "TickClock", "TickRecord", "UplinkExcess", "row_flags"]

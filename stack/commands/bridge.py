@@ -33,8 +33,9 @@ import torch
 import zenoh
 
 from controllers.scripted import ScriptedController
-from deploy.bridge import Bridge, BridgeConfig, freeze_start_up_heap
+from deploy.bridge import Bridge, BridgeConfig
 from deploy.fleet_sim import robot_names, write_json
+from deploy.startup import freeze_start_up_heap
 from deploy.wire import RobotRegistry
 from sim.fleet import FleetState
 from sim.scenario import Scenario, make_scenario

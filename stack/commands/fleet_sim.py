@@ -27,6 +27,7 @@ from pathlib import Path
 import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
+from deploy.startup import freeze_start_up_heap
 from sim.scenario import make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
@@ -98,6 +99,7 @@ def run(args) -> int:
     except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    frozen = freeze_start_up_heap()
     sim = FleetSim(config, on_episode=_print_episode)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sim.stop())
@@ -108,6 +110,7 @@ def run(args) -> int:
     except zenoh.ZError as err:            # e.g. a certificate the router refuses
         print(f"error: Zenoh: {err}", file=sys.stderr)
         return 2
+    summary["heap_frozen"] = frozen
     if args.report:
         write_json(args.report, summary)
     print(json.dumps({k: v for k, v in summary.items() if k not in ("trace", "episodes")}), flush=True)
