@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 
 
@@ -46,6 +47,20 @@ def add_output_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads for every measured run (default: 1, the "
                              "stable choice on a shared machine; the value is printed and saved)")
+
+
+def add_tick_args(parser: argparse.ArgumentParser, per: str) -> None:
+    """``--robots``, ``--ticks``, ``--warmup`` and ``--seed`` of the control-tick benchmarks
+    (``per``: what each timed run is, e.g. "stack")."""
+    parser.add_argument("--robots", type=positive_int, default=5, help="robots in the fleet (5)")
+    parser.add_argument("--ticks", type=positive_int, default=2000, help=f"timed ticks per {per} (2000)")
+    parser.add_argument("--warmup", type=positive_int, default=100, help=f"untimed ticks per {per} (100)")
+    parser.add_argument("--seed", type=int, default=0)
+
+
+def p50_p99(values: Sequence[float]) -> dict[str, float]:
+    """``{"p50", "p99"}`` percentiles of ``values``."""
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99))}
 
 
 def set_threads(threads: int) -> int:

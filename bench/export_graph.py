@@ -30,7 +30,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench._common import (  # noqa: E402
     add_output_args,
-    positive_int,
+    add_tick_args,
+    p50_p99,
     print_json,
     print_table,
     progress,
@@ -49,7 +50,7 @@ def graphs(seed: int) -> tuple[PolicyContract, dict[str, tuple[int, int, BoundRu
     actor = _random_actor(seed)
     reference = PolicyContract(actor).eval()
     out = {}
-    for name, contract in (("actor", PolicyContract(actor).eval()), ("rows", PolicyContract.for_export(actor).eval())):
+    for name, contract in (("actor", reference), ("rows", PolicyContract.for_export(actor).eval())):
         proto = onnx_model(contract, None)
         data = proto.SerializeToString()
         out[name] = (len(proto.graph.node), len(data), BoundRunner(onnx_session(data)))
@@ -86,7 +87,7 @@ def measure(n: int, ticks: int, warmup: int, seed: int) -> dict:
         row = ticked[name]
         doc["graphs"][name] = {
             "nodes": nodes, "bytes": size, "max_abs_diff": worst,
-            "call_ms": {"p50": float(np.percentile(calls[name], 50)), "p99": float(np.percentile(calls[name], 99))},
+            "call_ms": p50_p99(calls[name]),
             "tick_ms": {"p50": row["p50"], "p99": row["p99"]},
             "policy_stage_ms": {"p50": row["policy_stage_p50"], "p99": row["policy_stage_p99"]}}
     g = doc["graphs"]
@@ -97,10 +98,7 @@ def measure(n: int, ticks: int, warmup: int, seed: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robots", type=positive_int, default=5, help="robots in the fleet (5)")
-    parser.add_argument("--ticks", type=positive_int, default=2000, help="timed ticks per graph (2000)")
-    parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per graph (100)")
-    parser.add_argument("--seed", type=int, default=0)
+    add_tick_args(parser, "graph")
     add_output_args(parser)
     args = parser.parse_args(argv)
     set_threads(args.threads)

@@ -30,7 +30,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench._common import (  # noqa: E402
     add_output_args,
-    positive_int,
+    add_tick_args,
+    p50_p99,
     print_json,
     print_table,
     progress,
@@ -116,18 +117,14 @@ def measure(n: int, ticks: int, warmup: int, seed: int) -> dict:
         seen += len(states)
     out = {"robots": n, "ticks": ticks, "identical_commands": bool(identical)}
     for name, by_stage in samples.items():
-        out[name] = {stage: {"p50": float(np.percentile(v, 50)), "p99": float(np.percentile(v, 99))}
-                     for stage, v in by_stage.items()}
+        out[name] = {stage: p50_p99(v) for stage, v in by_stage.items()}
     out["speedup_p50"] = {stage: out["numpy"][stage]["p50"] / out["compiled"][stage]["p50"] for stage in STAGES}
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--robots", type=positive_int, default=5, help="robots in the fleet (5)")
-    parser.add_argument("--ticks", type=positive_int, default=2000, help="timed ticks per stack (2000)")
-    parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per stack (100)")
-    parser.add_argument("--seed", type=int, default=0)
+    add_tick_args(parser, "stack")
     add_output_args(parser)
     args = parser.parse_args(argv)
     set_threads(args.threads)

@@ -222,16 +222,16 @@ class SafetyFilter:
             self._problems[n] = _Problem(self.scenario, n, self.config)
         return self._problems[n]
 
-    def _projection(self, terms: BarrierTerms, nominal: np.ndarray, prob: _Problem,
+    def _projection(self, terms: BarrierTerms, nominal: np.ndarray, values: np.ndarray, prob: _Problem,
                     fixed: np.ndarray | None) -> np.ndarray | None:
         """The QP's answer in closed form (:mod:`controllers.safety.projection`) when it is one:
         the broken rows share no robot and the projection meets every tightened row and every
-        octagon; None otherwise (and with robots held fixed), and OSQP answers."""
+        octagon; None otherwise (and with robots held fixed), and OSQP answers. ``values`` (K,)
+        are the nominal's row values."""
         if not self.config.exact_projection or (fixed is not None and fixed.any()):
             return None
         lower = terms.bound + self.config.tighten
-        u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, terms.rows_times(nominal),
-                             lower, nominal, prob.a_box)
+        u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, values, lower, nominal, prob.a_box)
         if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, prob.a_box).all():
             return None
         return u
@@ -307,12 +307,13 @@ class SafetyFilter:
         nominal = clip_norm(a_nom, self.dynamics.accel_limit)
         status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
         solver = ""
-        if (terms.rows_times(nominal) >= terms.bound).all():
+        values = terms.rows_times(nominal)
+        if (values >= terms.bound).all():
             a = nominal
         else:
             t_solve = time.perf_counter()
             status, solver, osqp_status = SafetyStatus.INTERVENED, "projection", ""
-            a = self._projection(terms, nominal, prob, fixed)
+            a = self._projection(terms, nominal, values, prob, fixed)
             if a is None:
                 a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
                 solver = "osqp"

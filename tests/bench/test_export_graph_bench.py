@@ -4,22 +4,12 @@ tolerance of the eager actor. No timing limits."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
 from deploy.export import TOLERANCE
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.bench import run_json
 
 
 def test_the_rewritten_graph_is_smaller_and_both_match_the_actor():
-    result = subprocess.run([sys.executable, str(ROOT / "bench" / "export_graph.py"), "--robots", "3",
-                             "--ticks", "100", "--warmup", "10", "--json"], cwd=ROOT, capture_output=True,
-                            text=True, timeout=300)
-    assert result.returncode == 0, result.stderr[-3000:]
-    document = json.loads(result.stdout.strip())
+    document = run_json("export_graph.py", "--robots", "3", "--ticks", "100", "--warmup", "10")
     assert (document["robots"], document["ticks"]) == (3, 100)
     graphs = document["graphs"]
     assert set(graphs) == {"actor", "rows"}

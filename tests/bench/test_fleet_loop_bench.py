@@ -2,24 +2,17 @@
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.bench import ROOT, run_json
+
 KEYS = {"ticks", "p50_ms", "p99_ms", "max_ms", "missed", "unanswered"}
 
 
 def test_json_has_one_entry_per_robot_count_and_the_peer():
-    result = subprocess.run([sys.executable, str(ROOT / "bench" / "fleet_loop.py"), "--robots",
-                             "2,3", "--ticks", "15", "--json"], cwd=ROOT, capture_output=True,
-                            text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    lines = result.stdout.strip().splitlines()
-    assert len(lines) == 1  # progress goes to stderr
-    document = json.loads(lines[0])
+    document = run_json("fleet_loop.py", "--robots", "2,3", "--ticks", "15")
     assert set(document) == {"2", "3", "peer_raw_zenoh", "tls_router"}
     tls = document["tls_router"]
     assert set(tls) == {"2", "3"}

@@ -4,20 +4,11 @@ timing limits."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.bench import run_json
 
 
 def test_the_compiled_tick_and_its_numpy_formulation_send_identical_commands():
-    result = subprocess.run([sys.executable, str(ROOT / "bench" / "tick_kernels.py"), "--robots", "4",
-                             "--ticks", "150", "--warmup", "10", "--json"], cwd=ROOT, capture_output=True,
-                            text=True, timeout=300)
-    assert result.returncode == 0, result.stderr[-3000:]
-    document = json.loads(result.stdout.strip())
+    document = run_json("tick_kernels.py", "--robots", "4", "--ticks", "150", "--warmup", "10")
     assert (document["robots"], document["ticks"], document["identical_commands"]) == (4, 150, True)
     stages = {"total", "observe", "policy", "safety", "mec"}
     for name in ("compiled", "numpy"):

@@ -69,16 +69,12 @@ def test_the_onnx_graph_stays_small():
     default actor's file keeps B and T free, gathers nothing by N but its one table row, and has
     no more nodes than at this writing (54; the actor's own graph: 133)."""
 
-    from deploy.export.formats import dynamic_shapes, example_inputs, quiet
+    from deploy.export.formats import onnx_model
 
     torch.manual_seed(0)
-    contract = PolicyContract.for_export(build_actor(ActorConfig(), 3).eval()).eval()
-    with quiet():
-        program = torch.onnx.export(contract, example_inputs(None), dynamo=True,
-                                    dynamic_shapes=dynamic_shapes(None),
-                                    input_names=["tokens", "mask"], output_names=["accel", "valid"])
-    nodes = [n.op_type for n in program.model_proto.graph.node]
-    dims = [[d.dim_param for d in i.type.tensor_type.shape.dim[:2]] for i in program.model_proto.graph.input]
+    proto = onnx_model(PolicyContract.for_export(build_actor(ActorConfig(), 3).eval()).eval(), None)
+    nodes = [n.op_type for n in proto.graph.node]
+    dims = [[d.dim_param for d in i.type.tensor_type.shape.dim[:2]] for i in proto.graph.input]
     assert dims == [["batch", "tokens"], ["batch", "tokens"]]
     assert len(nodes) <= 54, nodes
     assert nodes.count("Shape") == 1 and "Expand" not in nodes
