@@ -90,7 +90,7 @@ from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
 from deploy.rearm_watch import REARM_ALARM_AFTER, RearmWatch, check_threshold
 from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState
-from deploy.wire import CmdFlags, RobotRegistry, StateStatus
+from deploy.wire import BRAKE_OR_STOP, FAULT_BIT, LOCKSTEP_BIT, STOP_BIT, CmdFlags, RobotRegistry, StateStatus
 from sim.fleet import FleetState, SilentRobots
 
 log = logging.getLogger(__name__)
@@ -159,7 +159,7 @@ def row_flags(controller_flags: CmdFlags, age_s: float, finite: bool, status: St
     the controller said; else the controller's flags, plus STOP to re-arm a robot in FAULT."""
     if not finite or not age_s <= stale_after_s:
         return CmdFlags.BRAKE
-    if status & StateStatus.FAULT:
+    if int(status) & FAULT_BIT:
         return controller_flags | CmdFlags.STOP
     return controller_flags
 
@@ -417,7 +417,7 @@ class Bridge:
         self._wait_burst(timeout_s)
         now = self.link.clock_ns()
         states = self.link.latest_states()
-        if not self.link.lossless and any(rs.msg.status & StateStatus.LOCKSTEP for rs in states.values()):
+        if not self.link.lossless and any(int(rs.msg.status) & LOCKSTEP_BIT for rs in states.values()):
             log.warning("the fleet is lock-stepped (STATE flag LOCKSTEP): sending commands lossless")
             self.link.make_lossless()
         self._check_stall(now, states, timeout_s)
@@ -446,12 +446,13 @@ class Bridge:
             flags = row_flags(controller_flags, view.ages[i] + late_s, bool(finite[i]),
                               rs.msg.status, self.config.stale_after_s)
             self.stats.nonfinite_brakes += not finite[i]
-            if flags & CmdFlags.STOP:
+            bits = int(flags)
+            if bits & STOP_BIT:
                 self._rearm(rs)
-            if flags & (CmdFlags.BRAKE | CmdFlags.STOP):
+            if bits & BRAKE_OR_STOP:
                 commands[i] = 0.0
-            msg = self.link.send_command(rs.robot, commands[i], self.config.ttl_ms, flags,
-                                         state_seq=rs.msg.seq)
+            msg = self.link.send_command(rs.robot, (float(commands[i, 0]), float(commands[i, 1])),
+                                         self.config.ttl_ms, flags, state_seq=rs.msg.seq)
             self.round_trips.sent(rs.robot, msg)
             self._answered[rs.robot] = _key(rs)
             sent_flags.append(flags)

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from deploy.reject_log import Throttle
-from deploy.wire import StateStatus
+from deploy.wire import FAULT_BIT, StateStatus
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ class RearmWatch:
 
     def state(self, robot: str, status: StateStatus) -> None:
         """The robot's latest STATE: one without FAULT answers every re-arm sent before it."""
-        if status & StateStatus.FAULT:
+        if int(status) & FAULT_BIT:
             return
         run = self._runs.pop(robot, None)
         if run is not None and run.count >= self.threshold:

@@ -16,6 +16,7 @@ from deploy.network import FleetKeys, TransportConfig, declare_data_publisher
 from deploy.streams import Stamper, WireDecoder
 from deploy.transport import NO_STATUS, ReceivedCommand, _Link
 from deploy.wire import (
+    BRAKE_OR_STOP,
     ROBOT_ALL,
     CmdFlags,
     CmdMsg,
@@ -139,7 +140,7 @@ class RobotLink(_Link):
     def _answers_too_old(self, msg: CmdMsg, now: int) -> bool:
         """The CMD names a STATE older than ``max_answer_age_s``, or one not sent in this epoch;
         BRAKE and STOP always pass (they use the robot's own state, never the controller's)."""
-        if self._max_answer_ns is None or msg.state_seq == 0 or msg.flags & (CmdFlags.BRAKE | CmdFlags.STOP):
+        if self._max_answer_ns is None or msg.state_seq == 0 or int(msg.flags) & BRAKE_OR_STOP:
             return False
         sent = self._published.get(msg.state_seq)
         return sent is None or now - sent > self._max_answer_ns
