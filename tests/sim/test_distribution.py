@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from sim.batched_env import BatchedFormationEnv
@@ -30,18 +30,20 @@ def _signed_area(vertices) -> float:
 
 @settings(max_examples=60, deadline=None)
 @given(n=st.integers(1, 8), seed=st.integers(0, 2**32 - 1))
+@example(n=1, seed=7069)     # a 6 cm thin polygon crossed top to bottom: the move is 0.198 m
 def test_every_broad_draw_is_a_valid_layout_whose_robots_move_the_named_way(n, seed):
     """Scenario() validates each draw (slots in the arena, off the object, apart); the direction
-    in its name is where the targets lie from the starts, across the object's centre."""
+    in its name is where the targets lie from the starts, across the object's centre: the team
+    moves at least the object's extent along that axis plus a robot diameter."""
     sc = BROAD.layout(BASE, n, np.random.default_rng(seed))
     direction = sc.name.split("-")[0]
     move = sc.targets.mean(0) - sc.starts.mean(0)
     axis, sign = {"right_to_left": (0, -1), "left_to_right": (0, 1), "top_to_bottom": (1, -1),
                   "bottom_to_top": (1, 1)}[direction]
-    assert sign * move[axis] > 0.2 and abs(move[1 - axis]) < 1e-9
+    w, h = np.ptp(sc.polygon, 0)
+    assert sign * move[axis] > (w, h)[axis] + 2 * sc.robot_radius and abs(move[1 - axis]) < 1e-9
     c = sc.object_center
     assert sign * (c[axis] - sc.starts[:, axis]).min() > 0 and sign * (sc.targets[:, axis] - c[axis]).min() > 0
-    w, h = np.ptp(sc.polygon, 0)
     assert w <= 0.4 + 1e-6 and h <= 0.4 + 1e-6
     if "-box-" in sc.name:                  # a polygon's vertices need not reach its box
         assert 0.1 - 1e-6 <= w and 0.1 - 1e-6 <= h
