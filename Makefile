@@ -18,9 +18,12 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/formation demo
 
+# Two phases: the tests that only compute run two at a time (pytest-xdist); the ones that run
+# nodes on the wall clock (marker realtime) run alone afterwards, on an otherwise idle machine.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 -m "not realtime"
+	$(PY) -m pytest -q -m realtime
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

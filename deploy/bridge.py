@@ -90,7 +90,15 @@ from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
 from deploy.rearm_watch import REARM_ALARM_AFTER, RearmWatch, check_threshold
 from deploy.reject_log import RejectLog
 from deploy.transport import FleetLink, ReceivedState
-from deploy.wire import BRAKE_OR_STOP, FAULT_BIT, LOCKSTEP_BIT, STOP_BIT, CmdFlags, RobotRegistry, StateStatus
+from deploy.wire import (
+    BRAKE_OR_STOP,
+    FAULT_BIT,
+    LOCKSTEP_BIT,
+    STOP_BIT,
+    CmdFlags,
+    RobotRegistry,
+    StateStatus,
+)
 from sim.fleet import FleetState, SilentRobots
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,6 @@ from deploy.transport import NO_STATUS, ReceivedCommand, _Link
 from deploy.wire import (
     BRAKE_OR_STOP,
     ROBOT_ALL,
-    CmdFlags,
     CmdMsg,
     EstopMsg,
     MsgType,

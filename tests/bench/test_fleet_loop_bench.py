@@ -6,7 +6,11 @@ import math
 import subprocess
 import sys
 
+import pytest
+
 from tests.bench import ROOT, run_json
+
+pytestmark = pytest.mark.realtime   # Zenoh round trips at 50 Hz
 
 KEYS = {"ticks", "p50_ms", "p99_ms", "max_ms", "missed", "unanswered"}
 

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.realtime   # a link paced on the wall clock
+
 ROOT = Path(__file__).resolve().parents[2]
 BENCH = ROOT / "bench" / "link_congestion.py"
 

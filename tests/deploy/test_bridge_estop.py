@@ -21,6 +21,8 @@ from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.pymunk_world import ModelError
 from sim.scenario import make_scenario
 
+pytestmark = pytest.mark.realtime   # bridges and robot links on Zenoh sessions, e-stop timing
+
 ROBOTS = ("r0", "r1")
 REGISTRY = RobotRegistry(ROBOTS)
 TARGETS = {"r0": np.array([0.2, 0.2]), "r1": np.array([0.8, 0.8])}

@@ -24,6 +24,8 @@ from deploy.network import free_tcp_port
 sys.path.insert(0, str(Path(__file__).parent))
 from test_fleet_sim_bridge import Proc  # noqa: E402
 
+pytestmark = pytest.mark.realtime   # fleet-sim and bridge processes, a 3 s SIGSTOP
+
 RUNS = 5
 FREEZE_S = 3.0
 TICKS = 180   # 9 s at 20 Hz from the bridge's first tick: the freeze ends near tick 80

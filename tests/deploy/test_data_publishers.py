@@ -18,6 +18,8 @@ import pytest
 
 from deploy.network import TransportConfig, free_tcp_port
 
+pytestmark = pytest.mark.realtime   # Zenoh publishers under congestion, in processes
+
 PROC = Path(__file__).with_name("starved_publisher_proc.py")
 ROBOTS, BURSTS = 50, 20
 needs_two_cpus = pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2,

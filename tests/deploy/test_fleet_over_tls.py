@@ -30,6 +30,8 @@ from deploy.network import free_tcp_port
 from tests.deploy.intruder_proc import intrude
 from tests.deploy.test_fleet_sim_bridge import ROOT, SCRIPTED, Proc, assert_task_done
 
+pytestmark = pytest.mark.realtime   # router, fleet-sim and bridge processes over TLS
+
 ROBOTS = 5
 
 

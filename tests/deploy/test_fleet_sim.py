@@ -6,12 +6,15 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig
 from deploy.network import FleetKeys, TransportConfig, free_tcp_port
 from deploy.wire import CmdMsg, encode
 from sim.scenario import make_scenario
+
+pytestmark = pytest.mark.realtime   # fleet-sim on Zenoh sessions
 
 
 def test_a_robot_obeys_no_command_while_no_controller_token_is_seen():

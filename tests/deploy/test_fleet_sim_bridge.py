@@ -20,6 +20,8 @@ from deploy.network import TransportConfig, free_tcp_port
 from deploy.wire import CMD_BODY, HEADER, MAGIC, STATE_BODY, WIRE_VERSION, MsgType
 from sim.scenario import make_scenario
 
+pytestmark = pytest.mark.realtime   # fleet-sim and bridge processes at 20 Hz
+
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 120.0  # generous: includes interpreter start-up on a loaded machine
 SCRIPTED = ["--policy", "scripted"]  # safety filter and MEC on (the defaults)

@@ -19,6 +19,8 @@ from deploy.rearm_watch import REARM_ALARM_AFTER, RearmWatch
 from deploy.wire import CmdMsg, RobotRegistry, StateStatus, encode
 from sim.scenario import make_scenario
 
+pytestmark = pytest.mark.realtime   # a bridge and robot links on Zenoh sessions
+
 TICKS = 90   # fleet-sim ticks, 4.5 s at 20 Hz
 
 

@@ -13,6 +13,8 @@ from deploy.network import TransportConfig, free_tcp_port
 from deploy.router import Router, RouterConfig
 from deploy.security import fleet_acl
 
+pytestmark = pytest.mark.realtime   # Zenoh sessions and a router with access control
+
 FLEET, ROBOTS = "sec", ("r0", "r1", "r2")
 K = f"formation/{FLEET}"
 

@@ -28,6 +28,8 @@ from deploy.network import TransportConfig, free_tcp_port
 from deploy.wire import MsgType, StateMsg, decode
 from sim.scenario import make_scenario
 
+pytestmark = pytest.mark.realtime   # stop times measured on the wall clock
+
 ROOT = Path(__file__).resolve().parents[2]
 CONTROLLER = Path(__file__).with_name("full_thrust_proc.py")
 WAIT_S = 120.0  # generous: interpreter start-up on a loaded machine

@@ -11,6 +11,8 @@ from deploy.network import free_tcp_port
 from stack.cli import main
 from tests.deploy.test_fleet_sim_bridge import Proc
 
+pytestmark = pytest.mark.realtime   # a fleet over Zenoh
+
 
 @pytest.mark.slow
 def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path, capsys):

@@ -24,6 +24,8 @@ from deploy.wire import (
     encode,
 )
 
+pytestmark = pytest.mark.realtime   # Zenoh links, liveliness and timeouts
+
 FLEET = "testfleet"
 WAIT_S = 5.0  # generous: waits end as soon as the condition holds
 REGISTRY = RobotRegistry(["r0", "r1"])

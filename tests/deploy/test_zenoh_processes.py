@@ -21,6 +21,8 @@ ROBOT_SCRIPT = Path(__file__).with_name("zenoh_robot_proc.py")
 sys.path.insert(0, str(ROBOT_SCRIPT.parent))
 from zenoh_robot_proc import expected_acceleration  # noqa: E402
 
+pytestmark = pytest.mark.realtime   # Zenoh nodes in processes
+
 FLEET = "procfleet"
 ROBOTS = ("r0", "r1")
 REGISTRY = RobotRegistry(ROBOTS)

@@ -18,6 +18,8 @@ from stack.demo.fleet import tracking_noise_floor
 from stack.demo.report import FIGURES
 from stack.demo.state import STAGES
 
+pytestmark = pytest.mark.realtime   # the demo's fleet stage runs fleet-sim and bridge processes
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 

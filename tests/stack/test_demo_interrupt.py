@@ -17,9 +17,13 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from stack.cli import main
 from stack.demo.report import save_metrics
 from stack.demo.state import STAGES, StageBook
+
+pytestmark = pytest.mark.realtime   # SIGINT at a moment of a running demo
 
 LEARNED = ("train-3", "train-5", "export")
 

@@ -15,6 +15,8 @@ import pytest
 from stack.commands.sweep import seeds_arg
 from stack.sweep import SweepError, aggregate, grid_trials, median_ci, parse_grid_option, run_trials
 
+pytestmark = pytest.mark.realtime   # Ray starts its own workers; one test interrupts a sweep
+
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
         "checkpoint_interval": 8}
