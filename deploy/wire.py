@@ -273,11 +273,15 @@ def _check_uint(value: object, bits: int, field: str, lo: int = 0) -> Rejection 
 
 def _check_fields(msg: Message) -> Rejection | None:
     """Every field check of encode: integer ranges, then :func:`_check_meaning`."""
-    for field, bits, lo in (("epoch", 32, 1), ("seq", 32, 1), ("send_time_ns", 64, 0),
-                            ("robot_id", 16, 0)):
-        bad = _check_uint(getattr(msg, field), bits, field, lo)
-        if bad:
-            return bad
+    epoch, seq, send_time, robot_id = msg.epoch, msg.seq, msg.send_time_ns, msg.robot_id
+    if not (type(epoch) is int and type(seq) is int and type(send_time) is int
+            and type(robot_id) is int and 0 < epoch <= U32_MAX and 0 < seq <= U32_MAX
+            and 0 <= send_time <= U64_MAX and 0 <= robot_id <= ROBOT_ALL):
+        for field, bits, lo in (("epoch", 32, 1), ("seq", 32, 1), ("send_time_ns", 64, 0),
+                                ("robot_id", 16, 0)):
+            bad = _check_uint(getattr(msg, field), bits, field, lo)
+            if bad:
+                return bad
     if isinstance(msg, StateMsg):
         extras: tuple = (("last_cmd_seq", msg.last_cmd_seq, 32),)
     elif isinstance(msg, CmdMsg):
