@@ -14,6 +14,7 @@ import json
 import signal
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -27,15 +28,18 @@ from test_fleet_sim_bridge import Proc  # noqa: E402
 pytestmark = pytest.mark.realtime   # fleet-sim and bridge processes, a 3 s SIGSTOP
 
 RUNS = 5
+SIDE_BY_SIDE = 2   # runs at a time
 FREEZE_S = 3.0
 TICKS = 180   # 9 s at 20 Hz from the bridge's first tick: the freeze ends near tick 80
 
 
 def frozen_run(tmp_path: Path) -> dict:
+    """One run in ``tmp_path`` (its fleet named after the folder, so runs side by side never mix)."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    sim = Proc("fleet-sim", "--fleet", "stall", "--scenario", "paper-5", "--rate-hz", "20",
+    fleet = f"stall-{tmp_path.name}"
+    sim = Proc("fleet-sim", "--fleet", fleet, "--scenario", "paper-5", "--rate-hz", "20",
                "--listen", endpoint, "--ticks", str(TICKS), "--report", str(tmp_path / "sim.json"))
-    bridge = Proc("bridge", "--fleet", "stall", "--scenario", "paper-5", "--policy", "scripted",
+    bridge = Proc("bridge", "--fleet", fleet, "--scenario", "paper-5", "--policy", "scripted",
                   "--connect", endpoint, "--trace", "--report", str(tmp_path / "bridge.json"))
     try:
         bridge.wait_tick(20)
@@ -68,11 +72,11 @@ def outcome(run: dict) -> dict:
 
 @pytest.mark.slow
 def test_a_frozen_bridge_recovers_by_one_rule_in_every_run(tmp_path):
-    runs = []
-    for k in range(RUNS):
-        folder = tmp_path / f"run{k}"
+    folders = [tmp_path / f"run{k}" for k in range(RUNS)]
+    for folder in folders:
         folder.mkdir()
-        runs.append(frozen_run(folder))
+    with ThreadPoolExecutor(SIDE_BY_SIDE) as pool:   # each run mostly waits on the wall clock
+        runs = list(pool.map(frozen_run, folders))
     outcomes = [outcome(r) for r in runs]
     expected = {"estop": False, "stalls": 1, "all_latched": True, "all_rearmed": True,
                 "driving_again": True, "rearm_alarm": False}
