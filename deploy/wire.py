@@ -263,9 +263,7 @@ def _normalise_pairs(msg: object, *fields: str) -> None:
 def _check_uint(value: object, bits: int, field: str, lo: int = 0) -> Rejection | None:
     """Range check of an integer field (encode: any of them; decode: only the lower bounds of
     epoch and seq can fail, struct.unpack yields in-range values)."""
-    if type(value) is not int or not lo <= value < (1 << bits):
-        if isinstance(value, int) and not isinstance(value, bool) and lo <= value < (1 << bits):
-            return None                 # an int subclass, e.g. an IntEnum member (numpy integers are refused)
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value < (1 << bits):
         return Rejection(Reason.BAD_SEQUENCE if field in ("epoch", "seq") else Reason.BAD_SIZE,
                          f"{field}={value!r} must be an int in [{lo}, {(1 << bits) - 1}]")
     return None

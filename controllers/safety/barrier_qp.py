@@ -58,7 +58,7 @@ from controllers.safety.fused import FusedScene, FusedTerms
 from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
 from controllers.safety.latency import Prediction, row_sums
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
-from controllers.safety.projection import inside_octagon, separable_answer
+from controllers.safety.projection import projected_optimum
 from sim.scenario import Scenario
 
 _ROW_CHECK_TOL = 1e-6
@@ -230,11 +230,7 @@ class SafetyFilter:
         are the nominal's row values."""
         if not self.config.exact_projection or (fixed is not None and fixed.any()):
             return None
-        lower = terms.bound + self.config.tighten
-        u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, values, lower, nominal, prob.a_box)
-        if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, prob.a_box).all():
-            return None
-        return u
+        return projected_optimum(terms, values, terms.bound + self.config.tighten, nominal, prob.a_box)
 
     def distances(self, pos: np.ndarray, object_pose: np.ndarray | None = None) -> SceneDistances:
         """Signed distances of (N, 2) centres: the FCL scene for ``geometry="fcl"``, else closed form."""

@@ -83,7 +83,7 @@ def separable_answer(normals: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray
             pairs' robots.
         values: (K,) ``r_k . a``; lower: (K,) ``c_k``; a: (N, 2) the clipped nominal.
         a_box: the octagon's half-width [m/s^2].
-    The caller verifies the answer (rows and octagon) before using it.
+    Not yet verified: :func:`projected_optimum` checks it (rows and octagon) before use.
     """
     n = len(a)
     broken = np.flatnonzero(values < lower)
@@ -101,4 +101,19 @@ def separable_answer(normals: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray
     return u
 
 
-__all__ = ["inside_octagon", "octagon_vertices", "project_octagon", "row_robots", "separable_answer"]
+def projected_optimum(terms, values: np.ndarray, lower: np.ndarray, a: np.ndarray,
+                      a_box: float) -> np.ndarray | None:
+    """The QP's optimum in closed form when it is one, else None (OSQP's turn).
+
+    ``terms``: the tick's :class:`~controllers.safety.barrier.BarrierTerms`; ``values`` (K,) its
+    rows times ``a``; ``lower`` (K,) the tightened bounds ``c_k``; ``a`` (N, 2) the clipped
+    nominal. The answer of :func:`separable_answer` is accepted only when it meets every row and
+    every octagon, i.e. lies in F (module docstring)."""
+    u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, values, lower, a, a_box)
+    if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, a_box).all():
+        return None
+    return u
+
+
+__all__ = ["inside_octagon", "octagon_vertices", "project_octagon", "projected_optimum", "row_robots",
+           "separable_answer"]

@@ -15,6 +15,7 @@ from controllers.safety.barrier import BarrierTerms
 from controllers.safety.projection import (
     inside_octagon,
     project_octagon,
+    projected_optimum,
     row_robots,
     separable_answer,
 )
@@ -100,10 +101,7 @@ A_BOX = 0.95
 
 def accepted(terms: BarrierTerms, a: np.ndarray, lower: np.ndarray) -> np.ndarray | None:
     """The projection when it passes the filter's acceptance test (every row, every octagon)."""
-    u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, terms.rows_times(a), lower, a, A_BOX)
-    if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, A_BOX).all():
-        return None
-    return u
+    return projected_optimum(terms, terms.rows_times(a), lower, a, A_BOX)
 
 
 @settings(max_examples=300, deadline=None)
