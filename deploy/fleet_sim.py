@@ -8,8 +8,9 @@ the acceleration chosen by its own watchdog (below).
 Pacing:
     * real time: one tick every ``1 / rate_hz`` seconds of wall time;
     * lock-step (tests): after publishing the states of tick k, wait until every online robot
-      holds a command answering its state of tick k (``state_seq``), or ``lockstep_timeout_s``;
-      then advance. Deterministic when the controller is. States are published lossless
+      holds a command answering its state of tick k (``state_seq``) and has seen the
+      controller's liveliness token (a link opened this tick learns of it on another Zenoh
+      thread; a command taken before would be ignored), or ``lockstep_timeout_s``; then advance. Deterministic when the controller is. States are published lossless
       (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none, and
       carry the STATE flag LOCKSTEP, so a bridge sends its commands lossless too; run the
       controller lock-stepped as well (``bridge --lockstep``: sim time).
@@ -377,7 +378,7 @@ class FleetSim:
             if link is None or seq is None:
                 continue
             ok = link.wait_for(lambda lk=link, s=seq: lk.latest_command is not None
-                               and lk.latest_command.msg.state_seq >= s,
+                               and lk.latest_command.msg.state_seq >= s and lk.controller_alive,
                                max(0.0, deadline - time.monotonic()))
             if not ok:
                 self.lockstep_timeouts += 1

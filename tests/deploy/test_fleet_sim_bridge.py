@@ -216,6 +216,8 @@ def test_a_robot_that_leaves_in_the_others_path_and_rejoins_is_never_touched(tmp
     assert touches == 0 and closest >= TOUCH, (touches, closest)
     modes = [t["applied"][2] for t in sim["trace"]]
     assert modes[100] == "stop" and modes[101] == "run"   # re-armed (FAULT -> STOP) and driving
+    # the rejoined link heard the controller's token before its first answer was taken
+    assert sim["ignored_without_controller"] == 0 and sim["lockstep_timeouts"] == 0
     assert bridge["rearms"] >= 1
     path = np.array([t["positions"][2] for t in sim["trace"][100:]])
     assert np.linalg.norm(path - path[0], axis=1).max() > 0.01   # it moves again
