@@ -1,8 +1,9 @@
 """``formation``: the command line of formation-stack.
 
 Each subcommand lives in its own module under :mod:`stack.commands` and exposes
-``register(subparsers)``, which adds its parser and sets ``func`` to the handler
-``func(args) -> int`` (the exit code).
+``register(subparsers)``, which adds its parser (its one-line help comes from :data:`COMMANDS`)
+and sets ``func`` to the handler ``func(args) -> int`` (the exit code). Only the module of the
+command being run is imported.
 """
 
 from __future__ import annotations
@@ -11,20 +12,23 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = [
-    "stack.commands.scenarios",
-    "stack.commands.demo",
-    "stack.commands.export",
-    "stack.commands.fleet_sim",
-    "stack.commands.bridge",
-    "stack.commands.certs",
-    "stack.commands.estop",
-    "stack.commands.router",
-    "stack.commands.eval",
-    "stack.commands.train",
-    "stack.commands.sweep",
-    "stack.commands.plot",
-]
+COMMANDS: dict[str, tuple[str, str]] = {
+    "scenarios": ("stack.commands.scenarios", "list the scenario presets (or show one with --show NAME)"),
+    "demo": ("stack.commands.demo", "train, transfer, export and run a fleet over Zenoh; write a report"),
+    "export": ("stack.commands.export", "export a trained actor as verified policy files"),
+    "fleet-sim": ("stack.commands.fleet_sim", "run the pymunk world as robots over Zenoh"),
+    "bridge": ("stack.commands.bridge", "run the controller of a fleet over Zenoh"),
+    "certs": ("stack.commands.certs", "make the fleet CA and node certificates (mutual TLS)"),
+    "estop": ("stack.commands.estop", "engage, release or query a running bridge's fleet e-stop"),
+    "router": ("stack.commands.router", "run the fleet's Zenoh router (mutual TLS, access control)"),
+    "eval": ("stack.commands.eval", "evaluate a checkpoint, an exported policy or the scripted controller"),
+    "train": ("stack.commands.train", "train a policy (SDPA-MAPPO by default) on a scenario"),
+    "sweep": ("stack.commands.sweep", "train a grid of configs x seeds on Ray Tune"),
+    "plot": ("stack.commands.plot", "plot training curves, trajectories and attention of runs as PNG"),
+}
+"""Subcommand -> (its module, its one-line help). A module is imported only when its command
+runs (or for :func:`build_parser` with no command): most import torch, ~3 s, and an operator's
+``formation estop --engage`` should not wait for that."""
 
 DESCRIPTION = """\
 formation-stack: SDPA-MAPPO formation change for cooperative multi-robot transport,
@@ -35,7 +39,10 @@ Start with `formation scenarios` to see the task presets.
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None, *, every: bool = True) -> argparse.ArgumentParser:
+    """The ``formation`` parser with ``command``'s options in full (its module imported).
+    The other commands get their one-line help only, unless ``every`` (then every module is
+    imported: every command complete)."""
     parser = argparse.ArgumentParser(prog="formation", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -44,16 +51,26 @@ def build_parser() -> argparse.ArgumentParser:
     def add_command(name: str, **kwargs) -> argparse.ArgumentParser:
         # each command's description is its module docstring: keep its lines and examples
         kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
-        return add_parser(name, **kwargs)
+        return add_parser(name, help=COMMANDS[name][1], **kwargs)
 
     sub.add_parser = add_command
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    for name, (module, _) in COMMANDS.items():
+        if every or name == command:
+            importlib.import_module(module).register(sub)
+        else:
+            add_command(name, add_help=False)
     return parser
 
 
+def _command(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names (the first word that is not an option), if it is one."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(_command(argv), every=False)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

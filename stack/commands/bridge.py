@@ -77,8 +77,7 @@ class ScriptedFleetController:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bridge", help="run the controller of a fleet over Zenoh",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("bridge", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     d = BridgeConfig()
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="preset, transport-N or a .json/.toml scenario file (default paper-5)")

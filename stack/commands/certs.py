@@ -19,8 +19,7 @@ from sim.scenario import make_scenario
 
 
 def register(sub) -> None:
-    p = sub.add_parser("certs", help="make the fleet CA and node certificates (mutual TLS)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("certs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="folder for ca.pem/.key and <node>.pem/.key")
     p.add_argument("--scenario", default="paper-5",
                    help="robots r0..r{N-1} of this preset or scenario file (default paper-5)")

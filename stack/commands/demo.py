@@ -39,8 +39,7 @@ OPTION_FIELDS = {"seed": "seed", "budget_3": "budget_3", "budget_5": "budget_5",
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="train, transfer, export and run a fleet over Zenoh; write a report",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/demo-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out, skipping finished stages")
     p.add_argument("--quick", action="store_true", help="reduced run for CI (tiny budgets, 2 fleet episodes)")

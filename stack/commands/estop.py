@@ -23,8 +23,7 @@ from stack.commands import argtypes
 
 
 def register(sub) -> None:
-    p = sub.add_parser("estop", help="engage, release or query a running bridge's fleet e-stop",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("estop", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--engage", action="store_const", const="engage", dest="request",

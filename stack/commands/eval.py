@@ -45,8 +45,7 @@ class EvalArgumentError(ValueError):
 
 
 def register(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a checkpoint, an exported policy or the scripted controller",
-                       description=__doc__)
+    p = sub.add_parser("eval", description=__doc__)
     p.add_argument("policy_path", nargs="?", metavar="POLICY_FILE",
                    help="a training checkpoint or an exported policy (.pt, .pt2, .onnx)")
     p.add_argument("--policy", choices=["scripted"], default=None,

@@ -29,8 +29,7 @@ def _formats(text: str) -> tuple[str, ...]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("export", help="export a trained actor as verified policy files",
-                       description=__doc__)
+    p = sub.add_parser("export", description=__doc__)
     p.add_argument("checkpoint", type=Path, nargs="?", help="training checkpoint (checkpoint.pt)")
     p.add_argument("--out", type=Path, default=None,
                    help="output stem: 'policy' (or 'policy.pt') writes policy.<suffix> per format")

@@ -43,8 +43,7 @@ def _event(kind: str):
 
 
 def register(sub) -> None:
-    p = sub.add_parser("fleet-sim", help="run the pymunk world as robots over Zenoh",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("fleet-sim", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="preset, transport-N or a .json/.toml scenario file (default paper-5)")
     pace = p.add_mutually_exclusive_group()

@@ -25,8 +25,7 @@ from stack.commands import argtypes
 
 
 def register(sub) -> None:
-    p = sub.add_parser("plot", help="plot training curves, trajectories and attention of runs as PNG",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("plot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="run folders of `formation train`")
     p.add_argument("--labels", nargs="+", metavar="LABEL",
                    help="legend label per RUN_DIR (default: the folder names)")

@@ -29,8 +29,7 @@ from sim.scenario import make_scenario
 
 
 def register(sub) -> None:
-    p = sub.add_parser("router", help="run the fleet's Zenoh router (mutual TLS, access control)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="its robots r0..r{N-1} (default paper-5)")
     p.add_argument("--robots", default=None, metavar="A,B,...", help="robot ids instead")

@@ -15,8 +15,7 @@ from sim.scenario import PRESETS, ScenarioError, make_scenario
 
 
 def register(sub) -> None:
-    p = sub.add_parser("scenarios", help="list the scenario presets (or show one with --show NAME)",
-                       description="List the formation-change presets. transport-N gives the default "
+    p = sub.add_parser("scenarios", description="List the formation-change presets. transport-N gives the default "
                                    "layout for any N in 1..21.")
     p.add_argument("--show", metavar="NAME", help="print one preset (or transport-N) as JSON")
     p.add_argument("--show-distribution", metavar="NAME",

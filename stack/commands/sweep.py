@@ -55,8 +55,7 @@ def seeds_arg(text: str) -> list[int]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("sweep", help="train a grid of configs x seeds on Ray Tune",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("sweep", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", metavar="FILE_OR_JSON", default=None,
                    help="base MAPPOConfig fields: a .json/.toml file or inline JSON (default: defaults)")
     p.add_argument("--grid", action="append", default=[], metavar="KEY=V1,V2",

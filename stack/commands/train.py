@@ -43,8 +43,7 @@ from stack.commands import argtypes
 
 
 def register(sub) -> None:
-    p = sub.add_parser("train", help="train a policy (SDPA-MAPPO by default) on a scenario",
-                       description=__doc__)
+    p = sub.add_parser("train", description=__doc__)
     p.add_argument("--algo", choices=ALGOS, default=None,
                    help="the learner: SDPA-/MLP-MAPPO (default) or a baseline (default: the "
                         "--config file's \"algo\", or on --resume the run's)")

@@ -36,3 +36,35 @@ def test_help_keeps_the_examples_of_the_command_docstring_on_their_own_lines(com
     first, *rest = [line for line in doc.strip().splitlines() if line.strip()]
     assert first in text
     assert all(line.rstrip() in text for line in rest[:4])
+
+
+def test_a_command_imports_only_its_own_module():
+    """`formation estop` (an operator stopping a fleet) and `formation --help` start without
+    importing torch (~3 s): only the module of the command being run is imported."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from stack.cli import main\n"
+            "for argv in ({argv}):\n"
+            "    try: main(argv)\n"
+            "    except SystemExit: pass\n"
+            "print(sorted(m for m in ('torch', 'stack.commands.train', 'stack.commands.estop') if m in sys.modules))")
+    def imported(*argvs: list[str]) -> str:
+        done = subprocess.run([sys.executable, "-c", code.format(argv=", ".join(map(repr, argvs)) + ",")],
+                              capture_output=True, text=True, check=True)
+        return done.stdout.splitlines()[-1]
+
+    assert imported(["--help"]) == "[]"
+    assert imported(["estop", "--help"]) == "['stack.commands.estop']"
+    assert imported(["train", "--help"]) == "['stack.commands.train', 'torch']"
+
+
+def test_the_top_level_help_lists_every_command_with_its_line(capsys):
+    from stack.cli import COMMANDS
+
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for name, (_, line) in COMMANDS.items():
+        assert f"{name} {line}" in text
