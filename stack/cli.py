@@ -26,9 +26,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sweep": ("stack.commands.sweep", "train a grid of configs x seeds on Ray Tune"),
     "plot": ("stack.commands.plot", "plot training curves, trajectories and attention of runs as PNG"),
 }
-"""Subcommand -> (its module, its one-line help). A module is imported only when its command
-runs (or for :func:`build_parser` with no command): most import torch, ~3 s, and an operator's
-``formation estop --engage`` should not wait for that."""
+"""Subcommand -> (its module, its one-line help). :func:`main` imports only the module of the
+command it runs: most import torch (~3 s), and an operator's ``formation estop --engage`` should
+not wait for that."""
 
 DESCRIPTION = """\
 formation-stack: SDPA-MAPPO formation change for cooperative multi-robot transport,
