@@ -10,7 +10,8 @@ Pacing:
     * lock-step (tests): after publishing the states of tick k, wait until every online robot
       holds a command answering its state of tick k (``state_seq``) and has seen the
       controller's liveliness token (a link opened this tick learns of it on another Zenoh
-      thread; a command taken before would be ignored), or ``lockstep_timeout_s``; then advance. Deterministic when the controller is. States are published lossless
+      thread; a command taken before would be ignored), or ``lockstep_timeout_s``; then
+      advance. Deterministic when the controller is. States are published lossless
       (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none, and
       carry the STATE flag LOCKSTEP, so a bridge sends its commands lossless too; run the
       controller lock-stepped as well (``bridge --lockstep``: sim time).

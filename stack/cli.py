@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from collections.abc import Collection
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "scenarios": ("stack.commands.scenarios", "list the scenario presets (or show one with --show NAME)"),
@@ -39,10 +40,9 @@ Start with `formation scenarios` to see the task presets.
 """
 
 
-def build_parser(command: str | None = None, *, every: bool = True) -> argparse.ArgumentParser:
-    """The ``formation`` parser with ``command``'s options in full (its module imported).
-    The other commands get their one-line help only, unless ``every`` (then every module is
-    imported: every command complete)."""
+def build_parser(full: Collection[str] = tuple(COMMANDS)) -> argparse.ArgumentParser:
+    """The ``formation`` parser; the commands named in ``full`` (default: every one) get their
+    options in full (their modules imported), the others their one-line help only."""
     parser = argparse.ArgumentParser(prog="formation", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -55,22 +55,22 @@ def build_parser(command: str | None = None, *, every: bool = True) -> argparse.
 
     sub.add_parser = add_command
     for name, (module, _) in COMMANDS.items():
-        if every or name == command:
+        if name in full:
             importlib.import_module(module).register(sub)
         else:
             add_command(name, add_help=False)
     return parser
 
 
-def _command(argv: list[str]) -> str | None:
+def _named_command(argv: list[str]) -> tuple[str, ...]:
     """The subcommand ``argv`` names (the first word that is not an option), if it is one."""
     word = next((a for a in argv if not a.startswith("-")), None)
-    return word if word in COMMANDS else None
+    return (word,) if word in COMMANDS else ()
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    parser = build_parser(_command(argv), every=False)
+    parser = build_parser(_named_command(argv))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
