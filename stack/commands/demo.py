@@ -6,7 +6,10 @@
     3 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
     4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
                 MEC) as separate processes on loopback Zenoh for --episodes episodes
-    5 report    report.md, report.html (figures embedded), metrics.json
+    5 generalist  one policy trained on 3, 4 and 5 robots at once (budget --budget-generalist),
+                its zero-shot table on 1..8 robots, exported as generalist/policy.onnx
+    6 fleet-unseen  the fleet stage with the generalist on 6 robots, a team size it never saw
+    7 report    report.md, report.html (figures embedded), metrics.json
 
 Convergence: evaluations of 100 deterministic episodes at least every 50 training episodes; the
 first with success >= 0.9 whose next one is also >= 0.9. Everything goes into --out (default
@@ -35,7 +38,7 @@ from stack.demo.state import (
 )
 
 OPTION_FIELDS = {"seed": "seed", "budget_3": "budget_3", "budget_5": "budget_5",
-                 "episodes": "fleet_episodes"}
+                 "budget_generalist": "budget_generalist", "episodes": "fleet_episodes"}
 
 
 def register(sub) -> None:
@@ -47,6 +50,9 @@ def register(sub) -> None:
                    help=f"episode cap of paper-3 training (default {FULL.budget_3}; quick {QUICK.budget_3})")
     p.add_argument("--budget-5", type=int, default=None, metavar="EPISODES",
                    help=f"episode cap of the 5-robot transfer (default {FULL.budget_5}; quick {QUICK.budget_5})")
+    p.add_argument("--budget-generalist", type=int, default=None, metavar="EPISODES",
+                   help=f"episode cap of the generalist (3, 4 and 5 robots at once; default "
+                        f"{FULL.budget_generalist}; quick {QUICK.budget_generalist})")
     p.add_argument("--episodes", type=int, default=None,
                    help=f"fleet episodes over Zenoh (default {FULL.fleet_episodes}; quick {QUICK.fleet_episodes})")
     p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
@@ -92,6 +98,10 @@ def run_stage(name: str, book: StageBook, children: Children) -> dict:
         return stages.export_stage(settings, out)
     if name == "fleet":
         return fleet.fleet_stage(settings, out, children)
+    if name == "generalist":
+        return stages.generalist_stage(settings, out)
+    if name == "fleet-unseen":
+        return fleet.unseen_fleet_stage(settings, out, children)
     if name == "report":
         return report.report_stage(book)
     raise ValueError(name)
@@ -113,8 +123,8 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     s = book.settings
-    print(f"formation demo -> {out}{' (quick)' if s.quick else ''}: budgets {s.budget_3} / {s.budget_5} "
-          f"episodes, {s.fleet_episodes} fleet episodes, seed {s.seed}", flush=True)
+    print(f"formation demo -> {out}{' (quick)' if s.quick else ''}: budgets {s.budget_3} / {s.budget_5} / "
+          f"{s.budget_generalist} episodes, {s.fleet_episodes} fleet episodes, seed {s.seed}", flush=True)
     children = Children()
     current = None
     with interrupt_guard(children):
@@ -148,10 +158,11 @@ def run(args) -> int:
 
 def print_summary(book: StageBook) -> None:
     """The table of the run and where its files are."""
-    from stack.demo.report import build_metrics, convergence_sentences
+    from stack.demo.report import build_metrics, convergence_sentences, zero_shot_line
 
     m = build_metrics(book, complete=True)
     t3, t5, ex, fl = m["train"]["3"], m["train"]["5"], m["export"], m["fleet"]
+    tg, fu = m["train"]["generalist"], m["fleet_unseen"]
 
     def conv(t):
         return str(t["converged_episode"]) if t["converged"] else f"not converged ({t['budget']} cap)"
@@ -174,7 +185,12 @@ def print_summary(book: StageBook) -> None:
             ("fleet safety interventions [ticks]", str(fl["interventions"]), "-"),
             ("fleet MEC tracking error [mm]", mm(fl["tracking_error_m"]), "-"),
             ("fleet tick time p50 / p99 [ms]", ms(fl["tick_ms"]), "-"),
-            ("fleet Zenoh round trip p50 / p99 [ms]", ms(fl["round_trip_ms"]), "-")]
+            ("fleet Zenoh round trip p50 / p99 [ms]", ms(fl["round_trip_ms"]), "-"),
+            ("generalist (3-5 robots) converged episode", conv(tg), "-"),
+            ("generalist zero-shot success by N", zero_shot_line(m["zero_shot_table"]), "-"),
+            (f"generalist fleet on unseen {fu['scenario']}: success", f"{fu['success_rate']:.2f} of {fu['episodes']}", "-"),
+            (f"generalist fleet on unseen {fu['scenario']}: collisions", str(fu["collisions"]), "-"),
+            (f"generalist fleet on unseen {fu['scenario']}: final distance [mm]", mm(fu["final_distance"]), "-")]
     w = max(len(r[0]) for r in rows)
     v = max(len(r[1]) for r in rows)
     print()
@@ -186,4 +202,5 @@ def print_summary(book: StageBook) -> None:
         print(sentence)
     out = book.out
     print(f"\nreport:   {out / 'report.md'}\n          {out / 'report.html'}\nmetrics:  {out / 'metrics.json'}\n"
-          f"policy:   {out / ex['policy']}\ncheckpoints: {out / t3['checkpoint']}, {out / t5['checkpoint']}")
+          f"policy:   {out / ex['policy']}, generalist: {out / tg['export']['policy']}\n"
+          f"checkpoints: {out / t3['checkpoint']}, {out / t5['checkpoint']}, {out / tg['checkpoint']}")

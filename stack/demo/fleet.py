@@ -1,9 +1,13 @@
-"""Fleet stage: `fleet-sim` and `bridge` as separate processes over loopback Zenoh.
+"""Fleet stages: `fleet-sim` and `bridge` as separate processes over loopback Zenoh.
 
-    fleet-sim  pymunk world of paper-5 with model error (MODEL_ERROR), lock-step, --episodes K,
+    fleet-sim  pymunk world with model error (:func:`model_error`), lock-step, --episodes K,
                listening on tcp/127.0.0.1:<free port>, multicast scouting off
     bridge     ControlStack(policy.onnx -> barrier-QP safety filter -> Kalman MEC), connecting
                to it, --episode-ticks T (the stack is reset at each episode)
+
+Stage ``fleet`` runs the 5-robot policy (``policy.onnx``) on paper-5; stage ``fleet-unseen``
+runs the generalist (``generalist/policy.onnx``, trained on 3-5 robots) on a team size it never
+trained on (:data:`stack.demo.stages.UNSEEN_ROBOTS`, the default layout of that size).
 
 The fleet-sim ends by itself after K episodes (one JSON line per finished episode feeds the
 progress bar); the bridge is then stopped with SIGTERM (its clean path: loop stopped, Zenoh
@@ -32,10 +36,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from stack.demo.stages import POLICY
+from stack.demo.stages import GENERALIST_DIR, POLICY, UNSEEN_ROBOTS
 from stack.demo.state import Children, DemoError, DemoSettings
 
 SCENARIO = "paper-5"
+UNSEEN_SCENARIO = f"transport-{UNSEEN_ROBOTS}"
+UNSEEN_DIR = "fleet-unseen"
 START_TIMEOUT_S = 180.0    # interpreter + torch + policy start-up on a loaded machine
 EPISODE_STALL_S = 300.0    # no episode finished for this long: something is wrong
 LOCKSTEP_TIMEOUT_S = 0.25  # per tick; a missing answer is counted (lockstep_timeouts)
@@ -85,16 +91,18 @@ def _pump(stream, log_path: Path, lines: queue.Queue) -> None:
                     pass
 
 
-def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[str, Any]:
-    """Run ``settings.fleet_episodes`` episodes over Zenoh; return the merged result."""
+def fleet_stage(settings: DemoSettings, out: Path, children: Children, *, scenario: str = SCENARIO,
+                policy: str = POLICY, folder_name: str = "fleet") -> dict[str, Any]:
+    """Run ``settings.fleet_episodes`` episodes of ``scenario`` over Zenoh with the exported
+    ``policy`` (relative to ``out``), files into ``out / folder_name``; return the merged result."""
     from deploy.network import free_tcp_port
     from sim.scenario import make_scenario
 
-    folder = out / "fleet"
+    folder = out / folder_name
     folder.mkdir(parents=True, exist_ok=True)
     for name in ("sim.json", "bridge.json"):   # from an interrupted attempt
         (folder / name).unlink(missing_ok=True)
-    dynamics = make_scenario(SCENARIO).dynamics
+    dynamics = make_scenario(scenario).dynamics
     ticks = dynamics.episode_steps
     episodes = settings.fleet_episodes
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -103,7 +111,7 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[s
     me = model_error()
     lines: queue.Queue = queue.Queue()
     sim = children.spawn(
-        cli + ["fleet-sim", "--fleet", fleet, "--scenario", SCENARIO, "--lockstep",
+        cli + ["fleet-sim", "--fleet", fleet, "--scenario", scenario, "--lockstep",
                "--episodes", str(episodes), "--seed", str(settings.seed), "--listen", endpoint,
                "--model-error", json.dumps(dataclasses.asdict(me)),
                "--lockstep-timeout", str(LOCKSTEP_TIMEOUT_S), "--start-timeout", str(START_TIMEOUT_S),
@@ -113,12 +121,12 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[s
     pump.start()
     with (folder / "bridge.log").open("w") as bridge_log:
         bridge = children.spawn(
-            cli + ["bridge", "--fleet", fleet, "--scenario", SCENARIO, "--policy", str(out / POLICY),
+            cli + ["bridge", "--fleet", fleet, "--scenario", scenario, "--policy", str(out / policy),
                    "--connect", endpoint, "--episode-ticks", str(ticks), "--lockstep",
                    "--report", str(folder / "bridge.json")],
             stdout=bridge_log, stderr=subprocess.STDOUT)
     finished: list[dict] = []
-    with tqdm(total=episodes, unit="ep", desc=f"fleet over Zenoh ({SCENARIO}, pymunk)",
+    with tqdm(total=episodes, unit="ep", desc=f"fleet over Zenoh ({scenario}, pymunk)",
               dynamic_ncols=True) as bar:
         def take(record: dict) -> None:
             finished.append(record)
@@ -162,10 +170,17 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[s
     children.forget(bridge)
     sim_report = json.loads((folder / "sim.json").read_text())
     bridge_report = json.loads((folder / "bridge.json").read_text())
-    result = merge_reports(sim_report, bridge_report, episodes, ticks, dataclasses.asdict(me))
+    result = merge_reports(sim_report, bridge_report, episodes, ticks, dataclasses.asdict(me),
+                           scenario=scenario, policy=policy, folder_name=folder_name)
     result["tracking_noise_floor_m"] = tracking_noise_floor(result["model_error"], dynamics.dt,
                                                            dynamics.damping)
     return result
+
+
+def unseen_fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[str, Any]:
+    """The generalist's exported policy on :data:`UNSEEN_SCENARIO`, a team size it never trained on."""
+    return fleet_stage(settings, out, children, scenario=UNSEEN_SCENARIO, policy=f"{GENERALIST_DIR}/{POLICY}",
+                       folder_name=UNSEEN_DIR)
 
 
 def _pct(records: list[dict], key: str, which: str) -> float | None:
@@ -175,8 +190,8 @@ def _pct(records: list[dict], key: str, which: str) -> float | None:
     return float(np.median(values)) if which == "p50" else float(np.max(values))
 
 
-def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int,
-                  model_error: dict) -> dict[str, Any]:
+def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int, model_error: dict, *,
+                  scenario: str = SCENARIO, policy: str = POLICY, folder_name: str = "fleet") -> dict[str, Any]:
     """Per-episode rows from the fleet-sim (judged on the true state) and the bridge (the
     stack's counters), and their totals. Latency: median of the episodes' p50, worst p99."""
     by_index = {r["episode"]: r for r in bridge.get("episodes", [])}
@@ -196,8 +211,8 @@ def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int,
         raise DemoError(f"the fleet-sim reported {len(rows)} episodes, {episodes} were asked for")
     tracking = [r["tracking_error_m"] for r in rows if r["tracking_error_m"] is not None]
     return {
-        "episodes": len(rows), "scenario": SCENARIO, "world": "pymunk", "model_error": model_error,
-        "policy": POLICY, "safety": True, "mec": True, "episode_ticks": ticks,
+        "episodes": len(rows), "scenario": scenario, "world": "pymunk", "model_error": model_error,
+        "policy": policy, "safety": True, "mec": True, "episode_ticks": ticks,
         "success_rate": float(np.mean([r["success"] for r in rows])),
         "final_distance": float(np.mean([r["final_distance"] for r in rows])),
         "collisions": int(sum(r["collisions"] for r in rows)),
@@ -212,9 +227,9 @@ def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int,
                                                "stale_marks", "rejects")},
         "sim_rejects": sim.get("rejects"),
         "per_episode": rows,
-        "reports": {"sim": "fleet/sim.json", "bridge": "fleet/bridge.json",
-                    "logs": ["fleet/sim.log", "fleet/bridge.log"]},
+        "reports": {"sim": f"{folder_name}/sim.json", "bridge": f"{folder_name}/bridge.json",
+                    "logs": [f"{folder_name}/sim.log", f"{folder_name}/bridge.log"]},
     }
 
 
-__all__ = ["SCENARIO", "fleet_stage", "merge_reports", "model_error", "tracking_noise_floor"]
+__all__ = ["SCENARIO", "UNSEEN_DIR", "UNSEEN_SCENARIO", "fleet_stage", "unseen_fleet_stage", "merge_reports", "model_error", "tracking_noise_floor"]

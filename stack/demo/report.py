@@ -3,14 +3,18 @@
 ``metrics.json`` is rewritten after every stage (``"complete": false`` until the report stage),
 so a stopped run keeps what it measured. Its keys (numbers as in ``stages.json``)::
 
-    train.{"3","5"}   converged_episode (None: not converged), converged, success (last
-                      evaluation's success rate), final_distance [m], episodes, budget, ...
+    train.{"3","5","generalist"}  converged_episode (None: not converged), converged, success
+                      (last evaluation's success rate), final_distance [m], episodes, budget,
+                      ...; the generalist's also export {policy, max_abs_diff, verified}
     zero_shot_3to5    success rate of the 3-robot policy on paper-5 without training
     zero_shot         its details (episodes, final distance, seed)
     export            verified, files by format, max_abs_diff (max |file - eager|, and by format), ...
     fleet             episodes, success_rate, final_distance [m], collisions (onsets),
                       interventions (ticks the safety filter changed a command),
                       tracking_error_m, tick_ms / round_trip_ms {p50, p99}, per_episode [...]
+    zero_shot_table   the generalist on 1..8 robots: [{robots, trained, success, collision_rate,
+                      final_distance, episodes}, ...]
+    fleet_unseen      as ``fleet``, the generalist on a team size it never trained on
     paper             the paper's numbers (PAPER)
 
 The report is one list of blocks rendered twice: Markdown (figures linked as PNG files beside
@@ -35,7 +39,7 @@ from stack.demo.state import STAGES, StageBook, write_atomic, write_json
 METRICS_FORMAT = "formation-stack/demo-metrics"
 PAPER_SUCCESS = "all robots reach their targets (Figs. 11-13, 19-20)"
 FIGURES = {"curves": "training_curves.png", "trajectories": "fleet_trajectories.png",
-           "attention": "attention.png"}
+           "attention": "attention.png", "unseen": "fleet_unseen_trajectories.png"}
 
 # The paper (Accelerated Transfer Learning for Cooperative Transportation Formation Change via
 # SDPA-MAPPO): Table 1, Table 2, Sections 3.2 and 4.4.
@@ -73,10 +77,13 @@ def build_metrics(book: StageBook, *, complete: bool = False) -> dict[str, Any]:
             if shot is not None:
                 metrics["zero_shot_3to5"] = shot["success"]
                 metrics["zero_shot"] = shot
-    if book.done("export"):
-        metrics["export"] = book.result("export")
-    if book.done("fleet"):
-        metrics["fleet"] = book.result("fleet")
+    if book.done("generalist"):
+        result = dict(book.result("generalist"))
+        metrics["zero_shot_table"] = result.pop("zero_shot_table")
+        metrics["train"]["generalist"] = result
+    for stage, key in (("export", "export"), ("fleet", "fleet"), ("fleet-unseen", "fleet_unseen")):
+        if book.done(stage):
+            metrics[key] = book.result(stage)
     return metrics
 
 
@@ -87,15 +94,15 @@ def save_metrics(book: StageBook, *, complete: bool = False) -> Path:
 
 
 # ------------------------------------------------------------------ figures
-def fleet_trajectories(out: Path):
-    """:class:`stack.plots.Trajectories` of the fleet episodes (true positions, fleet/sim.json)."""
+def fleet_trajectories(out: Path, folder: str = "fleet"):
+    """:class:`stack.plots.Trajectories` of a fleet stage's episodes (true positions, ``folder/sim.json``)."""
     import json
 
     import numpy as np
 
     from stack.plots import Trajectories
 
-    episodes = json.loads((out / "fleet" / "sim.json").read_text())["episodes"]
+    episodes = json.loads((out / folder / "sim.json").read_text())["episodes"]
     return Trajectories(positions=np.asarray([e["positions"] for e in episodes], dtype=np.float64),
                         contacts=np.asarray([e["contacts"] for e in episodes], dtype=bool),
                         success=np.asarray([e["success"] for e in episodes]),
@@ -105,10 +112,10 @@ def fleet_trajectories(out: Path):
 
 
 def make_figures(book: StageBook) -> dict[str, Path]:
-    """The three PNG files of the report (training curves, fleet paths, attention)."""
+    """The PNG files of the report (training curves, fleet paths, attention, the unseen fleet's paths)."""
     from controllers.mappo import load_actor
     from sim.scenario import make_scenario
-    from stack.demo.fleet import SCENARIO
+    from stack.demo.fleet import SCENARIO, UNSEEN_DIR
     from stack.plots import (
         attention_snapshot,
         plot_attention,
@@ -118,10 +125,11 @@ def make_figures(book: StageBook) -> dict[str, Path]:
 
     out = book.out
     paths = {key: out / name for key, name in FIGURES.items()}
-    with tqdm(total=3, unit="fig", desc="report figures", dynamic_ncols=True) as bar:
+    with tqdm(total=len(FIGURES), unit="fig", desc="report figures", dynamic_ncols=True) as bar:
         plot_training_curves({"paper-3 from scratch": out / "train-3",
-                              "paper-5 transfer from paper-3": out / "train-5"}, paths["curves"],
-                             title="SDPA-MAPPO training: 3 robots from scratch, then transfer to 5")
+                              "paper-5 transfer from paper-3": out / "train-5",
+                              "generalist: 3, 4 and 5 robots at once": out / "train-generalist"}, paths["curves"],
+                             title="SDPA-MAPPO training: 3 robots from scratch, transfer to 5, the generalist")
         bar.update(1)
         scenario = make_scenario(SCENARIO)
         fleet = book.result("fleet")
@@ -135,6 +143,11 @@ def make_figures(book: StageBook) -> dict[str, Path]:
         plot_attention(weights, labels, paths["attention"],
                        title=f"Attention of the 5-robot policy at step {step} "
                              f"({step * scenario.dynamics.dt:g} s) of an episode")
+        bar.update(1)
+        unseen = book.result("fleet-unseen")
+        plot_trajectories(fleet_trajectories(out, UNSEEN_DIR), make_scenario(unseen["scenario"]), paths["unseen"],
+                          title=f"The generalist (trained on 3-5 robots) on {unseen['scenario']}, never seen: "
+                                f"pymunk with model error, over Zenoh ({unseen['episodes']} episodes)")
         bar.update(1)
     return paths
 
@@ -174,11 +187,17 @@ def _ms(d: dict | None) -> str:
     return f"{d['p50']:.2f} / {d['p99']:.2f} ms"
 
 
+def zero_shot_line(table: list[dict]) -> str:
+    """``N: success`` for each row of the generalist's table, ``*`` on the trained sizes."""
+    return ", ".join(f"{r['robots']}{'*' if r['trained'] else ''}: {r['success']:.2f}" for r in table)
+
+
 def convergence_sentences(metrics: dict) -> list[str]:
     """Plain statements of what converged and what did not."""
     out = []
-    names = {"3": "SDPA-MAPPO on paper-3 (from scratch)", "5": "the transfer to paper-5"}
-    for robots in ("3", "5"):
+    names = {"3": "SDPA-MAPPO on paper-3 (from scratch)", "5": "the transfer to paper-5",
+             "generalist": "the generalist (3, 4 and 5 robots at once)"}
+    for robots in ("3", "5", "generalist"):
         t = metrics["train"][robots]
         thr = t["success_threshold"]
         if t["converged"]:
@@ -241,6 +260,13 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
         ["fleet: MEC tracking error (mean one-tick position error)", tracking, paper_fleet],
         ["fleet: ControlStack tick time p50 / p99", _ms(fl["tick_ms"]), paper_fleet],
         ["fleet: Zenoh round trip per tick p50 / p99", _ms(fl["round_trip_ms"]), paper_fleet],
+        ["generalist (3, 4 and 5 robots at once): episodes to convergence",
+         _converged(metrics["train"]["generalist"]), "— (not in the paper)"],
+        ["generalist: zero-shot success by team size (* trained)", zero_shot_line(metrics["zero_shot_table"]),
+         "— (not in the paper)"],
+        [f"generalist fleet on {metrics['fleet_unseen']['scenario']} (never trained): success / collisions",
+         f"{_rate(metrics['fleet_unseen']['success_rate'])} / {metrics['fleet_unseen']['collisions']} "
+         f"({metrics['fleet_unseen']['episodes']} episodes)", "— (not in the paper)"],
     ]
     blocks += [("h2", "Summary: ours beside the paper"), ("table", ["quantity", "ours", "paper"], rows)]
     blocks += [
@@ -276,12 +302,9 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
               "measurement noise alone gives the noise floor, so an error near it means the robots "
               "move as the nominal model does. Lock-step timeouts (a tick whose answer "
               f"did not arrive within the timeout): {fl['lockstep_timeouts']}."),
-        ("table", ["episode", "seed", "success", "final distance", "collisions", "interventions",
-                   "tracking error", "tick p50 / p99", "round trip p50 / p99"],
-         [[str(r["episode"]), str(r["seed"]), _num(r["success"]), _mm(r["final_distance"]),
-           str(r["collisions"]), _num(r["interventions"]), _mm(r["tracking_error_m"]),
-           _ms(r["tick_ms"]), _ms(r["round_trip_ms"])] for r in fl["per_episode"]]),
+        _episode_table(fl),
         ("img", figures["trajectories"], "Robot paths of the fleet episodes (true positions)"),
+        *generalist_blocks(metrics, figures),
         ("h2", "Attention"),
         ("p", "Attention weights of each robot (rows) over its tokens (own state, targets G, other "
               "robots R, object O) for the 5-robot policy, mean over heads and per head."),
@@ -291,6 +314,8 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
                 "train-3/, train-5/: run folders (config.json, train/eval logs, checkpoint.pt)",
                 f"{', '.join(ex['files'].values())}, {ex['golden']}: the exported policy and its golden file",
                 "fleet/: sim.json, bridge.json (per-episode reports), sim.log, bridge.log",
+                "train-generalist/: the generalist's run folder; generalist/: its exported policy.onnx "
+                "and golden file; fleet-unseen/: its fleet stage's reports and logs",
                 ", ".join(FIGURES.values()) + ": the figures"]),
         ("h2", "Stage times"),
         ("table", ["stage", "wall time"],
@@ -298,6 +323,43 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
           for name, v in metrics["stages"].items() if name != "report"]),
     ]
     return blocks
+
+
+def _episode_table(fl: dict) -> tuple:
+    return ("table", ["episode", "seed", "success", "final distance", "collisions", "interventions",
+                      "tracking error", "tick p50 / p99", "round trip p50 / p99"],
+            [[str(r["episode"]), str(r["seed"]), _num(r["success"]), _mm(r["final_distance"]),
+              str(r["collisions"]), _num(r["interventions"]), _mm(r["tracking_error_m"]),
+              _ms(r["tick_ms"]), _ms(r["round_trip_ms"])] for r in fl["per_episode"]])
+
+
+def generalist_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
+    """The report's section on the generalist: its training, zero-shot table and unseen fleet."""
+    tg, table, fu = metrics["train"]["generalist"], metrics["zero_shot_table"], metrics["fleet_unseen"]
+    ex = tg["export"]
+    unseen = [r for r in table if not r["trained"]]
+    return [
+        ("h2", "One policy for any team size"),
+        ("p", f"The generalist is one SDPA-MAPPO policy trained on 3, 4 and 5 robots at once (one "
+              f"batched rollout of each size per update; budget {tg['budget']} episodes in all, 4 PPO "
+              "epochs, the contact-penalty curriculum): it "
+              + (f"converged at episode {tg['converged_episode']}" if tg["converged"] else
+                 f"did not converge within its budget of {tg['budget']} episodes")
+              + f" ({tg['wall_time_s']:.0f} s). The table runs it without further training on the default "
+              f"layout of 1 to 8 robots ({table[0]['episodes']} deterministic episodes each, batched "
+              f"world, no filter); sizes marked yes were trained on, the {len(unseen)} others never seen."),
+        ("table", ["robots", "trained on", "success", "collision rate", "final distance"],
+         [[str(r["robots"]), _num(r["trained"]), _rate(r["success"]), _rate(r["collision_rate"]),
+           _mm(r["final_distance"])] for r in table]),
+        ("p", f"Exported as {ex['policy']} (max abs diff to the eager actor {ex['max_abs_diff']:.2g}, "
+              f"{'verified' if ex['verified'] else 'NOT verified'}), it ran the fleet stage on "
+              f"{fu['scenario']}, a team size it never trained on: success {_rate(fu['success_rate'])} over "
+              f"{fu['episodes']} episodes, {fu['collisions']} collisions, final distance "
+              f"{_mm(fu['final_distance'])}, {fu['interventions']} of {fu['episodes'] * fu['episode_ticks']} "
+              "ticks changed by the safety filter (same model error, filter and MEC as above)."),
+        _episode_table(fu),
+        ("img", figures["unseen"], f"The generalist's fleet episodes on {fu['scenario']} (true positions)"),
+    ]
 
 
 def _model_error_text(me: dict) -> str:
@@ -379,5 +441,6 @@ def report_stage(book: StageBook) -> dict[str, Any]:
     return {"files": ["report.md", "report.html", "metrics.json", *FIGURES.values()]}
 
 
-__all__ = ["FIGURES", "PAPER", "build_metrics", "convergence_sentences", "fleet_trajectories",
-           "make_figures", "report_blocks", "report_stage", "save_metrics", "to_html", "to_markdown"]
+__all__ = ["FIGURES", "PAPER", "build_metrics", "convergence_sentences", "fleet_trajectories", "generalist_blocks",
+           "make_figures", "report_blocks", "report_stage", "save_metrics", "to_html", "to_markdown",
+           "zero_shot_line"]

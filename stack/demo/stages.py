@@ -1,4 +1,5 @@
-"""The learning stages of the demo: train paper-3, transfer to paper-5 (+ zero-shot), export.
+"""The learning stages of the demo: train paper-3, transfer to paper-5 (+ zero-shot), export,
+and the generalist (one policy trained on 3, 4 and 5 robots; its zero-shot table; its export).
 
 Every stage returns a JSON-able result dict that goes into ``stages.json``; paths in it are
 relative to the demo folder ``out``.
@@ -22,15 +23,26 @@ from tqdm import tqdm
 
 from stack.demo.state import DemoError, DemoSettings
 
-SCENARIOS = {"3": "paper-3", "5": "paper-5"}
+SCENARIOS = {"3": "paper-3", "5": "paper-5", "generalist": "paper-3"}
+GENERALIST_TEAM_SIZES = (3, 4, 5)
+GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), "update_epochs": 4, "penalty_curriculum": 3.0}
+"""The generalist's settings beside the MAPPOConfig defaults: those of ``bench/generalization.py``
+(4 PPO epochs; the contact-penalty curriculum, with which every seed of it converged)."""
+ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
+UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
 CHECKPOINT = "checkpoint.pt"
 POLICY_STEM = "policy"
 POLICY = "policy.onnx"       # what the fleet stage runs: numpy + onnxruntime on a robot
+GENERALIST_DIR = "generalist"   # the generalist's exported policy and golden file
 
 
 def run_dir(out: Path, robots: str) -> Path:
-    """Folder of the training run for ``robots`` ("3" or "5")."""
+    """Folder of the training run for ``robots`` ("3", "5" or "generalist")."""
     return out / f"train-{robots}"
+
+
+def budget(settings: DemoSettings, robots: str) -> int:
+    return {"3": settings.budget_3, "5": settings.budget_5, "generalist": settings.budget_generalist}[robots]
 
 
 def train_config(settings: DemoSettings, robots: str, out: Path):
@@ -38,8 +50,10 @@ def train_config(settings: DemoSettings, robots: str, out: Path):
     from controllers.mappo import MAPPOConfig
 
     fields: dict[str, Any] = {"scenario": SCENARIOS[robots], "seed": settings.seed,
-                              "total_episodes": settings.budget_3 if robots == "3" else settings.budget_5,
+                              "total_episodes": budget(settings, robots),
                               "stop_at_convergence": True, "progress": True}
+    if robots == "generalist":
+        fields.update(GENERALIST_FIELDS)
     if settings.eval_episodes is not None:
         fields["eval_episodes"] = settings.eval_episodes
     if settings.eval_interval is not None:
@@ -54,10 +68,10 @@ def train_stage(settings: DemoSettings, robots: str, out: Path) -> dict[str, Any
     from controllers.mappo import MAPPOConfig, TrainConfigError, train
 
     folder = run_dir(out, robots)
-    budget = settings.budget_3 if robots == "3" else settings.budget_5
+    cap = budget(settings, robots)
     if (folder / CHECKPOINT).is_file():
         saved = json.loads((folder / "config.json").read_text())
-        config = MAPPOConfig.from_dict({**saved, "total_episodes": budget, "progress": True})
+        config = MAPPOConfig.from_dict({**saved, "total_episodes": cap, "progress": True})
         resume = True
         print(f"continuing the interrupted run in {folder} from its checkpoint", flush=True)
     else:
@@ -70,7 +84,8 @@ def train_stage(settings: DemoSettings, robots: str, out: Path) -> dict[str, Any
     except TrainConfigError as exc:
         raise DemoError(f"training {config.scenario_name} failed to start: {exc}") from None
     last = result.last_eval or {}
-    return {"scenario": config.scenario_name, "num_robots": int(robots), "budget": budget,
+    return {"scenario": config.scenario_name, "num_robots": list(config.team_sizes) or int(robots),
+            "budget": cap,
             "episodes": result.episodes, "iterations": result.iterations, "env_steps": result.env_steps,
             "converged_episode": result.converged_episode,
             "converged": result.converged_episode is not None,
@@ -133,5 +148,43 @@ def export_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
             "content_sha256": {r.meta["file_format"]: r.meta["content_sha256"] for r in exported}}
 
 
-__all__ = ["POLICY", "POLICY_STEM", "export_stage", "run_dir", "train_config", "train_stage", "transfer_stage",
+def zero_shot_table(settings: DemoSettings, checkpoint: Path) -> list[dict[str, Any]]:
+    """The generalist on the default layout of each team size of :data:`ZERO_SHOT_ROBOTS`
+    (:func:`sim.scenario.transport_scenario`; 3-5 are paper-3..5), deterministic, batched world."""
+    from controllers.mappo import evaluate, load_actor
+    from sim.scenario import transport_scenario
+
+    actor = load_actor(checkpoint)
+    seed = 3_000_000 + settings.seed
+    rows = []
+    with tqdm(ZERO_SHOT_ROBOTS, unit="N", desc="generalist zero-shot table", dynamic_ncols=True) as bar:
+        for n in bar:
+            r = evaluate(actor, transport_scenario(n), episodes=settings.zero_shot_episodes, seed=seed)
+            rows.append({"robots": n, "trained": n in GENERALIST_TEAM_SIZES, "success": r.success_rate,
+                         "collision_rate": r.collision_rate, "final_distance": r.final_distance,
+                         "episodes": r.episodes})
+            bar.set_postfix(N=n, success=f"{r.success_rate:.2f}")
+    return rows
+
+
+def generalist_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
+    """Train one policy on 3, 4 and 5 robots at once, judge it zero-shot on 1..8 robots, and
+    export it into ``generalist/`` (golden file on the scenario it trained on)."""
+    from deploy.export import TOLERANCE, ExportError, export_checkpoint
+
+    result = train_stage(settings, "generalist", out)
+    checkpoint = run_dir(out, "generalist") / CHECKPOINT
+    result["zero_shot_table"] = zero_shot_table(settings, checkpoint)
+    folder = out / GENERALIST_DIR
+    folder.mkdir(exist_ok=True)
+    try:
+        exported = export_checkpoint(checkpoint, folder / POLICY_STEM, formats=("onnx",), seed=settings.seed)
+    except ExportError as exc:
+        raise DemoError(f"export of the generalist failed: {exc}") from None
+    result["export"] = {"policy": f"{GENERALIST_DIR}/{POLICY}", "max_abs_diff": exported[0].max_abs_diff,
+                        "verified": bool(exported[0].max_abs_diff <= TOLERANCE), "tolerance": TOLERANCE}
+    return result
+
+
+__all__ = ["GENERALIST_DIR", "POLICY", "UNSEEN_ROBOTS", "ZERO_SHOT_ROBOTS", "generalist_stage", "POLICY_STEM", "export_stage", "run_dir", "train_config", "train_stage", "transfer_stage",
            "zero_shot"]

@@ -35,7 +35,7 @@ from sim.files import atomic_write_bytes
 BOOK_FORMAT = "formation-stack/demo"
 BOOK_VERSION = 1
 BOOK_NAME = "stages.json"
-STAGES = ("train-3", "train-5", "export", "fleet", "report")
+STAGES = ("train-3", "train-5", "export", "fleet", "generalist", "fleet-unseen", "report")
 
 
 class DemoError(RuntimeError):
@@ -51,23 +51,27 @@ class DemoSettings:
         seed: training seed; fleet episode k starts from seed + k.
         budget_3: episode cap of SDPA-MAPPO on paper-3 (the paper converged at 1200).
         budget_5: episode cap of the 5-robot transfer run (the paper: 850).
+        budget_generalist: episode cap of the generalist, one policy trained on 3, 4 and 5
+            robots at once (the paper's single 5-robot run took 3200).
         eval_episodes, eval_interval: size and spacing of the convergence evaluations
             (None: the MAPPOConfig defaults, 100 episodes at least every 50).
-        zero_shot_episodes: deterministic episodes of the 3-robot policy on paper-5.
-        fleet_episodes: pymunk episodes run over Zenoh through the ControlStack.
+        zero_shot_episodes: deterministic episodes of each zero-shot evaluation (the 3-robot
+            policy on paper-5; the generalist on each team size of its table).
+        fleet_episodes: pymunk episodes run over Zenoh through the ControlStack (each fleet stage).
     """
 
     quick: bool = False
     seed: int = 0
     budget_3: int = 1200
     budget_5: int = 850
+    budget_generalist: int = 3200
     eval_episodes: int | None = None
     eval_interval: int | None = None
     zero_shot_episodes: int = 100
     fleet_episodes: int = 5
 
     def __post_init__(self) -> None:
-        for name in ("budget_3", "budget_5", "zero_shot_episodes", "fleet_episodes",
+        for name in ("budget_3", "budget_5", "budget_generalist", "zero_shot_episodes", "fleet_episodes",
                      "eval_episodes", "eval_interval"):
             value = getattr(self, name)
             if value is None and name.startswith("eval_"):
@@ -91,8 +95,8 @@ class DemoSettings:
 
 
 FULL = DemoSettings()
-QUICK = DemoSettings(quick=True, budget_3=32, budget_5=32, eval_episodes=16, eval_interval=16,
-                     zero_shot_episodes=16, fleet_episodes=2)
+QUICK = DemoSettings(quick=True, budget_3=32, budget_5=32, budget_generalist=32, eval_episodes=16,
+                     eval_interval=16, zero_shot_episodes=16, fleet_episodes=2)
 
 
 def jsonable(value: Any) -> Any:

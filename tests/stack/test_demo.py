@@ -10,9 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from controllers.mappo import converged_episode
+from controllers.mappo import converged_episode, evaluate, load_actor
 from deploy.export import TOLERANCE, check_export
+from sim.scenario import transport_scenario
 from stack.cli import main
 from stack.demo.fleet import tracking_noise_floor
 from stack.demo.report import FIGURES
@@ -37,7 +39,9 @@ def test_quick_demo_writes_every_file(quick_run):
     out = quick_run
     for name in ("report.md", "report.html", "metrics.json", "stages.json", "policy.pt",
                  "policy.pt2", "policy.onnx", "policy.golden.npz", "train-3/checkpoint.pt", "train-5/checkpoint.pt",
-                 "fleet/sim.json", "fleet/bridge.json", *FIGURES.values()):
+                 "fleet/sim.json", "fleet/bridge.json", "train-generalist/checkpoint.pt",
+                 "generalist/policy.onnx", "generalist/policy.golden.npz", "fleet-unseen/sim.json",
+                 "fleet-unseen/bridge.json", *FIGURES.values()):
         assert (out / name).is_file(), name
     book = json.loads((out / "stages.json").read_text())
     assert list(book["stages"]) == list(STAGES)
@@ -58,7 +62,7 @@ def test_report_embeds_the_figures_it_links(quick_run):
     assert ".png\"" not in page  # no image is referenced as a file
     m = json.loads((out / "metrics.json").read_text())
     for text in (md, page):       # the report says plainly whether each run converged
-        for robots in ("3", "5"):
+        for robots in ("3", "5", "generalist"):
             t = m["train"][robots]
             if t["converged"]:
                 assert f"converged at episode {t['converged_episode']}" in text
@@ -70,7 +74,7 @@ def test_metrics_are_complete_and_consistent(quick_run):
     out = quick_run
     m = json.loads((out / "metrics.json").read_text())
     assert m["complete"] is True and all(s["done"] for s in m["stages"].values())
-    for robots, budget in (("3", 32), ("5", 32)):
+    for robots, budget in (("3", 32), ("5", 32), ("generalist", 32)):
         t = m["train"][robots]
         evals = _jsonl(out / f"train-{robots}" / "eval.jsonl")
         rule = converged_episode([e["episodes"] for e in evals], [e["success_rate"] for e in evals],
@@ -116,6 +120,41 @@ def test_metrics_are_complete_and_consistent(quick_run):
     assert fl["round_trip_ms"]["p50"] <= fl["round_trip_ms"]["p99"]
     assert bridge["controller_faults"] == 0 and bridge["estops"] == 0
     assert sim["lossless"] and bridge["lossless"]   # a lock-stepped fleet loses no message
+
+
+def test_the_generalist_trains_on_three_sizes_and_its_table_and_unseen_fleet_are_real(quick_run):
+    out = quick_run
+    m = json.loads((out / "metrics.json").read_text())
+    config = json.loads((out / "train-generalist" / "config.json").read_text())
+    assert config["team_sizes"] == [3, 4, 5] and config["penalty_curriculum"] == 3.0
+    table = m["zero_shot_table"]
+    assert [r["robots"] for r in table] == list(range(1, 9))
+    assert [r["robots"] for r in table if r["trained"]] == [3, 4, 5]
+    assert all(r["episodes"] == 16 for r in table)
+    # A row is what the checkpoint does on that layout: evaluated again, the same numbers.
+    actor = load_actor(out / "train-generalist" / "checkpoint.pt")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)                  # as the demo ran it
+    try:
+        again = evaluate(actor, transport_scenario(6), episodes=16, seed=3_000_000)
+    finally:
+        torch.set_num_threads(threads)
+    row = table[5]
+    assert (row["success"], row["collision_rate"]) == (again.success_rate, again.collision_rate)
+    assert row["final_distance"] == pytest.approx(again.final_distance, rel=1e-6)
+
+    ex = m["train"]["generalist"]["export"]
+    assert ex["policy"] == "generalist/policy.onnx" and ex["verified"] is True
+    assert check_export(out / ex["policy"]).max_abs_diff <= TOLERANCE
+
+    fu = m["fleet_unseen"]
+    sim = json.loads((out / "fleet-unseen" / "sim.json").read_text())
+    assert fu["scenario"] == "transport-6" and fu["policy"] == "generalist/policy.onnx"
+    assert fu["episodes"] == 2 == len(sim["episodes"])
+    for s in sim["episodes"]:
+        assert np.asarray(s["positions"]).shape == (129, 6, 2)   # six robots, never trained on
+    assert fu["collisions"] == 0                                  # the safety filter's job
+    assert fu["success_rate"] == pytest.approx(np.mean([r["success"] for r in fu["per_episode"]]))
 
 
 def test_resume_of_a_finished_run_skips_every_stage(quick_run, capsys):
