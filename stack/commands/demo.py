@@ -6,8 +6,9 @@
     3 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
     4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
                 MEC) as separate processes on loopback Zenoh for --episodes episodes
-    5 generalist  one policy trained on 3, 4 and 5 robots at once (budget --budget-generalist),
-                its zero-shot table on 1..8 robots, exported as generalist/policy.onnx
+    5 generalist  one policy trained on 3, 4 and 5 robots at once from the 3-robot checkpoint
+                (budget --budget-generalist), its zero-shot table on 1..8 robots, exported as
+                generalist/policy.onnx
     6 fleet-unseen  the fleet stage with the generalist on 6 robots, a team size it never saw
     7 report    report.md, report.html (figures embedded), metrics.json
 

@@ -128,7 +128,8 @@ def make_figures(book: StageBook) -> dict[str, Path]:
     with tqdm(total=len(FIGURES), unit="fig", desc="report figures", dynamic_ncols=True) as bar:
         plot_training_curves({"paper-3 from scratch": out / "train-3",
                               "paper-5 transfer from paper-3": out / "train-5",
-                              "generalist: 3, 4 and 5 robots at once": out / "train-generalist"}, paths["curves"],
+                              "generalist: 3, 4 and 5 robots from paper-3": out / "train-generalist"},
+                             paths["curves"],
                              title="SDPA-MAPPO training: 3 robots from scratch, transfer to 5, the generalist")
         bar.update(1)
         scenario = make_scenario(SCENARIO)
@@ -341,8 +342,8 @@ def generalist_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     return [
         ("h2", "One policy for any team size"),
         ("p", f"The generalist is one SDPA-MAPPO policy trained on 3, 4 and 5 robots at once (one "
-              f"batched rollout of each size per update; budget {tg['budget']} episodes in all, 4 PPO "
-              "epochs, the contact-penalty curriculum): it "
+              f"batched rollout of each size per update), starting from the 3-robot checkpoint "
+              f"(budget {tg['budget']} episodes, 4 PPO epochs, the contact-penalty curriculum): it "
               + (f"converged at episode {tg['converged_episode']}" if tg["converged"] else
                  f"did not converge within its budget of {tg['budget']} episodes")
               + f" ({tg['wall_time_s']:.0f} s). The table runs it without further training on the default "
