@@ -3,13 +3,14 @@
     1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged (budget --budget-3)
     2 train-5   zero-shot success of that policy on 5 robots, then transfer training on
                 paper-5 from the 3-robot checkpoint until converged (budget --budget-5)
-    3 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
-    4 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
+    3 generalist  one policy trained on 3, 4 and 5 robots at once, also from the 3-robot
+                checkpoint (budget --budget-generalist; its training runs in a child process
+                beside stage 2, on the second core), its zero-shot table on 1..8 robots, and
+                its export as generalist/policy.onnx
+    4 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
+    5 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
                 MEC) as separate processes on loopback Zenoh for --episodes episodes
-    5 generalist  one policy trained on 3, 4 and 5 robots at once from the 3-robot checkpoint
-                (budget --budget-generalist), its zero-shot table on 1..8 robots, exported as
-                generalist/policy.onnx
-    6 fleet-unseen  the fleet stage with the generalist on 6 robots, a team size it never saw
+    6 fleet-unseen  the same with the generalist on 6 robots, a team size it never trained on
     7 report    report.md, report.html (figures embedded), metrics.json
 
 Convergence: evaluations of 100 deterministic episodes at least every 50 training episodes; the
@@ -87,20 +88,24 @@ def resolve_settings(args, out: Path) -> StageBook:
     return book
 
 
-def run_stage(name: str, book: StageBook, children: Children) -> dict:
+def run_stage(name: str, book: StageBook, children: Children, background: dict) -> dict:
+    """Run stage ``name``. The generalist's training starts in a child process with train-5 (both
+    start from the 3-robot checkpoint) and ``background`` holds it until the generalist stage."""
     from stack.demo import fleet, report, stages
 
     settings, out = book.settings, book.out
     if name == "train-3":
         return stages.train_stage(settings, "3", out)
     if name == "train-5":
+        if not book.done("generalist"):
+            background["generalist"] = stages.start_generalist(out, children)
         return stages.transfer_stage(settings, out)
     if name == "export":
         return stages.export_stage(settings, out)
     if name == "fleet":
         return fleet.fleet_stage(settings, out, children)
     if name == "generalist":
-        return stages.generalist_stage(settings, out)
+        return stages.generalist_stage(settings, out, background.pop("generalist", None), children)
     if name == "fleet-unseen":
         return fleet.unseen_fleet_stage(settings, out, children)
     if name == "report":
@@ -127,6 +132,7 @@ def run(args) -> int:
     print(f"formation demo -> {out}{' (quick)' if s.quick else ''}: budgets {s.budget_3} / {s.budget_5} / "
           f"{s.budget_generalist} episodes, {s.fleet_episodes} fleet episodes, seed {s.seed}", flush=True)
     children = Children()
+    background: dict = {}
     current = None
     with interrupt_guard(children):
         try:
@@ -137,7 +143,7 @@ def run(args) -> int:
                 current = name
                 print(f"[{k}/{len(STAGES)}] {name}", flush=True)
                 start = time.perf_counter()
-                result = run_stage(name, book, children)
+                result = run_stage(name, book, children, background)
                 book.finish(name, result, time.perf_counter() - start)
                 save_metrics(book, complete=all(book.done(n) for n in STAGES))
                 current = None

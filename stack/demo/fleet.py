@@ -232,4 +232,5 @@ def merge_reports(sim: dict, bridge: dict, episodes: int, ticks: int, model_erro
     }
 
 
-__all__ = ["SCENARIO", "UNSEEN_DIR", "UNSEEN_SCENARIO", "fleet_stage", "unseen_fleet_stage", "merge_reports", "model_error", "tracking_noise_floor"]
+__all__ = ["SCENARIO", "UNSEEN_DIR", "UNSEEN_SCENARIO", "fleet_stage", "merge_reports", "model_error",
+           "tracking_noise_floor", "unseen_fleet_stage"]

@@ -14,14 +14,18 @@ never breaks a resume); a run folder without a checkpoint is started again.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
-from stack.demo.state import DemoError, DemoSettings
+from stack.demo.state import Children, DemoError, DemoSettings
 
 SCENARIOS = {"3": "paper-3", "5": "paper-5", "generalist": "paper-3"}
 GENERALIST_TEAM_SIZES = (3, 4, 5)
@@ -36,6 +40,7 @@ CHECKPOINT = "checkpoint.pt"
 POLICY_STEM = "policy"
 POLICY = "policy.onnx"       # what the fleet stage runs: numpy + onnxruntime on a robot
 GENERALIST_DIR = "generalist"   # the generalist's exported policy and golden file
+GENERALIST_LOG = "train-generalist.log"   # output of its background training
 
 
 def run_dir(out: Path, robots: str) -> Path:
@@ -65,8 +70,9 @@ def train_config(settings: DemoSettings, robots: str, out: Path):
     return MAPPOConfig.from_dict(fields)
 
 
-def train_stage(settings: DemoSettings, robots: str, out: Path) -> dict[str, Any]:
-    """Train (or continue) the run of ``robots`` until convergence or the budget."""
+def train_stage(settings: DemoSettings, robots: str, out: Path, announce: bool = True) -> dict[str, Any]:
+    """Train (or continue) the run of ``robots`` until convergence or the budget (a run that
+    got there already returns at once); ``announce``: say that an earlier run continues."""
     from controllers.mappo import MAPPOConfig, TrainConfigError, train
 
     folder = run_dir(out, robots)
@@ -75,7 +81,8 @@ def train_stage(settings: DemoSettings, robots: str, out: Path) -> dict[str, Any
         saved = json.loads((folder / "config.json").read_text())
         config = MAPPOConfig.from_dict({**saved, "total_episodes": cap, "progress": True})
         resume = True
-        print(f"continuing the interrupted run in {folder} from its checkpoint", flush=True)
+        if announce:
+            print(f"continuing the interrupted run in {folder} from its checkpoint", flush=True)
     else:
         if folder.exists():
             shutil.rmtree(folder)   # logs of a run stopped before its first checkpoint
@@ -169,13 +176,43 @@ def zero_shot_table(settings: DemoSettings, checkpoint: Path) -> list[dict[str, 
     return rows
 
 
-def generalist_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
-    """Train one policy on 3, 4 and 5 robots at once from the 3-robot checkpoint, judge it
-    zero-shot on 1..8 robots, and export it into ``generalist/`` (golden file on the scenario it
-    trained on)."""
+def start_generalist(out: Path, children: Children) -> subprocess.Popen:
+    """Start the generalist's training in a child process (``python -m stack.demo.stages OUT``),
+    so that it runs on the second core beside the transfer to paper-5 (the demo's own process
+    trains on one thread); its output goes to ``train-generalist.log``."""
+    with (out / GENERALIST_LOG).open("w") as log:
+        return children.spawn([sys.executable, "-m", "stack.demo.stages", str(out)],
+                              stdout=log, stderr=subprocess.STDOUT)
+
+
+def _wait_for_generalist(child: subprocess.Popen, settings: DemoSettings, out: Path,
+                         children: Children) -> None:
+    """Wait for the background training, with a bar of its episodes (from its train.jsonl)."""
+    rows = run_dir(out, "generalist") / "train.jsonl"
+    cap = budget(settings, "generalist")
+    with tqdm(total=cap, unit="ep", desc="generalist training (background)", dynamic_ncols=True) as bar:
+        while child.poll() is None:
+            time.sleep(1.0)
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                lines = rows.read_text().splitlines()
+                bar.update(min(cap, json.loads(lines[-1])["episodes"]) - bar.n)
+    children.forget(child)
+    if child.returncode != 0:
+        tail = "".join((out / GENERALIST_LOG).read_text(errors="replace").splitlines(True)[-20:])
+        raise DemoError(f"the generalist's training exited with code {child.returncode}; its log "
+                        f"({out / GENERALIST_LOG}):\n{tail}")
+
+
+def generalist_stage(settings: DemoSettings, out: Path, child: subprocess.Popen | None = None,
+                     children: Children | None = None) -> dict[str, Any]:
+    """Train one policy on 3, 4 and 5 robots at once from the 3-robot checkpoint (or wait for
+    ``child``, the training :func:`start_generalist` started), judge it zero-shot on 1..8 robots,
+    and export it into ``generalist/`` (golden file on the scenario it trained on)."""
     from deploy.export import TOLERANCE, ExportError, export_checkpoint
 
-    result = train_stage(settings, "generalist", out)
+    if child is not None:
+        _wait_for_generalist(child, settings, out, children or Children())
+    result = train_stage(settings, "generalist", out, announce=child is None)
     checkpoint = run_dir(out, "generalist") / CHECKPOINT
     result["zero_shot_table"] = zero_shot_table(settings, checkpoint)
     folder = out / GENERALIST_DIR
@@ -189,5 +226,22 @@ def generalist_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
     return result
 
 
-__all__ = ["GENERALIST_DIR", "POLICY", "UNSEEN_ROBOTS", "ZERO_SHOT_ROBOTS", "generalist_stage", "POLICY_STEM", "export_stage", "run_dir", "train_config", "train_stage", "transfer_stage",
+def main(argv: list[str] | None = None) -> int:
+    """``python -m stack.demo.stages OUT``: train (or continue) the generalist of the demo in OUT
+    with the settings of its ``stages.json`` (the demo's background child)."""
+    import torch
+
+    from stack.demo.state import StageBook
+
+    torch.set_num_threads(1)
+    out = Path((argv or sys.argv[1:])[0])
+    train_stage(StageBook.load(out).settings, "generalist", out)
+    return 0
+
+
+__all__ = ["GENERALIST_DIR", "POLICY", "UNSEEN_ROBOTS", "ZERO_SHOT_ROBOTS", "generalist_stage", "start_generalist", "POLICY_STEM", "export_stage", "run_dir", "train_config", "train_stage", "transfer_stage",
            "zero_shot"]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -35,7 +35,7 @@ from sim.files import atomic_write_bytes
 BOOK_FORMAT = "formation-stack/demo"
 BOOK_VERSION = 1
 BOOK_NAME = "stages.json"
-STAGES = ("train-3", "train-5", "export", "fleet", "generalist", "fleet-unseen", "report")
+STAGES = ("train-3", "train-5", "generalist", "export", "fleet", "fleet-unseen", "report")
 
 
 class DemoError(RuntimeError):

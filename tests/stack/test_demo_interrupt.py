@@ -2,7 +2,7 @@
 stages are kept, and `--resume` finishes the run from there.
 
 The run starts from a copy of the quick demo's folder (``quick_run``) cut back to its trained
-and exported stages, with six fleet episodes (a window wide enough to interrupt mid-run): the
+(generalist included) and exported stages, with six fleet episodes (a window wide enough to interrupt mid-run): the
 demo resumes straight into the fleet stage, so the test trains nothing itself."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from stack.demo.state import STAGES, StageBook
 
 pytestmark = pytest.mark.realtime   # SIGINT at a moment of a running demo
 
-LEARNED = ("train-3", "train-5", "export")
+LEARNED = ("train-3", "train-5", "generalist", "export")
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 300.0
@@ -88,7 +88,7 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     book = json.loads((out / "stages.json").read_text())
     assert list(book["stages"]) == list(LEARNED)
     partial = json.loads((out / "metrics.json").read_text())
-    assert partial["complete"] is False and set(partial["train"]) == {"3", "5"}
+    assert partial["complete"] is False and set(partial["train"]) == {"3", "5", "generalist"}
     assert partial["export"]["verified"] is True and "fleet" not in partial
     # Both children took their clean path on SIGTERM: they wrote their reports on the way out.
     sim = json.loads((out / "fleet" / "sim.json").read_text())
@@ -102,5 +102,6 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
         assert finished["stages"][name] == book["stages"][name]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"] is True and metrics["fleet"]["episodes"] == 6
+    assert metrics["fleet_unseen"]["episodes"] == 6
     assert len(metrics["fleet"]["per_episode"]) == 6
     assert (out / "report.html").is_file() and (out / "report.md").is_file()
