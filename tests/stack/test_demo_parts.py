@@ -1,10 +1,13 @@
 """Parts of `formation demo` on hand-worked cases: the bridge's per-episode recorder, the
-tracking-error noise floor, training-stage resume, settings on --resume."""
+tracking-error noise floor, training-stage resume, settings on --resume, the generalist's
+background training and its printed table."""
 
 from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -14,9 +17,10 @@ from sim.fleet import FleetState
 from sim.scenario import make_scenario
 from stack.cli import main
 from stack.commands.bridge import EpisodeRecorder
+from stack.commands.demo import print_zero_shot_table
 from stack.demo.fleet import tracking_noise_floor
-from stack.demo.stages import train_config, train_stage
-from stack.demo.state import DemoSettings, StageBook
+from stack.demo.stages import GENERALIST_LOG, generalist_stage, train_config, train_stage
+from stack.demo.state import Children, DemoError, DemoSettings, StageBook
 from stack.pipeline import ControlStack, StackConfig
 
 
@@ -114,3 +118,28 @@ def test_resume_needs_a_demo_folder(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "nothing"), "--resume"]) == 2
     assert "stages.json" in capsys.readouterr().err
     assert not (tmp_path / "nothing").exists()
+
+
+def test_a_failed_background_training_stops_the_generalist_stage_with_its_log(tmp_path):
+    """The generalist's child process exits non-zero: the stage raises with its exit code and
+    the tail of its log, and trains nothing in its place."""
+    settings = DemoSettings(quick=True, budget_generalist=16, eval_episodes=4, eval_interval=16,
+                            zero_shot_episodes=4, fleet_episodes=1)
+    (tmp_path / GENERALIST_LOG).write_text("first line\nthe reason it stopped\n")
+    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.exit(3)"])
+    with pytest.raises(DemoError, match=r"exited with code 3(.|\n)*the reason it stopped"):
+        generalist_stage(settings, tmp_path, child, Children())
+    assert not (tmp_path / "train-generalist").exists()
+
+
+def test_the_zero_shot_table_prints_one_column_per_team_size(capsys):
+    table = [{"robots": n, "trained": n == 3, "success": s, "collision_rate": 1 - s,
+              "final_distance": d, "episodes": 100}
+             for n, s, d in ((2, 0.5, 0.0123), (3, 1.0, 0.004))]
+    print_zero_shot_table(table)
+    lines = capsys.readouterr().out.splitlines()
+    assert "100 deterministic episodes" in lines[0]
+    assert lines[1].split() == ["robots", "2", "3*"]
+    assert lines[2].split() == ["success", "0.50", "1.00"]
+    assert lines[3].split() == ["collision", "rate", "0.50", "0.00"]
+    assert lines[4].split() == ["final", "distance", "[mm]", "12.3", "4.0"]
