@@ -194,7 +194,8 @@ def print_summary(book: StageBook) -> None:
             ("fleet tick time p50 / p99 [ms]", ms(fl["tick_ms"]), "-"),
             ("fleet Zenoh round trip p50 / p99 [ms]", ms(fl["round_trip_ms"]), "-"),
             ("generalist (3-5 robots) converged episode", conv(tg), "-"),
-            (f"generalist fleet on unseen {fu['scenario']}: success", f"{fu['success_rate']:.2f} of {fu['episodes']}", "-"),
+            (f"generalist fleet on unseen {fu['scenario']}: success",
+             f"{fu['success_rate']:.2f} of {fu['episodes']}", "-"),
             (f"generalist fleet on unseen {fu['scenario']}: collisions", str(fu["collisions"]), "-"),
             (f"generalist fleet on unseen {fu['scenario']}: final distance [mm]", mm(fu["final_distance"]), "-")]
     w = max(len(r[0]) for r in rows)

@@ -239,8 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["GENERALIST_DIR", "POLICY", "UNSEEN_ROBOTS", "ZERO_SHOT_ROBOTS", "generalist_stage", "start_generalist", "POLICY_STEM", "export_stage", "run_dir", "train_config", "train_stage", "transfer_stage",
-           "zero_shot"]
+__all__ = ["GENERALIST_DIR", "GENERALIST_LOG", "POLICY", "POLICY_STEM", "UNSEEN_ROBOTS", "ZERO_SHOT_ROBOTS",
+           "export_stage", "generalist_stage", "run_dir", "start_generalist", "train_config", "train_stage",
+           "transfer_stage", "zero_shot", "zero_shot_table"]
 
 
 if __name__ == "__main__":
