@@ -32,8 +32,9 @@ GENERALIST_TEAM_SIZES = (3, 4, 5)
 GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), "update_epochs": 4, "penalty_curriculum": 3.0}
 """The generalist's settings beside the MAPPOConfig defaults: those of ``bench/generalization.py``
 (4 PPO epochs; the contact-penalty curriculum, with which every seed of it converged). The demo
-starts it from the 3-robot checkpoint, as the transfer to paper-5 (seed 0, 2026-12-03: converged
-at 624 episodes in 3.5 min, against 1872 in 13 min from scratch; both 1.00 on 3, 4 and 5 robots)."""
+starts it from the 3-robot checkpoint, as the transfer to paper-5 (2026-12-03, seed 0: converged
+at 624 episodes in 3.5 min, against 1872 in 13 min from scratch, both 1.00 on 3, 4 and 5 robots;
+seeds 1 and 2 from their paper-3 checkpoints: 1536 and 1824 episodes)."""
 ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
 UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
 CHECKPOINT = "checkpoint.pt"
