@@ -1,5 +1,6 @@
-"""Ctrl-C during the fleet stage of `formation demo`: every child process stops cleanly, finished
-stages are kept, and `--resume` finishes the run from there.
+"""Ctrl-C during the fleet stage of `formation demo`, and during train-5 while the generalist
+trains in a child process: every child process stops cleanly, finished stages are kept, and
+`--resume` finishes the run from there.
 
 The run starts from a copy of the quick demo's folder (``quick_run``) cut back to its trained
 (generalist included) and exported stages, with six fleet episodes (a window wide enough to interrupt mid-run): the
@@ -46,13 +47,14 @@ def processes_naming(text: str, exclude: int) -> dict[int, list[str]]:
     return found
 
 
-def trained_copy(finished: Path, out: Path, fleet_episodes: int) -> None:
-    """``out``: the demo folder ``finished`` as it was when its export stage ended, set to run
-    ``fleet_episodes`` fleet episodes."""
-    shutil.copytree(finished, out, ignore=shutil.ignore_patterns("fleet", "report.*", "*.png"))
+def trained_copy(finished: Path, out: Path, fleet_episodes: int, keep: tuple[str, ...] = LEARNED,
+                 drop: tuple[str, ...] = ()) -> None:
+    """``out``: the demo folder ``finished`` as it was when its stages ``keep`` had ended (the
+    folders ``drop`` removed), set to run ``fleet_episodes`` fleet episodes."""
+    shutil.copytree(finished, out, ignore=shutil.ignore_patterns("fleet", "report.*", "*.png", *drop))
     done = StageBook.load(out)
     settings = dataclasses.replace(done.settings, fleet_episodes=fleet_episodes)
-    book = StageBook(out, settings, {name: done.stages[name] for name in LEARNED}, done.created_unix)
+    book = StageBook(out, settings, {name: done.stages[name] for name in keep}, done.created_unix)
     book.save()
     save_metrics(book, complete=False)
 
@@ -105,3 +107,38 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     assert metrics["fleet_unseen"]["episodes"] == 6
     assert len(metrics["fleet"]["per_episode"]) == 6
     assert (out / "report.html").is_file() and (out / "report.md").is_file()
+
+
+def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_path, quick_run):
+    out = tmp_path / "run"
+    trained_copy(quick_run, out, fleet_episodes=2, keep=("train-3",),
+                 drop=("train-5", "train-generalist", "generalist", "fleet-unseen", "policy.*"))
+    log = (tmp_path / "demo.log").open("w")
+    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--resume", "--out", str(out)],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + WAIT_S
+        child: dict[int, list[str]] = {}
+        while time.monotonic() < deadline:   # until the generalist has started training beside train-5
+            assert demo.poll() is None, (tmp_path / "demo.log").read_text()
+            child = processes_naming("stack.demo.stages", exclude=demo.pid)
+            if child and (out / "train-generalist" / "train.jsonl").is_file():
+                break
+            time.sleep(0.05)
+        assert len(child) == 1 and str(out) in next(iter(child.values())), child
+        os.kill(demo.pid, signal.SIGINT)
+        assert demo.wait(timeout=120) == 130, (tmp_path / "demo.log").read_text()
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
+        log.close()
+    assert processes_naming(str(out), exclude=demo.pid) == {}   # the background training too
+    assert list(json.loads((out / "stages.json").read_text())["stages"]) == ["train-3"]
+
+    assert main(["demo", "--out", str(out), "--resume"]) == 0
+    finished = json.loads((out / "stages.json").read_text())
+    assert list(finished["stages"]) == list(STAGES)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["complete"] is True and metrics["train"]["generalist"]["budget"] == 32
+    assert metrics["train"]["generalist"]["episodes"] >= 32 and metrics["fleet_unseen"]["episodes"] == 2
