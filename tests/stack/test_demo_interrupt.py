@@ -59,32 +59,45 @@ def trained_copy(finished: Path, out: Path, fleet_episodes: int, keep: tuple[str
     save_metrics(book, complete=False)
 
 
+def interrupt_resumed_demo(out: Path, log_path: Path, ready) -> dict[int, list[str]]:
+    """Run ``formation demo --resume --out OUT`` in a child process until ``ready(demo_pid)``
+    returns the processes it waits for (not None), then SIGINT it; it must exit with 130.
+    Returns those processes."""
+    with log_path.open("w") as log:
+        demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--resume", "--out", str(out)],
+                                cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + WAIT_S
+            found = None
+            while found is None and time.monotonic() < deadline:
+                assert demo.poll() is None, log_path.read_text()
+                found = ready(demo.pid)
+                time.sleep(0.05)
+            assert found is not None, f"not ready within {WAIT_S} s:\n{log_path.read_text()}"
+            os.kill(demo.pid, signal.SIGINT)
+            assert demo.wait(timeout=120) == 130, log_path.read_text()
+        finally:
+            if demo.poll() is None:
+                demo.kill()
+                demo.wait()
+    return found
+
+
 def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path, quick_run):
     out = tmp_path / "run"
     trained_copy(quick_run, out, fleet_episodes=6)
-    log = (tmp_path / "demo.log").open("w")
-    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--resume", "--out", str(out)],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + WAIT_S
-        children: dict[int, list[str]] = {}
-        while time.monotonic() < deadline:   # until the fleet is mid-run: one episode finished
-            assert demo.poll() is None, (tmp_path / "demo.log").read_text()
-            children = processes_naming(str(out), exclude=demo.pid)
-            sim_log = out / "fleet" / "sim.log"
-            if len(children) == 2 and sim_log.is_file() and '"episode": 0' in sim_log.read_text():
-                break
-            time.sleep(0.05)
-        commands = sorted(" ".join(args) for args in children.values())
-        assert len(commands) == 2 and "bridge" in commands[0] and "fleet-sim" in commands[1], commands
-        os.kill(demo.pid, signal.SIGINT)
-        assert demo.wait(timeout=120) == 130, (tmp_path / "demo.log").read_text()
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.wait()
-        log.close()
-    assert processes_naming(str(out), exclude=demo.pid) == {}   # no orphans
+
+    def fleet_mid_run(demo_pid: int) -> dict | None:   # both fleet processes up, one episode finished
+        children = processes_naming(str(out), exclude=demo_pid)
+        sim_log = out / "fleet" / "sim.log"
+        if len(children) == 2 and sim_log.is_file() and '"episode": 0' in sim_log.read_text():
+            return children
+        return None
+
+    children = interrupt_resumed_demo(out, tmp_path / "demo.log", fleet_mid_run)
+    commands = sorted(" ".join(args) for args in children.values())
+    assert len(commands) == 2 and "bridge" in commands[0] and "fleet-sim" in commands[1], commands
+    assert processes_naming(str(out), exclude=os.getpid()) == {}   # no orphans (the demo has exited)
     assert "formation demo --out" in (tmp_path / "demo.log").read_text()   # tells how to resume
 
     book = json.loads((out / "stages.json").read_text())
@@ -113,27 +126,14 @@ def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_pat
     out = tmp_path / "run"
     trained_copy(quick_run, out, fleet_episodes=2, keep=("train-3",),
                  drop=("train-5", "train-generalist", "generalist", "fleet-unseen", "policy.*"))
-    log = (tmp_path / "demo.log").open("w")
-    demo = subprocess.Popen([sys.executable, "-m", "stack.cli", "demo", "--resume", "--out", str(out)],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    try:
-        deadline = time.monotonic() + WAIT_S
-        child: dict[int, list[str]] = {}
-        while time.monotonic() < deadline:   # until the generalist has started training beside train-5
-            assert demo.poll() is None, (tmp_path / "demo.log").read_text()
-            child = processes_naming("stack.demo.stages", exclude=demo.pid)
-            if child and (out / "train-generalist" / "train.jsonl").is_file():
-                break
-            time.sleep(0.05)
-        assert len(child) == 1 and str(out) in next(iter(child.values())), child
-        os.kill(demo.pid, signal.SIGINT)
-        assert demo.wait(timeout=120) == 130, (tmp_path / "demo.log").read_text()
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-            demo.wait()
-        log.close()
-    assert processes_naming(str(out), exclude=demo.pid) == {}   # the background training too
+
+    def generalist_training(demo_pid: int) -> dict | None:   # its child trains beside train-5
+        child = processes_naming("stack.demo.stages", exclude=demo_pid)
+        return child if child and (out / "train-generalist" / "train.jsonl").is_file() else None
+
+    child = interrupt_resumed_demo(out, tmp_path / "demo.log", generalist_training)
+    assert len(child) == 1 and str(out) in next(iter(child.values())), child
+    assert processes_naming(str(out), exclude=os.getpid()) == {}   # the background training too
     assert list(json.loads((out / "stages.json").read_text())["stages"]) == ["train-3"]
 
     assert main(["demo", "--out", str(out), "--resume"]) == 0
