@@ -9,7 +9,9 @@ with ``distribution=``) draws from it every episode:
   height [m], the offset of its centre from the arena's centre [m], its shape (``"box"``, or
   ``"polygon"``: 5-8 vertices at random angles, at least ``pi / k`` apart, on the ellipse
   inscribed in the width x height box, so always convex), the direction of the formation change
-  (:data:`DIRECTIONS`) and the start jitter [m]. Team sizes are the training run's
+  (:data:`DIRECTIONS`), the start jitter [m] and the spacing of the slots along each column [m]
+  (longer columns meet walls and queues that a few robots at the preset spacing never do).
+  Team sizes are the training run's
   ``team_sizes`` (one group each, so every update sees every size).
 * **Dynamics** (per environment, at each of its resets): the actuator's gain (one per
   environment, each robot's spread around it by ``gain_spread``), its first-order lag time
@@ -76,6 +78,8 @@ class ScenarioDistribution:
         object_shapes: choices among :data:`SHAPES`, drawn with equal probability.
         directions: choices among :data:`DIRECTIONS`, drawn with equal probability.
         start_jitter: ``[lo, hi]`` of the layout's start jitter [m] (per axis, per episode).
+        slot_spacing: ``[lo, hi]`` of the distance between neighbouring slots of a column [m]
+            (the preset's 0.125; at least 0.09, one robot diameter and a centimetre).
         gain: ``[lo, hi]`` of an environment's actuator gain (achieved / commanded).
         gain_spread: each robot's gain is the environment's plus U(-spread, spread).
         lag_tau: ``[lo, hi]`` of the actuator lag time constant [s] (0: none).
@@ -88,6 +92,7 @@ class ScenarioDistribution:
     object_shapes: tuple[str, ...] = ("box",)
     directions: tuple[str, ...] = ("right_to_left",)
     start_jitter: tuple[float, float] = (0.015, 0.015)
+    slot_spacing: tuple[float, float] = (0.125, 0.125)
     gain: tuple[float, float] = (1.0, 1.0)
     gain_spread: float = 0.0
     lag_tau: tuple[float, float] = (0.0, 0.0)
@@ -96,6 +101,7 @@ class ScenarioDistribution:
     def __post_init__(self) -> None:
         for name, lo, hi in (("object_width", 0.02, 0.9), ("object_height", 0.02, 0.9),
                              ("object_offset", 0.0, 0.45), ("start_jitter", 0.0, 0.05),
+                             ("slot_spacing", 0.09, 0.45),
                              ("gain", 0.05, 2.0), ("lag_tau", 0.0, 1.0)):
             value = getattr(self, name)
             if name == "object_offset":      # two maxima, not a range
@@ -128,7 +134,8 @@ class ScenarioDistribution:
         return (self.object_width[0] < self.object_width[1] or self.object_height[0] < self.object_height[1]
                 or self.object_offset != (0.0, 0.0) or self.object_shapes != ("box",)
                 or len(self.directions) > 1 or self.directions != ("right_to_left",)
-                or self.start_jitter[0] < self.start_jitter[1])
+                or self.start_jitter[0] < self.start_jitter[1]
+                or self.slot_spacing != (0.125, 0.125))
 
     @property
     def varies_dynamics(self) -> bool:
@@ -148,7 +155,7 @@ class ScenarioDistribution:
         raise DistributionError(
             f"no layout of {n} robots drawn from this distribution fits the {base.arena[0]:g} x "
             f"{base.arena[1]:g} arena in {ATTEMPTS} draws (last: {last}); narrow object_width / "
-            "object_height / object_offset, or train fewer robots")
+            "object_height / object_offset / slot_spacing, or train fewer robots")
 
     def _draw(self, base: Scenario, n: int, rng: np.random.Generator) -> Scenario:
         w, h = rng.uniform(*self.object_width), rng.uniform(*self.object_height)
@@ -157,10 +164,12 @@ class ScenarioDistribution:
         shape = self.object_shapes[rng.integers(len(self.object_shapes))]
         direction = self.directions[rng.integers(len(self.directions))]
         jitter = float(rng.uniform(*self.start_jitter))
+        lo, hi = self.slot_spacing     # drawn only when it varies: older distributions' draws stay the same
+        spacing = float(rng.uniform(lo, hi)) if lo < hi else lo
         vertices = object_polygon(shape, centre + offset, (w, h), rng)
         angle = DIRECTIONS[direction]
         canonical = transport_scenario(n, object_vertices=turn_points(vertices, -angle, centre),
-                                       start_jitter=jitter, dynamics=base.dynamics)
+                                       start_jitter=jitter, spacing=spacing, dynamics=base.dynamics)
         return Scenario(
             name=f"{direction}-{shape}-{n}", num_robots=n,
             start_slots=turn_points(canonical.starts, angle, centre), target_slots=turn_points(canonical.targets, angle, centre),

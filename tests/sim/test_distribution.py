@@ -99,6 +99,28 @@ def test_the_training_world_draws_a_new_layout_when_all_its_environments_restart
     assert again.scenario == first                       # the seed repeats the draws
 
 
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(2, 7), seed=st.integers(0, 2**32 - 1))
+def test_slot_spacing_draws_columns_of_that_spacing(n, seed):
+    """Neighbouring targets (and starts) of a draw lie one drawn spacing apart, in the range;
+    the draw is a valid layout (Scenario() checks slots against walls and the object)."""
+    d = ScenarioDistribution(slot_spacing=(0.09, 0.15))
+    assert d.varies_layout
+    sc = d.layout(BASE, n, np.random.default_rng(seed))
+    for slots in (sc.targets, sc.starts):
+        gaps = np.diff(np.sort(slots[:, 1]))
+        assert np.allclose(gaps, gaps[0], atol=1e-9) and 0.09 - 1e-9 <= gaps[0] <= 0.15 + 1e-9
+
+
+def test_slot_spacing_varies_between_draws_and_refuses_overlapping_robots():
+    d = ScenarioDistribution(slot_spacing=(0.09, 0.15))
+    rng = np.random.default_rng(0)
+    spacings = {round(float(np.diff(d.layout(BASE, 3, rng).targets[:, 1])[0]), 4) for _ in range(20)}
+    assert len(spacings) > 10
+    with pytest.raises(DistributionError, match=r"slot_spacing must satisfy 0.09 <= low"):
+        ScenarioDistribution(slot_spacing=(0.05, 0.1))
+
+
 def test_a_distribution_file_round_trips_and_bad_fields_are_named(tmp_path):
     path = tmp_path / "d.json"
     path.write_text(json.dumps(BROAD.to_dict()))
