@@ -46,6 +46,8 @@ DIRECTIONS = {"right_to_left": 0, "top_to_bottom": 90, "left_to_right": 180, "bo
 """Direction of the formation change -> the angle [deg] the right-to-left layout is turned by,
 counter-clockwise: at 90 its start columns (right of the object, +x) come to lie above it (+y)."""
 SHAPES = ("box", "polygon")
+LAYOUT_FIELDS = ("object_width", "object_height", "object_offset", "object_shapes", "directions", "start_jitter",
+                 "slot_spacing")
 ATTEMPTS = 200
 MAX_DELAY_TICKS = 8
 
@@ -79,7 +81,9 @@ class ScenarioDistribution:
         directions: choices among :data:`DIRECTIONS`, drawn with equal probability.
         start_jitter: ``[lo, hi]`` of the layout's start jitter [m] (per axis, per episode).
         slot_spacing: ``[lo, hi]`` of the distance between neighbouring slots of a column [m]
-            (the preset's 0.125; at least 0.09, one robot diameter and a centimetre).
+            (the preset's 0.125; at least 0.09). Start slots need two radii plus 2 sqrt(2) times the
+            start jitter (0.122 m at the default 1.5 cm), so closer draws are drawn again: the
+            range in effect starts there.
         gain: ``[lo, hi]`` of an environment's actuator gain (achieved / commanded).
         gain_spread: each robot's gain is the environment's plus U(-spread, spread).
         lag_tau: ``[lo, hi]`` of the actuator lag time constant [s] (0: none).
@@ -130,12 +134,9 @@ class ScenarioDistribution:
     # ------------------------------------------------------------ properties
     @property
     def varies_layout(self) -> bool:
-        """Whether two layout draws can differ."""
-        return (self.object_width[0] < self.object_width[1] or self.object_height[0] < self.object_height[1]
-                or self.object_offset != (0.0, 0.0) or self.object_shapes != ("box",)
-                or len(self.directions) > 1 or self.directions != ("right_to_left",)
-                or self.start_jitter[0] < self.start_jitter[1]
-                or self.slot_spacing != (0.125, 0.125))
+        """Whether a draw can differ from the preset layout: a range, or a single value other
+        than the default's, in any layout field (False: the training world keeps its scenario)."""
+        return any(getattr(self, f.name) != f.default for f in dataclasses.fields(self) if f.name in LAYOUT_FIELDS)
 
     @property
     def varies_dynamics(self) -> bool:
