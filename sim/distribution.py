@@ -46,8 +46,8 @@ DIRECTIONS = {"right_to_left": 0, "top_to_bottom": 90, "left_to_right": 180, "bo
 """Direction of the formation change -> the angle [deg] the right-to-left layout is turned by,
 counter-clockwise: at 90 its start columns (right of the object, +x) come to lie above it (+y)."""
 SHAPES = ("box", "polygon")
-LAYOUT_FIELDS = ("object_width", "object_height", "object_offset", "object_shapes", "directions", "start_jitter",
-                 "slot_spacing")
+_LAYOUT_FIELDS = ("object_width", "object_height", "object_offset", "object_shapes", "directions", "start_jitter",
+                  "slot_spacing")
 ATTEMPTS = 200
 MAX_DELAY_TICKS = 8
 
@@ -136,7 +136,7 @@ class ScenarioDistribution:
     def varies_layout(self) -> bool:
         """Whether a draw can differ from the preset layout: a range, or a single value other
         than the default's, in any layout field (False: the training world keeps its scenario)."""
-        return any(getattr(self, f.name) != f.default for f in dataclasses.fields(self) if f.name in LAYOUT_FIELDS)
+        return any(getattr(self, f.name) != f.default for f in dataclasses.fields(self) if f.name in _LAYOUT_FIELDS)
 
     @property
     def varies_dynamics(self) -> bool:

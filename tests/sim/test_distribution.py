@@ -111,7 +111,8 @@ def test_slot_spacing_draws_columns_of_that_spacing(n, seed):
         gaps = np.diff(np.sort(slots[:, 1]))
         assert np.allclose(gaps, gaps[0], atol=1e-9) and 0.09 - 1e-9 <= gaps[0] <= 0.15 + 1e-9
     # closer start slots could touch after jitter: such draws are drawn again (0.122 m here)
-    assert gaps[0] >= 2 * sc.robot_radius + 2 * np.sqrt(2) * sc.start_jitter - 1e-9
+    start_gap = np.diff(np.sort(sc.starts[:, 1]))[0]
+    assert start_gap >= 2 * sc.robot_radius + 2 * np.sqrt(2) * sc.start_jitter - 1e-9
 
 
 def test_slot_spacing_varies_between_draws_and_refuses_overlapping_robots():
@@ -124,13 +125,16 @@ def test_slot_spacing_varies_between_draws_and_refuses_overlapping_robots():
 
 
 def test_a_single_value_other_than_the_presets_is_drawn_too():
-    """object_width [0.3, 0.3] is a 0.3 m object in the training world, not the preset's 0.2."""
-    d = ScenarioDistribution(object_width=(0.3, 0.3), slot_spacing=(0.14, 0.14))
-    assert d.varies_layout
-    env = BatchedFormationEnv(BASE, 2, seed=0, distribution=d)
-    env.reset()
-    assert np.ptp(env.scenario.polygon[:, 0]) == pytest.approx(0.3)
-    assert np.diff(np.sort(env.scenario.targets[:, 1])) == pytest.approx([0.14, 0.14])
+    """object_width [0.3, 0.3] alone is a 0.3 m object in the training world, not the preset's
+    0.2 (a varies_layout that looked for ranges only kept the preset); slot_spacing alike."""
+    for d, check in ((ScenarioDistribution(object_width=(0.3, 0.3)),
+                      lambda sc: np.ptp(sc.polygon[:, 0]) == pytest.approx(0.3)),
+                     (ScenarioDistribution(slot_spacing=(0.14, 0.14)),
+                      lambda sc: np.diff(np.sort(sc.targets[:, 1])) == pytest.approx([0.14, 0.14]))):
+        assert d.varies_layout
+        env = BatchedFormationEnv(BASE, 2, seed=0, distribution=d)
+        env.reset()
+        assert check(env.scenario)
 
 
 def test_a_distribution_file_round_trips_and_bad_fields_are_named(tmp_path):
