@@ -413,10 +413,17 @@ class MAPPOTrainer:
         if self.config.critic.to_dict() != source.critic.to_dict():
             raise CheckpointError(f"init_from: the critic settings of {path!r} differ from this run's; "
                                   "use the source run's critic settings")
+        if mine["token_layers"] < theirs["token_layers"]:
+            raise CheckpointError(f"init_from: {path!r} has actor.token_layers={theirs['token_layers']}; this run "
+                                  f"needs at least as many (it adds identity blocks, it cannot drop trained ones)")
         m = int(data["num_robots"])
         fresh_actor, fresh_critic = self.actor, self.critic
         self.actor = actor_from_state(source.actor, policy_state(data), m, self.num_robots,
                                       accel_limit=self.accel_limit, seed=self.config.seed).to(self.device)
+        if mine["token_layers"] > theirs["token_layers"]:     # new blocks start as the identity
+            state = {**fresh_actor.state_dict(), **self.actor.state_dict()}
+            self.actor = copy.deepcopy(fresh_actor)
+            self.actor.load_state_dict(state)
         self.critic = critic_from_state(source.critic, data["critic"], m, self.num_robots).to(self.device)
         shrink_perturb(self.actor, fresh_actor, self.config.init_keep)
         shrink_perturb(self.critic, fresh_critic, self.config.init_keep)

@@ -25,6 +25,7 @@ from controllers.policy.config import ActorConfig
 from controllers.policy.layers import (
     AttentionHead,
     SlotLinear,
+    TokenMixer,
     TypedEmbedding,
     bounded_acceleration,
     check_tokens,
@@ -47,6 +48,7 @@ class TypedSDPAActor(nn.Module):
     Per robot (B = E * N rows)::
 
         x_t = W_type(t) f_t + b_type(t)                  (T, D) embedded tokens
+        x   = TokenMixer_L(... TokenMixer_1(x))          config.token_layers blocks (0: none)
         z   = MultiHeadSDPA(query = x_self, keys = values = x_valid)
         u    = MLP([x_self, z])                          one hidden layer of 128 ReLU
         mean = accel_limit * tanh((u - k_v v) / accel_limit)      k_v = velocity_damping
@@ -71,6 +73,8 @@ class TypedSDPAActor(nn.Module):
         self.velocity_damping = float(config.velocity_damping)
         self.turning = config.frame == "formation"
         self.embedding = TypedEmbedding(TOKEN_DIM, config.embed_dim, config.embed_hidden)
+        self.mixers = nn.ModuleList(TokenMixer(config.embed_dim, config.num_heads)
+                                    for _ in range(config.token_layers))
         self.head = AttentionHead(config.embed_dim, config.num_heads, config.hidden_sizes,
                                   ACTION_DIM, OUT_GAIN)
         self.log_std = nn.Parameter(torch.full((ACTION_DIM,), float(config.init_log_std)))
@@ -86,7 +90,12 @@ class TypedSDPAActor(nn.Module):
         if self.turning:
             turn = formation_turn(f, m)
             f = turn_tokens(f, turn)
-        return self.embedding(f * self.input_scale, n), m, turn, f[:, 0, 2:4]
+        return self._mix(self.embedding(f * self.input_scale, n), m), m, turn, f[:, 0, 2:4]
+
+    def _mix(self, x: torch.Tensor, m: torch.Tensor | None) -> torch.Tensor:
+        for mixer in self.mixers:
+            x = mixer(x, m)
+        return x
 
     def _act(self, out: torch.Tensor, velocity: torch.Tensor, turn: torch.Tensor | None) -> torch.Tensor:
         a = bounded_acceleration(out, velocity, self.velocity_damping, self.accel_limit)
@@ -107,7 +116,7 @@ class TypedSDPAActor(nn.Module):
         if self.turning:
             turn = formation_turn(f, m)
             f = turn_tokens(f, turn)
-        x = self.embedding(f * self.input_scale, (tokens.shape[1] - 1) // 2)
+        x = self._mix(self.embedding(f * self.input_scale, (tokens.shape[1] - 1) // 2), m)
         return self._act(self.head(x[:, 0], x, m), f[:, 0, 2:4], turn)
 
     @torch.jit.export

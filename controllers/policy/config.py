@@ -85,6 +85,11 @@ class ActorConfig:
             symmetry, and a quarter-turned formation sees its walls where it never trained);
             ``"world"``: the tokens as they are. None: ``"formation"`` for the typed actor,
             ``"world"`` otherwise (checkpoints from before the field: ``"world"``).
+        token_layers: residual self-attention blocks over the embedded tokens before the
+            robot's own query pools them (typed actor only; 0: the paper's single pooling).
+            One pooling weighs each token by its pair with the robot alone, so it cannot tell
+            whether a target is nearer another robot than itself; a block lets every token
+            attend to the others first (:class:`controllers.policy.layers.TokenMixer`).
     """
 
     variant: str = "typed"
@@ -96,6 +101,7 @@ class ActorConfig:
     input_scale: float = 10.0
     velocity_damping: float = 0.0
     frame: str | None = None
+    token_layers: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_sizes", _check_hidden("actor", self.hidden_sizes))
@@ -125,6 +131,11 @@ class ActorConfig:
         if not 0.0 <= float(self.velocity_damping) <= 100.0:
             raise PolicyConfigError(f"actor.velocity_damping must be in [0, 100] 1/s, got {self.velocity_damping!r}")
         _check_frame("actor", self.frame, self.variant, "typed")
+        if not isinstance(self.token_layers, int) or isinstance(self.token_layers, bool) or not 0 <= self.token_layers <= 4:
+            raise PolicyConfigError(f"actor.token_layers must be an integer in [0, 4], got {self.token_layers!r}")
+        if self.token_layers and self.variant != "typed":
+            raise PolicyConfigError(f"actor.token_layers applies to the typed actor only; set it to 0 for "
+                                    f"variant {self.variant!r}")
 
     @property
     def obs_kind(self) -> str:

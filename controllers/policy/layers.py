@@ -255,6 +255,34 @@ class AttentionHead(nn.Module):
         return self.attention.weights(s.unsqueeze(1), x, mask).squeeze(2)
 
 
+class TokenMixer(nn.Module):
+    """One residual self-attention block over a robot's embedded tokens (no normalisation)::
+
+        x <- x + W_o MultiHeadSDPA(query = x_t, keys = values = x_valid)
+        x <- x + W_2 relu(W_1 x + b_1) + b_2                      (width 2D)
+
+    ``x`` (B, T, D), ``mask`` (B, T) bool (True = valid; column 0 always valid) -> (B, T, D).
+    ``W_o`` and ``W_2`` start at zero, so a fresh block is the identity: an actor trained
+    without blocks computes the same actions with them, and fine-tuning starts where it was.
+    Tokens stay tied to their robot's frame (every feature is relative to the robot), so the
+    block is equivariant in the order of targets and of other robots.
+    """
+
+    def __init__(self, dim: int, num_heads: int):
+        super().__init__()
+        self.attention = MultiHeadAttention(dim, num_heads)
+        self.out = init_linear(nn.Linear(dim, dim), 1.0)
+        self.feed = nn.Sequential(init_linear(nn.Linear(dim, 2 * dim), math.sqrt(2.0)), nn.ReLU(),
+                                  init_linear(nn.Linear(2 * dim, dim), 1.0))
+        with torch.no_grad():
+            self.out.weight.zero_()
+            self.feed[2].weight.zero_()
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        x = x + self.out(self.attention(x, x, mask))
+        return x + self.feed(x)
+
+
 def bounded_acceleration(u: torch.Tensor, velocity: torch.Tensor, damping: float, limit: float) -> torch.Tensor:
     """The actor's mean acceleration [m/s^2] from the network output ``u`` (..., 2)::
 

@@ -36,6 +36,8 @@ attention:
   tokens, so ``W_v`` and ``b_v`` fold into it: ``z = [s, pooled_1 .. pooled_H] M`` with
   ``M = [W_s; b_1 + b_v W_p; W_v^1^T W_p^1; 0; ...]`` (the pooled 1s, which sum the softmax,
   get a zero row). Then the rest of the MLP as trained, ``a = L tanh((u - c v) / L)``, ``R_k^T a``.
+* **token mixing blocks** (``ActorConfig.token_layers``), if any, run as trained on the D
+  embedded columns between the embedding and the pooling; the constant 1 rides past them.
 
 Products of weights folded here are formed in float64 and rounded once. The order of float32
 sums differs from the training forward (about 1e-8 on the actions at the verify states);
@@ -162,6 +164,7 @@ class TypedRows(nn.Module):
             self.register_buffer("head_in", _head_input(attention, mlp[0]).float())
             self.register_buffer("minus_inf", torch.tensor(float("-inf")))
         self.mlp = copy.deepcopy(mlp[2:]).eval()
+        self.mixers = copy.deepcopy(actor.mixers).eval()
         for p in self.parameters():
             p.requires_grad_(False)
 
@@ -185,6 +188,11 @@ class TypedRows(nn.Module):
         else:
             h = (torch.matmul(f, w1) + self.b1) * table[:, :self.wide]
         x = torch.matmul(h, self.w2)                                                  # (B, T, D+1)
+        if len(self.mixers):
+            y = x[..., :self.dim]
+            for mixer in self.mixers:
+                y = mixer(y, read)
+            x = torch.cat((y, x[..., self.dim:]), -1)
         s = x[:, 0]
         u = torch.matmul(s, self.scores).view(-1, self.dim + 1, self.heads)
         scores = torch.where(read.unsqueeze(-1), torch.matmul(x, u), self.minus_inf).transpose(1, 2)

@@ -24,10 +24,15 @@ def test_the_kind_table_by_hand():
     ActorConfig(embed_hidden=0, num_heads=2, hidden_sizes=(64, 32)),
     ActorConfig(frame="world", velocity_damping=0.5, embed_dim=32, num_heads=8),
     ActorConfig(velocity_damping=0.7, hidden_sizes=(32, 16)),  # damping in the turned frame, limit 2
-], ids=["default", "linear-embedding", "world-frame-damped", "turned-damped-limit2"])
+    ActorConfig(token_layers=2),                                # token blocks (moved from the identity below)
+], ids=["default", "linear-embedding", "world-frame-damped", "turned-damped-limit2", "token-blocks"])
 def test_typed_rows_give_the_actors_rows_for_every_team_and_any_mask(config):
     torch.manual_seed(3)
     actor = build_actor(config, 3, accel_limit=2.0 if config.velocity_damping == 0.7 else 1.0).eval()
+    with torch.no_grad():
+        for block in actor.mixers:
+            block.out.weight.normal_(0.0, 0.2)
+            block.feed[2].weight.normal_(0.0, 0.2)
     graph = TypedRows(actor)
     generator = torch.Generator().manual_seed(4)
     for n in (1, 2, 5, 16, MAX_ROBOTS):

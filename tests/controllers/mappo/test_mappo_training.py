@@ -201,6 +201,27 @@ def test_init_keep_mixes_the_transferred_weights_with_the_runs_own_fresh_ones(tm
         tiny(init_keep=1.5)
 
 
+def test_a_run_with_token_blocks_starts_from_a_checkpoint_without_them(tmp_path):
+    source = MAPPOTrainer(tiny(), tmp_path / "plain")
+    with torch.no_grad():
+        for p in source.actor.parameters():
+            p.add_(0.05)
+    ckpt = source.save()
+    mixed = MAPPOTrainer(tiny(scenario="paper-4", init_from=str(ckpt), init_keep=1.0,
+                              actor=SMALL_NET | {"token_layers": 1}), tmp_path / "mixed")
+    obs, mask = BatchedFormationEnv(make_scenario("paper-4"), 2, seed=0).reset()
+    with torch.no_grad():                  # the new block starts as the identity
+        assert torch.equal(mixed.actor(obs, mask), source.actor(obs, mask))
+    assert len(mixed.actor.mixers) == 1
+    row = mixed._iteration()
+    assert row["iteration"] == 1 and torch.isfinite(torch.tensor(row["policy_loss"]))
+    with torch.no_grad():                  # and it trains: the block's output layer moved off zero
+        assert float(mixed.actor.mixers[0].out.weight.abs().max()) > 0
+    back = mixed.save()
+    with pytest.raises(CheckpointError, match="token_layers"):
+        MAPPOTrainer(tiny(init_from=str(back)), tmp_path / "drop")
+
+
 def test_typed_zero_shot_policy_is_the_trained_one(tmp_path):
     source = MAPPOTrainer(tiny(), tmp_path / "three")
     ckpt = source.save()

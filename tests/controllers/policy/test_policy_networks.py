@@ -266,3 +266,49 @@ def test_one_query_attention_computes_the_training_numbers(embed_hidden):
             got = actor.accel_limit * torch.tanh((u - actor.velocity_damping * rows[:, 0, 2:4]) / actor.accel_limit)
         assert float((plain - want).abs().max()) <= 1e-6
         assert float((got - want).abs().max()) <= 1e-5 and float(want.abs().max()) > 1e-3
+
+
+def _mixing_actor(layers: int, n: int) -> torch.nn.Module:
+    """A typed actor with ``layers`` token blocks whose zero-initialised outputs are moved, so the
+    blocks change the actions."""
+    actor = build_actor(ActorConfig(token_layers=layers), n)
+    with torch.no_grad():
+        for block in actor.mixers:
+            block.out.weight.normal_(0.0, 0.2)
+            block.feed[2].weight.normal_(0.0, 0.2)
+    return actor
+
+
+@pytest.mark.parametrize("n", [2, 5])
+def test_token_blocks_keep_the_typed_actor_equivariant_and_change_its_actions(n):
+    torch.manual_seed(7)
+    actor = _mixing_actor(2, n)
+    pos, vel, targets, poly, arena = random_state(n)
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(n))
+    obs, mask = obs_of(pos, vel, targets, poly, arena)
+    with torch.no_grad():
+        a = actor(obs, mask)
+        assert torch.allclose(actor(*obs_of(pos[:, perm], vel[:, perm], targets, poly, arena)), a[:, perm], atol=1e-5)
+        assert torch.allclose(actor(*obs_of(pos, vel, targets[:, perm], poly, arena)), a, atol=1e-5)
+        plain = build_actor(ActorConfig(), n)
+        plain.load_state_dict({k: v for k, v in actor.state_dict().items() if not k.startswith("mixers.")})
+        assert float((plain(obs, mask) - a).abs().max()) > 1e-3          # the blocks do something
+        rows = actor.rows(obs.reshape(-1, 2 * n + 1, 4), mask.reshape(-1, 2 * n + 1))
+        assert torch.allclose(rows, a.reshape(-1, 2), atol=1e-6)
+        assert torch.allclose(torch.jit.script(actor)(obs, mask), a, atol=1e-6)
+
+
+def test_fresh_token_blocks_are_the_identity_and_are_checked():
+    torch.manual_seed(8)
+    plain, mixed = build_actor(ActorConfig(), 4), build_actor(ActorConfig(token_layers=1), 4)
+    mixed.load_state_dict({**mixed.state_dict(), **plain.state_dict()})
+    obs = torch.randn(3, 4, 9, 4) * 0.3
+    mask = torch.rand(3, 4, 9) > 0.2
+    with torch.no_grad():
+        assert torch.equal(mixed(obs, mask), plain(obs, mask))
+    assert count_parameters(mixed) - count_parameters(plain) == 64 * 64 * 4 + 64 * 4 + 2 * (64 * 128) + 128 + 64
+    for bad in (-1, 5, True, 1.0):
+        with pytest.raises(PolicyConfigError, match="actor.token_layers"):
+            ActorConfig(token_layers=bad)
+    with pytest.raises(PolicyConfigError, match="typed actor only"):
+        ActorConfig(variant="slot", token_layers=1)
