@@ -40,6 +40,17 @@ def positive_int(text: str) -> int:
     return int(text)
 
 
+def json_object(text: str) -> dict:
+    """argparse type: a JSON object, e.g. ``'{"update_epochs": 4, "actor": {"token_layers": 1}}'``."""
+    try:
+        value = json.loads(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected a JSON object, got {text!r} ({err})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object such as '{{\"update_epochs\": 4}}', got {text!r}")
+    return value
+
+
 def add_output_args(parser: argparse.ArgumentParser) -> None:
     """``--json`` and ``--threads``, the options every benchmark shares."""
     parser.add_argument("--json", action="store_true",

@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._common import (  # noqa: E402
     add_output_args,
+    json_object,
     positive_int,
     positive_int_list,
     print_json,
@@ -92,7 +93,7 @@ def held_out(n: int = 4):
 def trials(args, out: Path) -> list[TrialSpec]:
     base = {"scenario": "paper-3", "update_epochs": args.update_epochs, "total_episodes": args.budget}
     specs = []
-    generalist = {"team_sizes": args.team_sizes, "distribution": args.distribution,
+    generalist = {**args.config, "team_sizes": args.team_sizes, "distribution": args.distribution,
                   "penalty_curriculum": args.penalty_curriculum}
     for seed in range(args.seeds):
         for name, extra in (("generalist", generalist), ("specialist", {})):
@@ -171,6 +172,9 @@ def main(argv=None) -> int:
     p.add_argument("--penalty-curriculum", type=float, default=3.0, metavar="K",
                    help="the generalist's contact-penalty curriculum, MAPPOConfig.penalty_curriculum "
                         "(default 3; 0: off, as the specialist)")
+    p.add_argument("--config", type=json_object, default={},
+                   help="extra MAPPOConfig fields as JSON for the generalist's runs, e.g. "
+                        "'{\"actor\": {\"token_layers\": 1}}' (the specialist keeps the paper recipe)")
     p.add_argument("--finetune-budget", type=int, default=400,
                    help="fine-tuning episodes on the held-out layout per generalist seed (default 400; 0: skip)")
     p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")

@@ -45,11 +45,20 @@ def test_the_generalist_alone_trains_with_the_penalty_curriculum(tmp_path):
     from bench.generalization import trials
 
     args = types.SimpleNamespace(seeds=2, team_sizes=[3, 4, 5], budget=3200, update_epochs=4,
-                                 distribution=None, penalty_curriculum=3.0)
+                                 distribution=None, penalty_curriculum=3.0, config={"actor": {"token_layers": 1}})
     by_group = {(s.group, s.seed): s.fields for s in trials(args, tmp_path)}
     assert {k: f["penalty_curriculum"] for k, f in by_group.items()} == {
         ("generalist", 0): 3.0, ("generalist", 1): 3.0, ("specialist", 0): 0.0, ("specialist", 1): 0.0}
     assert by_group[("generalist", 1)]["team_sizes"] == [3, 4, 5] and by_group[("specialist", 1)]["seed"] == 1
+    # --config reaches the generalist alone
+    assert {k: f["actor"]["token_layers"] for k, f in by_group.items()} == {
+        ("generalist", 0): 1, ("generalist", 1): 1, ("specialist", 0): 0, ("specialist", 1): 0}
+
+
+def test_a_config_that_is_not_a_json_object_exits_2_naming_the_flag():
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "generalization.py"), "--config", "[1]"],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and "--config" in proc.stderr and "JSON object" in proc.stderr
 
 
 def test_a_policy_is_judged_on_every_cell_of_the_grid_in_both_worlds(tmp_path):
