@@ -58,7 +58,11 @@ def read_config(source: str | Path, what: str) -> dict:
 
     path = Path(source)
     text = str(source).strip()
-    if not path.is_file():
+    try:
+        is_file = path.is_file()
+    except OSError:          # inline JSON longer than a file name may be (255 bytes) is no file
+        is_file = False
+    if not is_file:
         if not text.startswith("{"):
             raise ConfigFileError(f"{what}: {text!r} is neither a file nor inline JSON; give a "
                                   ".json/.toml file or a JSON object such as '{\"lr\": 5e-4}'")

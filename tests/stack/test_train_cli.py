@@ -70,3 +70,15 @@ def test_a_bad_config_file_names_the_problem(tmp_path, capsys, text, message):
 def test_config_that_is_neither_file_nor_json_is_refused(capsys):
     assert main(["train", "--config", "no/such/file.toml", "--print-config"]) == 2
     assert "neither a file nor inline JSON" in capsys.readouterr().err
+
+
+def test_inline_json_longer_than_a_file_name_is_read(capsys):
+    """A whole printed configuration given inline (well over the 255 bytes a file name may have)
+    is read as JSON, not stat'ed as a path (that raised OSError: File name too long)."""
+    assert main(["train", "--scenario", "paper-4", "--print-config"]) == 0
+    printed = capsys.readouterr().out
+    assert len(printed) > 1000
+    assert main(["train", "--config", printed, "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out) == json.loads(printed)
+    assert main(["train", "--config", "x" * 300, "--print-config"]) == 2
+    assert "neither a file nor inline JSON" in capsys.readouterr().err
