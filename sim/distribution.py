@@ -253,12 +253,12 @@ def load_distribution(source: str | Path | dict) -> ScenarioDistribution:
         return DISTRIBUTIONS[source]
     where = "distribution"
     if not isinstance(source, dict):
-        from sim.files import ConfigFileError, read_config
+        from sim.files import ConfigFileError, is_file, read_config
 
-        if not Path(source).is_file() and not str(source).strip().startswith("{"):
+        if not is_file(source) and not str(source).strip().startswith("{"):
             raise DistributionError(f"distribution {str(source)!r} is neither a name ({', '.join(DISTRIBUTIONS)}) "
                                     "nor a .json/.toml file nor inline JSON")
-        where = f"distribution {str(source)!r}" if Path(source).is_file() else "distribution"
+        where = f"distribution {str(source)!r}" if is_file(source) else "distribution"
         try:
             source = read_config(source, where)
         except ConfigFileError as exc:

@@ -46,6 +46,15 @@ def sha256_file(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def is_file(source: str | Path) -> bool:
+    """Whether ``source`` names an existing file; text no file name can be (inline JSON longer
+    than the 255 bytes a name may have, which ``Path.is_file`` answers with OSError) is not one."""
+    try:
+        return Path(source).is_file()
+    except (OSError, ValueError):
+        return False
+
+
 class ConfigFileError(ValueError):
     """A configuration that cannot be read; the message names the source, the place and the fix."""
 
@@ -58,11 +67,7 @@ def read_config(source: str | Path, what: str) -> dict:
 
     path = Path(source)
     text = str(source).strip()
-    try:
-        is_file = path.is_file()
-    except OSError:          # inline JSON longer than a file name may be (255 bytes) is no file
-        is_file = False
-    if not is_file:
+    if not is_file(path):
         if not text.startswith("{"):
             raise ConfigFileError(f"{what}: {text!r} is neither a file nor inline JSON; give a "
                                   ".json/.toml file or a JSON object such as '{\"lr\": 5e-4}'")

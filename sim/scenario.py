@@ -349,7 +349,9 @@ def scenario_from(value: str | dict) -> Scenario:
 def make_scenario(name: str) -> Scenario:
     """Build a preset by name (see :data:`PRESETS`), ``transport-N`` for any N, or the scenario of
     a .json/.toml file (:func:`load_scenario_file`)."""
-    if name.endswith((".json", ".toml")) or Path(name).is_file():
+    from sim.files import is_file
+
+    if name.endswith((".json", ".toml")) or is_file(name):
         return load_scenario_file(name)
     if name.startswith("paper-") and name[6:].isdigit() and name in PRESETS:
         return transport_scenario(int(name[6:]), name=name)

@@ -165,3 +165,11 @@ def test_a_distribution_that_cannot_place_the_team_says_which_fields_to_narrow()
     huge = ScenarioDistribution(object_width=(0.8, 0.9), object_height=(0.8, 0.9))
     with pytest.raises(DistributionError, match="narrow object_width"):
         huge.layout(BASE, 3, np.random.default_rng(0))
+
+
+def test_inline_json_longer_than_a_file_name_is_read_and_long_junk_is_refused_by_name():
+    text = json.dumps({**DISTRIBUTIONS["broad"].to_dict(), "slot_spacing": [0.12, 0.14]})
+    assert len(text) > 255                                   # more than a file name may hold
+    assert load_distribution(text).slot_spacing == (0.12, 0.14)
+    with pytest.raises(DistributionError, match="neither a name"):
+        load_distribution("b" * 300)

@@ -160,3 +160,8 @@ def test_a_bad_scenario_file_names_the_file_and_field(tmp_path, content, message
     with pytest.raises(ScenarioError) as err:
         make_scenario(str(path))
     assert message in str(err.value) and "bad.json" in str(err.value)
+
+
+def test_a_name_longer_than_a_file_name_is_an_unknown_scenario_not_an_os_error():
+    with pytest.raises(ScenarioError, match="unknown scenario"):
+        make_scenario("paper" * 60)
