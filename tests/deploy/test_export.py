@@ -321,6 +321,27 @@ def test_slot_actor_exports_for_its_own_n(tmp_path):
         assert check_export(report.path).max_abs_diff <= 1e-5
 
 
+def test_an_actor_with_token_blocks_exports_and_matches_for_every_team(tmp_path):
+    """Token-mixing blocks (self-attention over T tokens, T free) through every format."""
+    torch.manual_seed(3)
+    actor = build_actor(ActorConfig(embed_dim=32, token_layers=1), 5)
+    with torch.no_grad():                          # move the blocks off the identity
+        for block in actor.mixers:
+            block.out.weight.normal_(0.0, 0.3)
+            block.feed[2].weight.normal_(0.0, 0.3)
+    actor.eval()
+    reports = export_policy(actor, tmp_path / "mixed", dt=0.05, trained_robots=5)
+    generator = torch.Generator().manual_seed(4)
+    for report in reports:
+        assert check_export(report.path).max_abs_diff <= 1e-5
+        policy = load_exported(report.path)
+        for n in (1, 6, MAX_ROBOTS):
+            rows, mask = random_fleet_rows(n, 8, generator, make_scenario("paper-5"), True)
+            want = eager_reference(actor, rows.view(8, n, 2 * n + 1, 4), mask.view(8, n, 2 * n + 1))
+            got, valid = policy.run(rows.numpy(), mask.numpy())
+            assert valid.all() and float(np.abs(got - want.reshape(-1, 2).numpy()).max()) <= 1e-5
+
+
 def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path, capsys):
     config = MAPPOConfig()
     actor = build_actor(config.actor, 3)
