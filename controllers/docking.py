@@ -43,7 +43,7 @@ from scipy.optimize import linear_sum_assignment
 
 from controllers import docking_kernels
 from controllers.checks import check_numbers
-from controllers.jit import require_shapes
+from controllers.jit import f64, require_shapes
 
 
 class DockingConfigError(ValueError):
@@ -109,7 +109,7 @@ class Docking:
             return a_nom, docking
         require_shapes("Docking", pos=(pos, (n, 2)), vel=(vel, (n, 2)), targets=(targets, (n, 2)),
                        a_nom=(a_nom, (n, 2)))
-        return self._dock(ids, _f64(pos), _f64(vel), _f64(targets), a_nom, movable)
+        return self._dock(ids, f64(pos), f64(vel), f64(targets), a_nom, movable)
 
     def _dock(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
               a_nom: np.ndarray, movable: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -127,14 +127,11 @@ class Docking:
         was = np.array([rid in self._docking for rid in ids], dtype=bool)
         movable = np.ones(n, dtype=bool) if movable is None else np.ascontiguousarray(movable, dtype=bool)
         out = np.empty((n, 2))
-        anyone = docking_kernels.dock(pos, vel, targets, dist, match, was, movable, *self._consts, _f64(a_nom),
+        anyone = docking_kernels.dock(pos, vel, targets, dist, match, was, movable, *self._consts, f64(a_nom),
                                       out, docking)
         self._docking = {rid for rid, d in zip(ids, docking, strict=True) if d}
         return (out if anyone else a_nom), docking
 
-
-def _f64(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 __all__ = ["Docking", "DockingConfig", "DockingConfigError"]

@@ -52,6 +52,11 @@ def require_shapes(where: str, **arrays: tuple[np.ndarray, tuple[int, ...]]) -> 
             raise ValueError(f"{where}: {name} must have shape {shape}, got {got}")
 
 
+def f64(x: np.ndarray) -> np.ndarray:
+    """``x`` as a C-contiguous float64 array (what the kernels take; no copy if it is one)."""
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every registered kernel now, not at the first tick; each
     module's kernels once per process (a kernel keeps what it compiled)."""
@@ -59,4 +64,4 @@ def warm_up() -> None:
         _WARM_UPS.pop(0)()
 
 
-__all__ = ["KERNELS", "kernel", "register_warm_up", "require_shapes", "warm_up"]
+__all__ = ["KERNELS", "f64", "kernel", "register_warm_up", "require_shapes", "warm_up"]

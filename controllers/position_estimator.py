@@ -41,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers import position_estimator_kernels
-from controllers.jit import require_shapes
+from controllers.jit import f64, require_shapes
 
 NOISE_FLOOR = 1e-4     # [m] measured position noise at or below this: measurements pass through
 FORGET = 0.95          # forgetting factor of the measured residual variance
@@ -125,14 +125,11 @@ class PositionEstimator:
         n = len(pos)
         out_pos, out_std = np.empty((n, 2)), np.empty(n)
         position_estimator_kernels.estimate(
-            _f64(pos), _f64(vel), _f64(time_s), np.ascontiguousarray(new, dtype=bool),
-            _f64(velocity_noise_var), self.dt, float(FORGET), float(NOISE_FLOOR**2), float(RESET_SIGMAS**2), self.p_hat,
+            f64(pos), f64(vel), f64(time_s), np.ascontiguousarray(new, dtype=bool),
+            f64(velocity_noise_var), self.dt, float(FORGET), float(NOISE_FLOOR**2), float(RESET_SIGMAS**2), self.p_hat,
             self.var, self.y_prev, self.t_prev, self.noise_var, self.passed, self.count, out_pos, out_std)
         return out_pos, out_std
 
-
-def _f64(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 __all__ = ["FORGET", "NOISE_FLOOR", "RESET_SIGMAS", "PositionEstimator"]

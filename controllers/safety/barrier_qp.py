@@ -53,6 +53,8 @@ import osqp
 import qpsolvers
 import scipy.sparse as sp
 
+from controllers.jit import f64
+from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, barrier_terms, octagon_accel
 from controllers.safety.fused import FusedScene, FusedTerms
 from controllers.safety.geometry import CollisionScene, SceneDistances, analytic_distances
@@ -265,7 +267,7 @@ class SafetyFilter:
                 (the caller brakes them) and are obstacles only.
         """
         start = time.perf_counter()
-        pos, vel, a_nom = np.asarray(pos, np.float64), np.asarray(vel, np.float64), np.asarray(a_nom, np.float64)
+        pos, vel, a_nom = f64(pos), f64(vel), f64(a_nom)
         n = len(pos)
         if not pos.shape == vel.shape == a_nom.shape == (n, 2):
             for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom)):
@@ -274,7 +276,7 @@ class SafetyFilter:
                                      f"({n}, 2), got {arr.shape}")
         if n == 0:
             return SafetyResult(np.zeros((0, 2)), SafetyStatus.UNCHANGED, total_time_s=0.0)
-        if not (np.isfinite(pos).all() and np.isfinite(vel).all() and np.isfinite(a_nom).all()
+        if not (fused_kernels.all_finite(pos, vel, a_nom)
                 and (object_pose is None or np.isfinite(object_pose).all())):
             finite = [name for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom),
                                              ("object_pose", object_pose))
@@ -286,25 +288,32 @@ class SafetyFilter:
         fixed = None
         if prediction is not None:
             pos, vel, fixed = prediction.pos, prediction.vel, prediction.fixed
-            if fixed.any():
+            if np.count_nonzero(fixed):
                 a_nom = np.where(fixed[:, None], 0.0, a_nom)
         dist: SceneDistances | None = None
         if fused:                                  # compiled: no floating-point warnings
             terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose), prediction)
+            nominal, values = np.empty((n, 2)), np.empty(len(terms.bound))
+            clearance, min_barrier, bounded, met = fused_kernels.screen(
+                terms.normal_xy, terms.pair_i, terms.pair_j, a_nom, float(self.dynamics.accel_limit),
+                terms.bound, terms.distance, terms.h, nominal, values)
         else:
             with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
                 dist = self.distances(pos, object_pose)
                 terms = barrier_terms(dist, vel, self.dynamics, self.config, prediction)
-        clearance = float(terms.distance.min()) if fused else dist.min_clearance()
+            clearance, min_barrier = dist.min_clearance(), float(terms.h.min())
+            bounded = bool((terms.bound < np.inf).all())
         # b = -K(h) - drift: a non-finite h (or drift) makes b non-finite too (dropped rows: -inf)
-        if not (terms.bound < np.inf).all():                  # NaN or +inf (dropped rows are -inf)
+        if not bounded:                                       # NaN or +inf (dropped rows are -inf)
             return self._brake_all(vel, "barrier terms overflowed (velocities far out of range)", start,
                                    clearance, prediction=prediction)
-        nominal = clip_norm(a_nom, self.dynamics.accel_limit)
+        if not fused:
+            nominal = clip_norm(a_nom, self.dynamics.accel_limit)
+            values = terms.rows_times(nominal)
+            met = bool((values >= terms.bound).all())
         status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
         solver = ""
-        values = terms.rows_times(nominal)
-        if (values >= terms.bound).all():
+        if met:
             a = nominal
         else:
             t_solve = time.perf_counter()
@@ -321,7 +330,7 @@ class SafetyFilter:
             if a is None:
                 return self._brake_all(vel, reason, start, clearance, terms, solve_time, prediction)
             a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
-            if fixed is not None and fixed.any():
+            if fixed is not None and np.count_nonzero(fixed):
                 a[fixed] = 0.0                       # held at 0 by the QP, to solver tolerance
         braked, contact = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if self.config.postcheck:
@@ -330,12 +339,12 @@ class SafetyFilter:
             else:
                 check = prob.checker.check(pos, vel, a, dist.object_distance, prediction)
             a, braked, contact = check.acc, check.braked, check.contact
-            if braked.any():
+            if np.count_nonzero(braked):
                 status = SafetyStatus.FALLBACK_BRAKE
                 reason = (reason + "; " if reason else "") + (
                     f"post-check braked robots {np.flatnonzero(braked).tolist()}")
         return SafetyResult(a_safe=a, status=status, reason=reason, solver=solver, braked=braked, contact=contact,
-                            min_barrier=float(terms.h.min()), min_clearance=clearance,
+                            min_barrier=min_barrier, min_clearance=clearance,
                             max_slack=slack, solve_time_s=solve_time,
                             total_time_s=time.perf_counter() - start, terms=terms)
 

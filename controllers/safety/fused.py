@@ -53,6 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.jit import f64
 from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
 from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
@@ -69,9 +70,6 @@ _SLACK = 1e-9
 """[m] added to the travel bounds of the sweep check, so that rounding can only make it ask the
 exact tests more often, never less."""
 
-
-def _f64(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 @dataclass
@@ -96,7 +94,7 @@ class FusedTerms(BarrierTerms):
             raise ValueError(f"FusedTerms.rows_times: u must have shape ({self.gather_t.shape[0]}, 2), "
                              f"got {u.shape}")
         out = np.empty(self.normal_xy.shape[1])
-        fused_kernels.rows_times(self.normal_xy, self.pair_i, self.pair_j, _f64(u), out)
+        fused_kernels.rows_times(self.normal_xy, self.pair_i, self.pair_j, f64(u), out)
         return out
 
     def object_distance(self) -> np.ndarray:
@@ -214,11 +212,11 @@ class FusedScene:
             grow = closing = self._zeros
             unsure = fixed = self._false
         else:
-            grow, closing = _f64(prediction.grow), _f64(prediction.closing)
+            grow, closing = f64(prediction.grow), f64(prediction.closing)
             fixed = np.ascontiguousarray(prediction.fixed, dtype=bool)
             unsure = self._false if prediction.unsure is None else np.ascontiguousarray(prediction.unsure, dtype=bool)
         fused_kernels.barrier_rows(
-            _f64(pos), _f64(vel), self.pair_i, self.pair_j, *self._shape_args, self.wall_offset,
+            f64(pos), f64(vel), self.pair_i, self.pair_j, *self._shape_args, self.wall_offset,
             self._wall_normal_xy, self.alpha, self.two_alpha, prediction is not None, grow, closing, unsure,
             fixed, *self._row_consts, normal, dist, h, drift, bound, delta, obj_n)
         return FusedTerms(pair_i=self.pair_i, pair_j=self.pair_j, pair_normal=normal[:, :p].T,
@@ -241,7 +239,7 @@ class FusedScene:
         grown start distances); ``vel_error`` (N,) [m/s] bounds the error of ``vel``; ``brake``
         (N, 2), what failing robots would get (None: no excuses)."""
         dyn, r, m, n = self.dynamics, self.radius, checker.margin, self.n
-        widen = self._zeros if grow is None else _f64(grow)
+        widen = self._zeros if grow is None else f64(grow)
         bad = np.zeros(n, dtype=bool)
         clear, end, bulge, travel, hit, wall_hit = self._sweep(pos, vel, acc, widen, terms, m)
         if clear:
@@ -269,7 +267,7 @@ class FusedScene:
         end, bulge, travel = np.empty((n, 2)), np.empty(n), np.empty(n)
         hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
         clear = fused_kernels.sweep_rows(
-            _f64(pos), _f64(vel), _f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
+            f64(pos), f64(vel), f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
             self.wall_offset, self.radius, float(margin), _SLACK, *self._sweep_consts, end, bulge, travel,
             hit, wall_hit)
         return clear, end, bulge, travel, hit, wall_hit

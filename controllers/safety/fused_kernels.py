@@ -229,6 +229,42 @@ def rows_times(normal_xy, pair_i, pair_j, u, out):
         out[k] = normal_xy[0, k] * w0 + normal_xy[1, k] * w1
 
 
+@kernel
+def screen(normal_xy, pair_i, pair_j, a_nom, limit, bound, distance, h, nominal, values):
+    """The filter's first look at a tick, in one call: ``nominal = clip_norm(a_nom, limit)``
+    (N, 2) written into ``nominal``, its row values (:func:`rows_times`) into ``values`` (K,),
+    and ``(min distance, min h, every bound < inf, every row met: values >= bound)``. The minima
+    are NaN where any entry is, as numpy's ``min``; the clip is ``x * (limit / max(|x|, limit))``
+    with numpy's NaN-propagating maximum."""
+    for i in range(a_nom.shape[0]):
+        norm = math.hypot(a_nom[i, 0], a_nom[i, 1])
+        scale = limit / (norm if (norm >= limit or norm != norm) else limit)
+        nominal[i, 0] = a_nom[i, 0] * scale
+        nominal[i, 1] = a_nom[i, 1] * scale
+    rows_times(normal_xy, pair_i, pair_j, nominal, values)
+    low_d, low_h = distance[0], h[0]
+    bounded, met = True, True
+    for k in range(bound.shape[0]):
+        if distance[k] != distance[k] or distance[k] < low_d:
+            low_d = distance[k] if low_d == low_d else low_d
+        if h[k] != h[k] or h[k] < low_h:
+            low_h = h[k] if low_h == low_h else low_h
+        if not bound[k] < math.inf:
+            bounded = False
+        if not values[k] >= bound[k]:
+            met = False
+    return low_d, low_h, bounded, met
+
+
+@kernel
+def all_finite(a, b, c):
+    """Whether every entry of the three C-contiguous (N, 2) float64 arrays is finite."""
+    for i in range(a.shape[0]):
+        if not (math.isfinite(a[i, 0]) and math.isfinite(a[i, 1]) and math.isfinite(b[i, 0])
+                and math.isfinite(b[i, 1]) and math.isfinite(c[i, 0]) and math.isfinite(c[i, 1])):
+            return False
+    return True
+
 @register_warm_up
 def _warm_up() -> None:
     n, m = 2, 4
@@ -245,9 +281,12 @@ def _warm_up() -> None:
     object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
                 np.empty((n, 2)), np.empty(n))
     rows_times(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, np.empty(k))
+    screen(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, 1.0, np.ones(k), np.ones(k),
+           np.ones(k), np.empty((n, 2)), np.empty(k))
+    all_finite(pos, vel, vel)
     sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i.astype(np.int64), pair_j.astype(np.int64),
                np.zeros(4), 0.04, 0.005, 1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
                np.empty(1, dtype=bool), np.empty((n, 4), dtype=bool))
 
 
-__all__ = ["barrier_rows", "object_rows", "rows_times", "sweep_rows"]
+__all__ = ["all_finite", "barrier_rows", "object_rows", "rows_times", "screen", "sweep_rows"]

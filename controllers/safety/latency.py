@@ -114,7 +114,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.checks import check_numbers
-from controllers.jit import require_shapes
+from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
 from controllers.safety.silent_reach import SilentPaths, silent_paths
 from sim.scenario import Dynamics, clip_norm
@@ -211,10 +211,6 @@ def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarra
     :mod:`controllers.safety.barrier`: ``x_i + x_j`` on pairs, ``x_i`` on object and wall rows."""
     return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
 
-
-def _f64(x: np.ndarray) -> np.ndarray:
-    """``x`` as a C-contiguous float64 array (what the compiled kernels take)."""
-    return np.ascontiguousarray(x, dtype=np.float64)
 
 
 VELOCITY_NOISE_BOUND = 3.0
@@ -400,7 +396,7 @@ class LatencyPredictor:
         p, v, grow, closing = np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n)
         fixed, h, jittering = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64), np.empty(n, dtype=bool)
         latency_kernels.predict_listening(
-            _f64(pos), _f64(vel), _f64(ages), _f64(a_nom), pending, given_fixed, _f64(sigma_p),
+            f64(pos), f64(vel), f64(ages), f64(a_nom), pending, given_fixed, f64(sigma_p),
             self._history, self._delay_seen, self._jitter_left, self._accel_bound, float(delay),
             *self._kernel_consts, p, v, grow, closing, fixed, h, jittering)
         return p, v, grow, closing, fixed, h, jittering

@@ -6,11 +6,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from controllers.safety import fused_kernels
 from controllers.safety.barrier import SafetyConfig
 from controllers.safety.fused import FusedScene
 from controllers.safety.geometry import CollisionScene
 from controllers.safety.latency import Prediction
-from controllers.safety.postcheck import SweepChecker, braking_acceleration
+from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
 from sim.scenario import Dynamics, make_scenario
 from tests.controllers.safety.fused_reference import NumpyFusedScene
 
@@ -101,3 +102,38 @@ def test_compiled_sweep_equals_numpy_formulation(seed, n, spread, speed, widened
     for name, a, b in zip(("end", "bulge", "travel", "hit", "wall_hit")[:compared - 1], parts[0][1:compared],
                           parts[1][1:compared], strict=True):
         np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 8), scale=st.sampled_from([0.1, 1.0, 1e3, 1e200]),
+       poison=st.sampled_from([None, "nan", "inf", "-inf"]))
+def test_screen_equals_its_numpy_formulation(seed, n, scale, poison):
+    """The filter's first look (clip, row values, minima, the bound and row tests) in one kernel
+    equals the numpy lines it replaced, NaN and infinite rows included."""
+    rng = np.random.default_rng(seed)
+    scene = FusedScene(R, SCENARIO.arena, DYN, SafetyConfig(), n)
+    terms = scene.terms(rng.uniform(0.1, 0.9, (n, 2)), rng.normal(0, 0.3, (n, 2)), SHAPES["box"])
+    a_nom = rng.normal(0.0, scale, (n, 2))
+    bound, distance, h = (rng.normal(0.0, 1.0, scene.k) for _ in range(3))
+    if poison is not None:
+        for arr in (bound, distance, h):
+            arr[rng.integers(scene.k)] = float(poison)
+    nominal, values = np.empty((n, 2)), np.empty(scene.k)
+    low_d, low_h, bounded, met = fused_kernels.screen(terms.normal_xy, terms.pair_i, terms.pair_j, a_nom,
+                                                      DYN.accel_limit, bound, distance, h, nominal, values)
+    want_nominal = clip_norm(a_nom, DYN.accel_limit)
+    np.testing.assert_array_equal(nominal, want_nominal)
+    np.testing.assert_array_equal(values, (terms.normal_xy * (want_nominal.T @ terms.gather_t)).sum(axis=0))
+    np.testing.assert_array_equal([low_d, low_h], [distance.min(), h.min()])
+    assert bounded == bool((bound < np.inf).all())
+    assert met == bool((values >= bound).all())
+
+
+def test_all_finite_finds_any_non_finite_entry():
+    arrays = [np.zeros((3, 2)) for _ in range(3)]
+    assert fused_kernels.all_finite(*arrays)
+    for k in range(3):
+        for bad in (np.nan, np.inf, -np.inf):
+            broken = [a.copy() for a in arrays]
+            broken[k][2, 1] = bad
+            assert not fused_kernels.all_finite(*broken)
