@@ -112,7 +112,9 @@ import numpy as np
 import scipy.linalg
 
 from controllers import mec_kernels
+from controllers.array_kernels import all_finite
 from controllers.checks import check_numbers
+from controllers.jit import f64
 from sim.scenario import Dynamics
 
 NOISE_LEVELS = 6        # velocity noise levels sigma_y * 2^l, l = 0..5 (up to 32 sigma_y)
@@ -321,10 +323,11 @@ class ModelErrorCompensator:
         ids = tuple(ids) if ids is not None else tuple(f"r{i}" for i in range(n))
         if len(ids) != n:
             raise ValueError(f"ModelErrorCompensator.update: {len(ids)} ids for {n} robots")
-        self._all_valid = bool(np.isfinite(vel).all())
+        vel = f64(vel)
+        self._all_valid = all_finite(vel)
         valid = np.ones(n, dtype=bool) if self._all_valid else np.isfinite(vel).all(axis=1)
         fresh = self._align(ids, vel, valid) if ids != self.ids else np.zeros(n, dtype=bool)
-        self._reset_tick = bool(fresh.all())
+        self._reset_tick = np.count_nonzero(fresh) == n
         if not self._all_valid:
             vel = np.where(valid[:, None], vel, 0.0)
         v_out = self._observe(vel, valid & ~fresh)
@@ -357,7 +360,7 @@ class ModelErrorCompensator:
             status = MecStatus.INVALID_COMMAND
         elif not self._all_valid:
             status = MecStatus.INVALID_MEASUREMENT
-        elif status is MecStatus.OK and gated.any():
+        elif status is MecStatus.OK and np.count_nonzero(gated):
             status = MecStatus.GATED
         elif status is MecStatus.OK and clipped:
             status = MecStatus.CLIPPED

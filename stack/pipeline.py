@@ -77,8 +77,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from controllers.array_kernels import all_finite, non_finite_rows
 from controllers.docking import Docking, DockingConfig
-from controllers.jit import warm_up
+from controllers.jit import f64, warm_up
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
 from controllers.observation_kernels import fleet_tokens
 from controllers.position_estimator import PositionEstimator
@@ -342,7 +343,8 @@ class ControlStack:
             self._resize(n)
         pos, vel, ages = state.positions, state.velocities, state.ages()
         ids = state.robot_ids
-        unknown = ~(np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1))
+        unknown = np.empty(n, dtype=bool)
+        any_unknown = non_finite_rows(f64(pos), f64(vel), unknown) > 0
         news = self._last_known.new_measurement(ids, ages, state.time) & ~unknown
         pos, vel, ages, unplaced = self._last_known.update(ids, pos, vel, ages, state.time, unknown)
         stale = unknown | (ages > self.config.latency.stale_after_s)
@@ -351,16 +353,16 @@ class ControlStack:
         pos, vel, position_std = self._estimate(ids, pos, vel, state.time - ages, stale, news)
         policy_status, brake_reason = PolicyStatus.OK, ""
         docked = np.zeros(n, dtype=bool)
-        if unplaced.any():                      # nowhere to put a robot: nobody may move
+        if any_unknown and unplaced.any():      # nowhere to put a robot: nobody may move
             a_nom = self.brake(vel)
             policy_status = PolicyStatus.INVALID_STATE
             brake_reason = "non-finite fleet state: policy skipped, braking"
             t_obs = t_pol = time.perf_counter_ns()
         else:
-            if unknown.any() or vel is not state.velocities or pos is not state.positions:
+            if any_unknown or vel is not state.velocities or pos is not state.positions:
                 state = state.replaced(positions=pos, velocities=vel, state_age_s=ages)
             a_nom, t_obs, t_pol = self._policy(state, t0)
-            if not np.isfinite(a_nom).all():
+            if not all_finite(f64(a_nom)):
                 a_nom = self.brake(vel)
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
@@ -380,13 +382,13 @@ class ControlStack:
             if safe is not None:
                 a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(a_cmd), n)
             achieved = a_cmd + np.where(stale[:, None], 0.0, mec.compensation)
-        if stale.any():                         # not listening or not seen: brake, as the robot would
+        if np.count_nonzero(stale):             # not listening or not seen: brake, as the robot would
             a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
             achieved = np.where(stale[:, None], a_cmd, achieved)
         if self.mec is not None:
             self.mec.replace_last_command(a_cmd)
         t_mec = time.perf_counter_ns()
-        if not np.isfinite(a_cmd).all():   # no stage should get here; the last line of defence
+        if not all_finite(f64(a_cmd)):     # no stage should get here; the last line of defence
             a_cmd = self.brake(vel)
             brake_reason = (brake_reason + "; " if brake_reason else "") + "final command not finite: braking"
         if self.predictor is not None:         # the silent robots' rows too (asked nothing)
@@ -434,7 +436,9 @@ class ControlStack:
                 mask = self._row_masks[n] = np.ones(array.shape[:2], dtype=bool)
             t_obs = time.perf_counter_ns()
             accel, valid = self._exported.run(array, mask)
-            raw = np.where(np.asarray(valid)[:, None], accel, np.nan).astype(np.float64)
+            valid = np.asarray(valid)
+            raw = (accel.astype(np.float64) if np.count_nonzero(valid) == n
+                   else np.where(valid[:, None], accel, np.nan).astype(np.float64))
         else:
             obs, mask = self._network_input(state)
             t_obs = time.perf_counter_ns()

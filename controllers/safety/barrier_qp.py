@@ -53,6 +53,7 @@ import osqp
 import qpsolvers
 import scipy.sparse as sp
 
+from controllers.array_kernels import all_finite
 from controllers.jit import f64
 from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, barrier_terms, octagon_accel
@@ -276,7 +277,7 @@ class SafetyFilter:
                                      f"({n}, 2), got {arr.shape}")
         if n == 0:
             return SafetyResult(np.zeros((0, 2)), SafetyStatus.UNCHANGED, total_time_s=0.0)
-        if not (fused_kernels.all_finite(pos, vel, a_nom)
+        if not (all_finite(pos) and all_finite(vel) and all_finite(a_nom)
                 and (object_pose is None or np.isfinite(object_pose).all())):
             finite = [name for name, arr in (("pos", pos), ("vel", vel), ("a_nom", a_nom),
                                              ("object_pose", object_pose))

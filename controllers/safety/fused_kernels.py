@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from controllers.array_kernels import clip_rows
 from controllers.jit import kernel, register_warm_up
 
 
@@ -236,11 +237,7 @@ def screen(normal_xy, pair_i, pair_j, a_nom, limit, bound, distance, h, nominal,
     and ``(min distance, min h, every bound < inf, every row met: values >= bound)``. The minima
     are NaN where any entry is, as numpy's ``min``; the clip is ``x * (limit / max(|x|, limit))``
     with numpy's NaN-propagating maximum."""
-    for i in range(a_nom.shape[0]):
-        norm = math.hypot(a_nom[i, 0], a_nom[i, 1])
-        scale = limit / (norm if (norm >= limit or norm != norm) else limit)
-        nominal[i, 0] = a_nom[i, 0] * scale
-        nominal[i, 1] = a_nom[i, 1] * scale
+    clip_rows(a_nom, limit, nominal)
     rows_times(normal_xy, pair_i, pair_j, nominal, values)
     low_d, low_h = distance[0], h[0]
     bounded, met = True, True
@@ -257,13 +254,20 @@ def screen(normal_xy, pair_i, pair_j, a_nom, limit, bound, distance, h, nominal,
 
 
 @kernel
-def all_finite(a, b, c):
-    """Whether every entry of the three C-contiguous (N, 2) float64 arrays is finite."""
-    for i in range(a.shape[0]):
-        if not (math.isfinite(a[i, 0]) and math.isfinite(a[i, 1]) and math.isfinite(b[i, 0])
-                and math.isfinite(b[i, 1]) and math.isfinite(c[i, 0]) and math.isfinite(c[i, 1])):
-            return False
-    return True
+def command_breaks_rows(normal_xy, pair_i, pair_j, a_safe, a_cmd, bound, tol, floor, values):
+    """The re-check's first test (:mod:`controllers.safety.recheck`): ``floor = minimum(bound,
+    rows(a_safe)) - tol`` (K,) (numpy's NaN-propagating minimum) and ``values = rows(a_cmd)``
+    written out; whether any row has ``values < floor``."""
+    rows_times(normal_xy, pair_i, pair_j, a_safe, floor)
+    for k in range(bound.shape[0]):
+        b = bound[k]
+        floor[k] = (b if (b < floor[k] or b != b) else floor[k]) - tol
+    rows_times(normal_xy, pair_i, pair_j, a_cmd, values)
+    for k in range(bound.shape[0]):
+        if values[k] < floor[k]:
+            return True
+    return False
+
 
 @register_warm_up
 def _warm_up() -> None:
@@ -281,12 +285,13 @@ def _warm_up() -> None:
     object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
                 np.empty((n, 2)), np.empty(n))
     rows_times(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, np.empty(k))
+    command_breaks_rows(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, pos, np.ones(k),
+                        1e-9, np.empty(k), np.empty(k))
     screen(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, 1.0, np.ones(k), np.ones(k),
            np.ones(k), np.empty((n, 2)), np.empty(k))
-    all_finite(pos, vel, vel)
     sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i.astype(np.int64), pair_j.astype(np.int64),
                np.zeros(4), 0.04, 0.005, 1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
                np.empty(1, dtype=bool), np.empty((n, 4), dtype=bool))
 
 
-__all__ = ["all_finite", "barrier_rows", "object_rows", "rows_times", "screen", "sweep_rows"]
+__all__ = ["barrier_rows", "command_breaks_rows", "object_rows", "rows_times", "screen", "sweep_rows"]

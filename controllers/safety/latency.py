@@ -113,11 +113,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from controllers.array_kernels import clip_norm_rows
 from controllers.checks import check_numbers
 from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
 from controllers.safety.silent_reach import SilentPaths, silent_paths
-from sim.scenario import Dynamics, clip_norm
+from sim.scenario import Dynamics
 
 
 class LatencyConfigError(ValueError):
@@ -318,7 +319,10 @@ class LatencyPredictor:
         still arrives)."""
         if pending is None:
             return np.zeros(len(ages), dtype=bool)
-        return np.asarray(pending) > horizon_ticks(ages, self._max_delay(measured_delay_s), self.dynamics.dt)
+        out = np.empty(len(ages), dtype=bool)
+        latency_kernels.late_rows(np.ascontiguousarray(pending, dtype=np.int64), f64(ages),
+                                  float(self._max_delay(measured_delay_s)), float(self.dynamics.dt), out)
+        return out
 
     def predict(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
@@ -355,7 +359,7 @@ class LatencyPredictor:
         p, v, grow, closing, fixed, h, jittering = self._listening(pos, vel, ages, a_nom, pending, given_fixed,
                                                                    sigma_p, delay)
         unsure = jittering | (pending < 0)                    # the delay may change under it
-        if fixed.any():
+        if np.count_nonzero(fixed):
             sigma = np.broadcast_to(sigma_p, (len(p),))
             by_ball = fixed.copy()
             if now is not None:
@@ -377,7 +381,7 @@ class LatencyPredictor:
                 grow[by_ball] = radius + sigma[by_ball]
                 closing[by_ball] = rate + cfg.velocity_noise
         brake_vel, measured = v, jittering & ~fixed
-        if cfg.jitter_brake_measured and measured.any():
+        if cfg.jitter_brake_measured and np.count_nonzero(measured):
             brake_vel = np.where(measured[:, None], vel, v)
         velocity_error = closing + (0.0 if velocity_noise is None else
                                     VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
@@ -430,7 +434,7 @@ class LatencyPredictor:
         """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last),
         clipped to the actuator limit; ``braking`` (N,) bool: the rows sent BRAKE (the robot
         applies the braking law to its own velocity; None: none)."""
-        accel = clip_norm(accel, self.dynamics.accel_limit)
+        accel = clip_norm_rows(f64(accel), self.dynamics.accel_limit)
         self._align(tuple(ids))
         self._history[:-1] = self._history[1:]
         self._history[-1] = accel

@@ -124,6 +124,20 @@ def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, speed_
             p[i, 0], p[i, 1] = p[i, 0] + dt * v[i, 0], p[i, 1] + dt * v[i, 1]
 
 
+@kernel
+def late_rows(pending, ages, delay, dt, out):
+    """``out = pending > horizon_ticks(ages, delay, dt)`` (N,) bool
+    (:meth:`controllers.safety.latency.LatencyPredictor.late`): the horizon is
+    ``max(int64(ceil((tau + L) / dt - 1e-9)), 0)``, and 0 where numpy's float-to-int64 cast has no
+    value (NaN, +-inf, beyond 2^63: it gives INT64_MIN there, which the max lifts to 0)."""
+    for i in range(ages.shape[0]):
+        x = np.ceil((ages[i] + delay) / dt - 1e-9)
+        ticks = 0
+        if x == x and -9.223372036854775808e18 <= x < 9.223372036854775808e18:
+            ticks = max(np.int64(x), 0)
+        out[i] = pending[i] > ticks
+
+
 @register_warm_up
 def _warm_up() -> None:
     n, depth = 2, 6
@@ -133,6 +147,7 @@ def _warm_up() -> None:
                       np.ones(n), 0.15, 0.05, 0.0025, 0.16, 0.15, 0.5, 0.4, 1.0, 0.25, 0.5, 0.05, 0.0,
                       np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n, dtype=bool),
                       np.empty(n, dtype=np.int64), np.empty(n, dtype=bool))
+    late_rows(np.zeros(n, dtype=np.int64), z1, 0.15, 0.05, np.empty(n, dtype=bool))
 
 
-__all__ = ["predict_listening"]
+__all__ = ["late_rows", "predict_listening"]

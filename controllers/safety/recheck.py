@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from controllers.jit import f64
+from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms
 from controllers.safety.fused import FusedTerms
 
@@ -42,7 +44,13 @@ def recheck(terms: BarrierTerms | None, a_safe: np.ndarray, a_cmd: np.ndarray, k
     if terms is None:
         return a_cmd[:keep]
     out = a_cmd.copy()
-    floor = np.minimum(terms.bound, terms.rows_times(a_safe)) - _TOL
+    if isinstance(terms, FusedTerms):          # compiled first test: most ticks stop here
+        a_safe, floor, values = f64(a_safe), np.empty(len(terms.bound)), np.empty(len(terms.bound))
+        if not fused_kernels.command_breaks_rows(terms.normal_xy, terms.pair_i, terms.pair_j, a_safe,
+                                                 f64(out), terms.bound, _TOL, floor, values):
+            return out[:keep]
+    else:
+        floor = np.minimum(terms.bound, terms.rows_times(a_safe)) - _TOL
     for _ in range(len(out)):
         broken = terms.rows_times(out) < floor
         if not broken.any():

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from controllers.safety.latency import LatencyConfig, LatencyPredictor
+from controllers.safety.latency import LatencyConfig, LatencyPredictor, horizon_ticks
 from sim.scenario import Dynamics, clip_norm
 from tests.controllers.safety.latency_reference import NumpyPredictor
 
@@ -63,3 +63,25 @@ def test_compiled_prediction_equals_numpy_formulation(seed, delay, noise, with_n
 
 def test_the_reference_is_not_the_compiled_code():
     assert NumpyPredictor._listening is not LatencyPredictor._listening
+
+
+@settings(max_examples=100, deadline=None)
+@given(ages=st.lists(st.one_of(st.floats(0.0, 10.0), st.sampled_from([0.0, 0.05, 0.1, 0.15 - 1e-12, np.inf, 1e300])),
+                     min_size=1, max_size=8),
+       pending=st.integers(-1, 12), measured=st.sampled_from([None, 0.0, 0.07, 0.3]))
+def test_compiled_late_equals_numpy_formulation(ages, pending, measured):
+    """``late``: more commands pending than the horizon allows, as ``pending > horizon_ticks``."""
+    predictor = LatencyPredictor(DYN, LatencyConfig())
+    ages = np.array(ages)
+    pend = np.full(len(ages), pending, dtype=np.int64)
+    delay = max(predictor.config.command_delay_s, measured or 0.0)
+    with np.errstate(invalid="ignore"):
+        want = pend > horizon_ticks(ages, delay, DYN.dt)
+    np.testing.assert_array_equal(predictor.late(ages, pend, measured), want)
+
+
+def test_late_hand_worked():
+    """dt 0.05 s, bound 0.15 s: a fresh state allows 3 pending commands, one 0.1 s old allows 5."""
+    predictor = LatencyPredictor(DYN, LatencyConfig(command_delay_s=0.15))
+    ages, pending = np.array([0.0, 0.0, 0.1, 0.1]), np.array([3, 4, 5, 6])
+    assert predictor.late(ages, pending).tolist() == [False, True, False, True]
