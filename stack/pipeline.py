@@ -77,7 +77,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from controllers.array_kernels import all_finite, non_finite_rows
+from controllers.array_kernels import all_finite, clip_norm_rows, non_finite_rows
 from controllers.docking import Docking, DockingConfig
 from controllers.jit import f64, warm_up
 from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
@@ -407,17 +407,19 @@ class ControlStack:
                   stale: np.ndarray, news: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The MEC's velocity and the position estimator's positions for the fresh rows (stale
         rows keep their measurement); ``(pos, vel, position_std (N,) or None)``."""
-        measured_vel = vel
+        measured_vel, n = vel, len(vel)
+        any_stale = np.count_nonzero(stale) > 0         # none: the np.where below are copies
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
-            v_est = self.mec.update(np.where((stale | ~news)[:, None], np.nan, vel), ids)
+            skip = stale | ~news
+            v_est = self.mec.update(np.where(skip[:, None], np.nan, vel) if np.count_nonzero(skip) else vel, ids)
             if self.config.estimated_velocity:
-                vel = np.where(stale[:, None], vel, v_est)
+                vel = np.where(stale[:, None], vel, v_est) if any_stale else v_est
         if self.positions is None:
             return pos, vel, None
         noise = (self.mec.noise_var if self.mec is not None
-                 else np.full(len(pos), self.config.mec_config.velocity_noise**2))
+                 else np.full(n, self.config.mec_config.velocity_noise**2))
         estimate, std = self.positions.update(ids, pos, measured_vel, measured_at, news & ~stale, noise)
-        return np.where(stale[:, None], pos, estimate), vel, std
+        return (np.where(stale[:, None], pos, estimate) if any_stale else estimate), vel, std
 
     def _policy(self, state: FleetState, t0: int) -> tuple[np.ndarray, int, int]:
         """``a_nom`` (N, 2) of the policy and the times after observing and after the policy."""
@@ -473,7 +475,7 @@ class ControlStack:
             pending = state.pending()
             if silent is not None:
                 pending = np.concatenate([pending, np.full(len(silent), -1)])
-            prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm(a_nom, self.dynamics.accel_limit),
+            prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm_rows(f64(a_nom), self.dynamics.accel_limit),
                                                 state.command_delay_s, fixed=unknown, pending=pending,
                                                 position_noise=position_std, velocity_noise=velocity_std,
                                                 now=state.time)
