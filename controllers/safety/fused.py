@@ -244,7 +244,7 @@ class FusedScene:
         clear, end, bulge, travel, hit, wall_hit = self._sweep(pos, vel, acc, widen, terms, m)
         if clear:
             return bad
-        if brake is not None and (hit.any() or wall_hit.any()):
+        if brake is not None and (np.count_nonzero(hit) or np.count_nonzero(wall_hit)):
             pair_ok, wall_ok = excuses(pos, vel, acc, brake, self.pair_i, self.pair_j, grow,
                                        vel_error, dyn)
             hit &= ~pair_ok
@@ -253,7 +253,7 @@ class FusedScene:
         bad[self.pair_j[hit]] = True
         bad |= wall_hit.any(axis=1)
         near = terms.object_distance() - m <= travel + _SLACK
-        if near.any():
+        if np.count_nonzero(near):
             for i in np.flatnonzero(near):
                 bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m
         return bad
@@ -279,11 +279,11 @@ class FusedScene:
         n = self.n
         grow = None if prediction is None else prediction.grow
         vel_error = None if prediction is None else prediction.velocity_error
-        mine = np.ones(n, dtype=bool) if prediction is None else ~prediction.fixed
         braked = np.zeros(n, dtype=bool)
         bad = self.failing(checker, pos, vel, acc, terms, grow, vel_error)
-        if not bad.any():                     # excuses only ever clear failures
+        if not np.count_nonzero(bad):         # excuses only ever clear failures
             return PostcheckResult(acc=acc, braked=braked, contact=bad)
+        mine = np.ones(n, dtype=bool) if prediction is None else ~prediction.fixed
         acc = acc.copy()
         brake = np.where(mine[:, None], braking_acceleration(vel, self.dynamics, prediction), acc)
         bad = self.failing(checker, pos, vel, acc, terms, grow, vel_error, brake)
