@@ -54,10 +54,11 @@ prediction and the fused filter's rows and sweep run as numba kernels (:mod:`con
 each bit for bit its numpy formulation (parity tests; ``bench/tick_kernels.py`` runs both ticks
 on the same states and compares the commands). At five robots that halves the tick (0.77 ->
 0.37 ms p50 with an ONNX policy in the same run): numpy's per-call cost, not arithmetic, was the
-time. The checks between the stages (finiteness, norm clips, the filter's first look
-at its rows, the re-check's first pass) are row kernels too (:mod:`controllers.array_kernels`):
-another 14-25 % off the ONNX tick (0.41-0.45 -> 0.33-0.37 ms p50, alternating runs). The kernels are compiled or loaded from the on-disk cache when the first ControlStack is
-built (:func:`controllers.jit.warm_up`), never inside a tick.
+time. The checks between the stages (finiteness, norm clips, the filter's first look at its
+rows, the re-check's first pass) are row kernels too (:mod:`controllers.array_kernels`): another
+14-25 % off the ONNX tick (0.41-0.45 -> 0.33-0.37 ms p50, alternating runs). The kernels are
+compiled or loaded from the on-disk cache when the first ControlStack is built
+(:func:`controllers.jit.warm_up`), never inside a tick.
 
 Threads: torch's intra-op thread count is the caller's choice. For one fleet (batch of 1) on the
 control path call ``torch.set_num_threads(1)`` once before the loop: more threads only add
