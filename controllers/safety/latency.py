@@ -113,7 +113,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.array_kernels import clip_norm_rows
 from controllers.checks import check_numbers
 from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
@@ -434,13 +433,13 @@ class LatencyPredictor:
         """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last),
         clipped to the actuator limit; ``braking`` (N,) bool: the rows sent BRAKE (the robot
         applies the braking law to its own velocity; None: none)."""
-        accel = clip_norm_rows(f64(accel), self.dynamics.accel_limit)
         self._align(tuple(ids))
-        self._history[:-1] = self._history[1:]
-        self._history[-1] = accel
-        self._braked[:-1] = self._braked[1:]
-        self._braked[-1] = False if braking is None else braking
-        self._recorded = np.minimum(self._recorded + 1, self.depth)
+        n = len(self._ids)
+        accel = f64(accel)
+        braking = np.zeros(n, dtype=bool) if braking is None else np.ascontiguousarray(braking, dtype=bool)
+        require_shapes("LatencyPredictor.record", accel=(accel, (n, 2)), braking=(braking, (n,)))
+        latency_kernels.record_rows(accel, float(self.dynamics.accel_limit), braking, self._history,
+                                    self._braked, self._recorded, self.depth)
 
 
 __all__ = ["LatencyConfig", "LatencyConfigError", "LatencyPredictor", "Prediction", "horizon_ticks",

@@ -138,6 +138,25 @@ def late_rows(pending, ages, delay, dt, out):
         out[i] = pending[i] > ticks
 
 
+@kernel
+def record_rows(accel, limit, braking, history, braked, recorded, depth):
+    """One tick into the command history (:meth:`controllers.safety.latency.LatencyPredictor.record`),
+    in place: ``history`` (D, N, 2) and ``braked`` (D, N) shift one tick older, their newest rows
+    become ``clip_norm(accel, limit)`` and ``braking`` (N,); ``recorded`` (N,) counts up to ``depth``."""
+    ticks, n = history.shape[0], history.shape[1]
+    for t in range(ticks - 1):
+        for i in range(n):
+            history[t, i, 0] = history[t + 1, i, 0]
+            history[t, i, 1] = history[t + 1, i, 1]
+            braked[t, i] = braked[t + 1, i]
+    for i in range(n):
+        scale = _clip_factor(accel[i, 0], accel[i, 1], limit)
+        history[ticks - 1, i, 0] = accel[i, 0] * scale
+        history[ticks - 1, i, 1] = accel[i, 1] * scale
+        braked[ticks - 1, i] = braking[i]
+        recorded[i] = min(recorded[i] + 1, depth)
+
+
 @register_warm_up
 def _warm_up() -> None:
     n, depth = 2, 6
@@ -148,6 +167,8 @@ def _warm_up() -> None:
                       np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n, dtype=bool),
                       np.empty(n, dtype=np.int64), np.empty(n, dtype=bool))
     late_rows(np.zeros(n, dtype=np.int64), z1, 0.15, 0.05, np.empty(n, dtype=bool))
+    record_rows(z2, 1.0, np.zeros(n, dtype=bool), np.zeros((depth, n, 2)), np.zeros((depth, n), dtype=bool),
+                np.zeros(n, dtype=np.int64), depth)
 
 
-__all__ = ["late_rows", "predict_listening"]
+__all__ = ["late_rows", "predict_listening", "record_rows"]

@@ -85,3 +85,27 @@ def test_late_hand_worked():
     predictor = LatencyPredictor(DYN, LatencyConfig(command_delay_s=0.15))
     ages, pending = np.array([0.0, 0.0, 0.1, 0.1]), np.array([3, 4, 5, 6])
     assert predictor.late(ages, pending).tolist() == [False, True, False, True]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 6), ticks=st.integers(1, 12),
+       scale=st.sampled_from([0.5, 3.0, 1e200]))
+def test_compiled_record_equals_numpy_formulation(seed, n, ticks, scale):
+    """``record``: the history shifts one tick older and takes the clipped command, as the numpy
+    lines it replaced (``clip_norm``, two slice copies, ``np.minimum`` of the counts)."""
+    rng = np.random.default_rng(seed)
+    predictor, ids = LatencyPredictor(DYN, LatencyConfig()), tuple(f"r{i}" for i in range(n))
+    predictor._align(ids)
+    history, braked = predictor._history.copy(), predictor._braked.copy()
+    recorded = predictor._recorded.copy()
+    for _ in range(ticks):
+        accel, braking = rng.normal(0.0, scale, (n, 2)), rng.random(n) < 0.3
+        none = rng.random() < 0.2
+        predictor.record(ids, accel, None if none else braking)
+        given = np.zeros(n, dtype=bool) if none else braking
+        history[:-1], braked[:-1] = history[1:].copy(), braked[1:].copy()
+        history[-1], braked[-1] = clip_norm(accel, DYN.accel_limit), given
+        recorded = np.minimum(recorded + 1, predictor.depth)
+        np.testing.assert_array_equal(predictor._history, history)
+        np.testing.assert_array_equal(predictor._braked, braked)
+        np.testing.assert_array_equal(predictor._recorded, recorded)
