@@ -54,7 +54,7 @@ count each row's commands still in flight (sent after its ``last_cmd_seq``):
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
 for every other live robot's (a fleet publishes its states as a burst, so one tick answers one
-burst); check for a stall; classify; e-stop rule; ``FleetState`` -> controller -> commands, each
+burst; the first tick waits, as long, for every registered robot to be live); check for a stall; classify; e-stop rule; ``FleetState`` -> controller -> commands, each
 with ``ttl_ms`` and the answered ``state_seq``. N changes on the fly as robots join or leave.
 
 Episodes (``BridgeConfig.episode_ticks`` = T): a fleet that resets its world every T ticks
@@ -231,6 +231,7 @@ class Bridge:
         if missing:
             raise ValueError(f"targets are missing for robots {missing}; give one (x, y) per robot")
         self.registry = registry
+        self._registered = frozenset(registry.names)
         self.controller = controller
         self.targets = {r: np.asarray(targets[r], dtype=np.float64) for r in registry.names}
         self.object_pose = np.asarray(object_pose, dtype=np.float64)
@@ -266,19 +267,28 @@ class Bridge:
             and _key(s) != self._discard.get(robot)
 
     def _wait_burst(self, timeout_s: float) -> bool:
-        """Wait for a new state of some live robot, then up to ``gather_s`` for every live one.
-        The predicates run on every arriving state, under the link's lock: each reads the table
-        once (it used to copy it once per robot: 146 copies a tick at 50 robots, now 15)."""
+        """Wait for a new state of some live robot, then up to ``gather_s`` for every live one;
+        before the first answered tick, for every registered robot to be live with a state (the
+        first burst of a fleet reaches the bridge over some milliseconds, and its robots would
+        otherwise join one tick at a time). The predicates run on every arriving state, under
+        the link's lock: each reads the table once (it used to copy it once per robot: 146
+        copies a tick at 50 robots, now 15)."""
         link = self.link
 
         def unanswered(robots: frozenset[str]) -> Iterator[bool]:
             states = link.latest_states()
             return (self._unanswered(states, r) for r in robots)
 
+        def gathered() -> bool:
+            alive = link.alive_robots
+            if self.stats.ticks == 0 and not alive >= self._registered:
+                return False
+            return all(unanswered(alive))
+
         if not link.wait_for(lambda: any(unanswered(link.alive_robots)), timeout_s):
             return False
         gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
-        link.wait_for(lambda: all(unanswered(link.alive_robots)), gather_s)
+        link.wait_for(gathered, gather_s)
         return True
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:

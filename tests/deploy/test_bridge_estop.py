@@ -397,3 +397,35 @@ def test_a_bridge_sends_lossless_once_the_fleet_says_it_is_lock_stepped(fleet):
     seq = links[0].latest_command.msg.seq
     _tick(bridge, links, links)                      # the new publishers reach the robots
     assert links[0].wait_for(lambda: links[0].latest_command.msg.seq > seq, 5.0)
+
+
+def test_the_first_tick_waits_for_every_registered_robot_to_join():
+    """A fleet's first burst reaches the bridge over some time (liveliness and states of each
+    robot through a router): the first tick waits, up to ``gather_s``, for the whole registered
+    fleet instead of answering whoever came first (the robots then joined one tick at a time)."""
+    port = free_tcp_port()
+    bridge = Bridge("bj", REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)),
+                    lambda state: np.zeros((state.num_robots, 2)), targets=TARGETS, object_pose=np.zeros(3),
+                    config=BridgeConfig(ttl_ms=100, gather_s=5.0))
+    robot_cfg = TransportConfig(connect=(f"tcp/127.0.0.1:{port}",))
+    links: list[RobotLink] = []
+
+    def late_robot():
+        time.sleep(0.2)
+        links.append(RobotLink("bj", "r1", REGISTRY, robot_cfg))
+        links[-1].publish_state((0.8, 0.8), (0.0, 0.0))
+
+    try:
+        links.append(RobotLink("bj", "r0", REGISTRY, robot_cfg))
+        assert bridge.link.wait_for(lambda: bridge.link.alive_robots == {"r0"}, 20.0)
+        links[0].publish_state((0.2, 0.2), (0.0, 0.0))
+        joiner = threading.Thread(target=late_robot)
+        joiner.start()
+        record = bridge.step(timeout_s=5.0)
+        joiner.join()
+        assert record is not None and record.robots == ROBOTS
+        assert bridge.summary()["robot_counts"] == [(0, 2)]
+    finally:
+        for link in links:
+            link.close()
+        bridge.close()
