@@ -9,9 +9,10 @@ compensator, latency prediction, position estimator, docking, barrier rows and s
 so their commands are identical and only the time differs. The row checks between the stages
 (:mod:`controllers.array_kernels`, the filter's ``screen``, the re-check's first test, the late
 test and the command history) stay compiled in both: their parity tests hold them to the numpy
-lines they replaced, so the "numpy" tick here is faster than the tick before them. Reported per stage: observe
-(estimators, tokens), policy (the ONNX call), safety (docking, prediction, filter), mec
-(compensation, re-check) and the whole tick, p50/p99 [ms], and the ratio numpy / compiled.
+lines they replaced, so the "numpy" tick here is faster than the tick before them. Reported per
+stage: observe (estimators, tokens), policy (the ONNX call), safety (docking, prediction,
+filter), mec (compensation, re-check) and the whole tick, p50/p99 [ms], and the ratio numpy /
+compiled.
 
 Output: a table, or with ``--json`` one document ``{"robots": N, "ticks": T, "compiled":
 {"total": {"p50", "p99"}, "observe": ..., "policy": ..., "safety": ..., "mec": ...}, "numpy":

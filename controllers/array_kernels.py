@@ -38,12 +38,17 @@ def non_finite_rows(pos, vel, out):
 
 
 @kernel
+def clip_factor(x, y, limit):
+    """``limit / maximum(hypot(x, y), limit)``: the factor of :func:`sim.scenario.clip_norm` for
+    one row (numpy's NaN-propagating maximum)."""
+    return limit / np.maximum(math.hypot(x, y), limit)
+
+
+@kernel
 def clip_rows(x, limit, out):
-    """``out = x * (limit / maximum(hypot(x), limit))`` per (N, 2) row (:func:`sim.scenario.clip_norm`,
-    numpy's NaN-propagating maximum)."""
+    """``out = clip_norm(x, limit)`` per (N, 2) row: ``x * clip_factor(x, limit)``."""
     for i in range(x.shape[0]):
-        norm = math.hypot(x[i, 0], x[i, 1])
-        scale = limit / (norm if (norm >= limit or norm != norm) else limit)
+        scale = clip_factor(x[i, 0], x[i, 1], limit)
         out[i, 0] = x[i, 0] * scale
         out[i, 1] = x[i, 1] * scale
 
@@ -60,7 +65,8 @@ def _warm_up() -> None:
     x = np.zeros((2, 2))
     all_finite(x)
     non_finite_rows(x, x, np.empty(2, dtype=bool))
+    clip_factor(3.0, 4.0, 1.0)
     clip_rows(x, 1.0, np.empty((2, 2)))
 
 
-__all__ = ["all_finite", "clip_norm_rows", "clip_rows", "non_finite_rows"]
+__all__ = ["all_finite", "clip_factor", "clip_norm_rows", "clip_rows", "non_finite_rows"]

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from controllers.array_kernels import clip_factor
 from controllers.jit import kernel, register_warm_up
 
 
@@ -67,7 +68,7 @@ def dock(pos, vel, targets, dist, match, was, movable, capture_radius, release_r
             anyone = True
             l0 = kp * (targets[target, 0] - pos[i, 0]) - kd * vel[i, 0]
             l1 = kp * (targets[target, 1] - pos[i, 1]) - kd * vel[i, 1]
-            scale = accel_limit / np.maximum(math.hypot(l0, l1), accel_limit)
+            scale = clip_factor(l0, l1, accel_limit)
             out[i, 0], out[i, 1] = l0 * scale, l1 * scale
     return anyone
 

@@ -54,8 +54,9 @@ count each row's commands still in flight (sent after its ``last_cmd_seq``):
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
 for every other live robot's (a fleet publishes its states as a burst, so one tick answers one
-burst; the first tick waits, as long, for every registered robot to be live); check for a stall; classify; e-stop rule; ``FleetState`` -> controller -> commands, each
-with ``ttl_ms`` and the answered ``state_seq``. N changes on the fly as robots join or leave.
+burst; the first tick waits, as long, for every registered robot to be live); check for a stall;
+classify; e-stop rule; ``FleetState`` -> controller -> commands, each with ``ttl_ms`` and the
+answered ``state_seq``. N changes on the fly as robots join or leave.
 
 Episodes (``BridgeConfig.episode_ticks`` = T): a fleet that resets its world every T ticks
 without closing its links (:mod:`deploy.fleet_sim` with ``episodes``) publishes state ``seq``

@@ -414,7 +414,8 @@ class ControlStack:
         any_stale = np.count_nonzero(stale) > 0         # none: the np.where below are copies
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
             skip = stale | ~news
-            v_est = self.mec.update(np.where(skip[:, None], np.nan, vel) if np.count_nonzero(skip) else vel, ids)
+            v_est = self.mec.update(np.where(skip[:, None], np.nan, vel) if np.count_nonzero(skip) else vel,
+                                    ids)
             if self.config.estimated_velocity:
                 vel = np.where(stale[:, None], vel, v_est) if any_stale else v_est
         if self.positions is None:
@@ -478,10 +479,10 @@ class ControlStack:
             pending = state.pending()
             if silent is not None:
                 pending = np.concatenate([pending, np.full(len(silent), -1)])
-            prediction = self.predictor.predict(ids, pos, vel, ages, clip_norm_rows(f64(a_nom), self.dynamics.accel_limit),
-                                                state.command_delay_s, fixed=unknown, pending=pending,
-                                                position_noise=position_std, velocity_noise=velocity_std,
-                                                now=state.time)
+            nominal = clip_norm_rows(f64(a_nom), self.dynamics.accel_limit)
+            prediction = self.predictor.predict(ids, pos, vel, ages, nominal, state.command_delay_s,
+                                                fixed=unknown, pending=pending, position_noise=position_std,
+                                                velocity_noise=velocity_std, now=state.time)
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from controllers.array_kernels import clip_rows
+from controllers.array_kernels import clip_factor, clip_rows
 from controllers.jit import kernel, register_warm_up
 
 
@@ -171,7 +171,7 @@ def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_
         a_max = np.maximum(a_max, math.hypot(acc[i, 0], acc[i, 1]))
     if not a_max <= accel_limit:
         for i in range(n):
-            scale = accel_limit / np.maximum(math.hypot(acc[i, 0], acc[i, 1]), accel_limit)
+            scale = clip_factor(acc[i, 0], acc[i, 1], accel_limit)
             a[i, 0], a[i, 1] = acc[i, 0] * scale, acc[i, 1] * scale
     for i in range(n):
         e0, e1 = a[i, 0] - damping * vel[i, 0], a[i, 1] - damping * vel[i, 1]

@@ -12,13 +12,8 @@ import math
 
 import numpy as np
 
+from controllers.array_kernels import clip_factor
 from controllers.jit import kernel, register_warm_up
-
-
-@kernel
-def _clip_factor(x, y, limit):
-    """``limit / max(|(x, y)|, limit)``: the factor of :func:`sim.scenario.clip_norm`."""
-    return limit / np.maximum(math.hypot(x, y), limit)
 
 
 @kernel
@@ -43,7 +38,7 @@ def predict_listening(pos, vel, ages, a_nom, pending, given_fixed, sigma_p, hist
     w_unsure = max(jitter_weight, spread_weight)
     steps = 0
     for i in range(n):
-        horizon = max(np.int64(math.ceil((ages[i] + delay) / dt - 1e-9)), 0)
+        horizon = horizon_ticks(ages[i], delay, dt)
         fixed[i] = ages[i] > stale_after or pending[i] > horizon or given_fixed[i]
         h[i] = 0 if fixed[i] else min(horizon, depth - 1)
         steps = max(steps, h[i])
@@ -115,27 +110,33 @@ def _roll_forward(pos, vel, m, history, common, dt, damping, speed_limit, speed_
     for i in range(n):
         for t in range(m[i]):
             k = min(depth - m[i] + t, depth - 1)
-            ka = _clip_factor(history[k, i, 0], history[k, i, 1], accel_limit)
+            ka = clip_factor(history[k, i, 0], history[k, i, 1], accel_limit)
             a0, a1 = history[k, i, 0] * ka, history[k, i, 1] * ka
             w0 = v[i, 0] + dt * (a0 - damping * v[i, 0])
             w1 = v[i, 1] + dt * (a1 - damping * v[i, 1])
-            kv = _clip_factor(w0, w1, speed_limit)
+            kv = clip_factor(w0, w1, speed_limit)
             v[i, 0], v[i, 1] = w0 * kv, w1 * kv
             p[i, 0], p[i, 1] = p[i, 0] + dt * v[i, 0], p[i, 1] + dt * v[i, 1]
 
 
 @kernel
+def horizon_ticks(age, delay, dt):
+    """Ticks ``max(int64(ceil((tau + L) / dt - 1e-9)), 0)`` from a measurement to the new command
+    acting (:func:`controllers.safety.latency.horizon_ticks` for one robot), and 0 where numpy's
+    float-to-int64 cast has no value (NaN, +-inf, beyond 2^63: it gives INT64_MIN there, which
+    the max lifts to 0)."""
+    x = np.ceil((age + delay) / dt - 1e-9)
+    if x == x and -9.223372036854775808e18 <= x < 9.223372036854775808e18:
+        return max(np.int64(x), 0)
+    return np.int64(0)
+
+
+@kernel
 def late_rows(pending, ages, delay, dt, out):
     """``out = pending > horizon_ticks(ages, delay, dt)`` (N,) bool
-    (:meth:`controllers.safety.latency.LatencyPredictor.late`): the horizon is
-    ``max(int64(ceil((tau + L) / dt - 1e-9)), 0)``, and 0 where numpy's float-to-int64 cast has no
-    value (NaN, +-inf, beyond 2^63: it gives INT64_MIN there, which the max lifts to 0)."""
+    (:meth:`controllers.safety.latency.LatencyPredictor.late`)."""
     for i in range(ages.shape[0]):
-        x = np.ceil((ages[i] + delay) / dt - 1e-9)
-        ticks = 0
-        if x == x and -9.223372036854775808e18 <= x < 9.223372036854775808e18:
-            ticks = max(np.int64(x), 0)
-        out[i] = pending[i] > ticks
+        out[i] = pending[i] > horizon_ticks(ages[i], delay, dt)
 
 
 @kernel
@@ -150,7 +151,7 @@ def record_rows(accel, limit, braking, history, braked, recorded, depth):
             history[t, i, 1] = history[t + 1, i, 1]
             braked[t, i] = braked[t + 1, i]
     for i in range(n):
-        scale = _clip_factor(accel[i, 0], accel[i, 1], limit)
+        scale = clip_factor(accel[i, 0], accel[i, 1], limit)
         history[ticks - 1, i, 0] = accel[i, 0] * scale
         history[ticks - 1, i, 1] = accel[i, 1] * scale
         braked[ticks - 1, i] = braking[i]

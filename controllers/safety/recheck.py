@@ -43,11 +43,11 @@ def recheck(terms: BarrierTerms | None, a_safe: np.ndarray, a_cmd: np.ndarray, k
     """
     if terms is None:
         return a_cmd[:keep]
-    out = a_cmd.copy()
+    out = np.array(a_cmd, dtype=np.float64)   # a C-contiguous copy, as the kernel takes
     if isinstance(terms, FusedTerms):          # compiled first test: most ticks stop here
         a_safe, floor, values = f64(a_safe), np.empty(len(terms.bound)), np.empty(len(terms.bound))
         if not fused_kernels.command_breaks_rows(terms.normal_xy, terms.pair_i, terms.pair_j, a_safe,
-                                                 f64(out), terms.bound, _TOL, floor, values):
+                                                 out, terms.bound, _TOL, floor, values):
             return out[:keep]
     else:
         floor = np.minimum(terms.bound, terms.rows_times(a_safe)) - _TOL

@@ -227,7 +227,10 @@ def test_a_state_that_queued_on_the_uplink_is_aged_and_braked():
         offset[0] -= 300_000_000   # this state was sent 0.3 s before it arrives
         link.publish_state((0.5, 0.5), (0.0, 0.0))
         record = bridge.step(timeout_s=1.0)
-        assert seen[-1].state_age_s[0] >= 0.3 and record.stale == ("r0",)
+        # the estimate is 0.3 s plus this transfer less the fastest one seen, less the drift
+        # allowance since the last state: tens of us below 0.3 at most on loopback, and above
+        # it by however long this delivery was held up on a loaded machine
+        assert 0.299 <= seen[-1].state_age_s[0] < 0.35 and record.stale == ("r0",)
         assert record.flags == (CmdFlags.BRAKE,)
     finally:
         if link is not None:
