@@ -239,6 +239,8 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
         grid = tuner.fit()
     by_folder, errored = {}, []
     for result in grid:
+        if not result.config:           # a trial Ctrl-C left pending: it never started
+            continue
         folder = result.config["trial"]["folder"]
         if result.error is not None:
             errored.append(folder)
