@@ -215,9 +215,15 @@ def convergence_sentences(metrics: dict) -> list[str]:
 def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tuple]:
     """The report as blocks: ("h1"|"h2"|"p", text), ("ul", items), ("table", head, rows),
     ("img", path, caption). ``**bold**`` is the only inline markup."""
-    s, t3, t5 = metrics["settings"], metrics["train"]["3"], metrics["train"]["5"]
-    shot, ex, fl = metrics["zero_shot"], metrics["export"], metrics["fleet"]
-    env = metrics["environment"]
+    return [*_opening_blocks(metrics, out), ("h2", "Summary: ours beside the paper"),
+            ("table", ["quantity", "ours", "paper"], _summary_rows(metrics)),
+            *_training_blocks(metrics, figures), *_export_and_fleet_blocks(metrics, figures),
+            *generalist_blocks(metrics, figures), *_closing_blocks(metrics, figures)]
+
+
+def _opening_blocks(metrics: dict, out: Path) -> list[tuple]:
+    """Title, where and on what the demo ran, the quick-run warning and the convergence sentences."""
+    s, env = metrics["settings"], metrics["environment"]
     total = sum(v["wall_s"] or 0 for v in metrics["stages"].values())
     blocks: list[tuple] = [
         ("h1", "formation demo: SDPA-MAPPO from training to a fleet over Zenoh"),
@@ -231,12 +237,18 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
                             f"{s['fleet_episodes']} fleet episodes. Every part runs for real (training, "
                             "export, processes, Zenoh, report), but the policy is barely trained: "
                             "these numbers show that the pipeline works, not what the method reaches."))
-    blocks += [("p", " ".join(convergence_sentences(metrics)))]
+    return blocks + [("p", " ".join(convergence_sentences(metrics)))]
+
+
+def _summary_rows(metrics: dict) -> list[list[str]]:
+    """The summary table's rows: quantity, ours, the paper's."""
+    t3, t5, shot = metrics["train"]["3"], metrics["train"]["5"], metrics["zero_shot"]
+    ex, fl = metrics["export"], metrics["fleet"]
     paper_fleet = "— (not in the paper)"
     floor = fl.get("tracking_noise_floor_m")
     tracking = _mm(fl["tracking_error_m"]) + ("" if floor is None else
                                               f" (measurement-noise floor {_mm(floor)})")
-    rows = [
+    return [
         ["paper-3: episodes to convergence", _converged(t3), str(PAPER["converged_episode_3"])],
         ["paper-3: success rate (last evaluation)", f"{_rate(t3['success'])} ({t3['eval_episodes']} episodes)",
          PAPER_SUCCESS],
@@ -269,8 +281,12 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
          f"{_rate(metrics['fleet_unseen']['success_rate'])} / {metrics['fleet_unseen']['collisions']} "
          f"({metrics['fleet_unseen']['episodes']} episodes)", "— (not in the paper)"],
     ]
-    blocks += [("h2", "Summary: ours beside the paper"), ("table", ["quantity", "ours", "paper"], rows)]
-    blocks += [
+
+
+def _training_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
+    """The two specialist runs: curves, their table and the zero-shot sentence."""
+    t3, t5, shot = metrics["train"]["3"], metrics["train"]["5"], metrics["zero_shot"]
+    return [
         ("h2", "Training"),
         ("p", "SDPA-MAPPO with the MAPPOConfig defaults: first the paper's three robots from scratch "
               f"(budget {t3['budget']} episodes), then five robots starting from the 3-robot "
@@ -284,6 +300,13 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
         ("p", f"Zero-shot: the 3-robot policy run on five robots without further training has a "
               f"success rate of {_rate(shot['success'])} over {shot['episodes']} deterministic "
               f"episodes (final distance {_mm(shot['final_distance'])})."),
+    ]
+
+
+def _export_and_fleet_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
+    """The exported files and their checks, then the fleet stage: setting, episodes, paths."""
+    ex, fl = metrics["export"], metrics["fleet"]
+    return [
         ("h2", "Export"),
         ("p", f"{', '.join(ex['files'].values())} (TorchScript, torch.export, ONNX; robots "
               f"{_counts(ex['robot_counts'])}) with one golden file {ex['golden']}: each reloaded, its "
@@ -305,7 +328,13 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
               f"did not arrive within the timeout): {fl['lockstep_timeouts']}."),
         _episode_table(fl),
         ("img", figures["trajectories"], "Robot paths of the fleet episodes (true positions)"),
-        *generalist_blocks(metrics, figures),
+    ]
+
+
+def _closing_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
+    """Attention heatmap, the files of the run folder and the stage times."""
+    ex = metrics["export"]
+    return [
         ("h2", "Attention"),
         ("p", "Attention weights of each robot (rows) over its tokens (own state, targets G, other "
               "robots R, object O) for the 5-robot policy, mean over heads and per head."),
@@ -323,7 +352,6 @@ def report_blocks(metrics: dict, figures: dict[str, Path], out: Path) -> list[tu
          [[name, "—" if v["wall_s"] is None else f"{v['wall_s']:.1f} s"]
           for name, v in metrics["stages"].items() if name != "report"]),
     ]
-    return blocks
 
 
 def _episode_table(fl: dict) -> tuple:
