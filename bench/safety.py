@@ -21,8 +21,9 @@
     policy is the TorchScript of ``--policy`` or of an untrained typed SDPA actor. Parts are
     reported too: observe (tokens), policy (observe + network), policy_stage (the network
     alone), safety and MEC. The same actor is then exported (``formation export``) as
-    TorchScript, torch.export and ONNX and each file is loaded as the ControlStack loads one
-    (``latency_ms_by_format``; ``--policy`` an exported file: that file alone).
+    TorchScript, torch.export, ONNX and npz (the compiled kernel of :mod:`deploy.npz_policy`)
+    and each file is loaded as the ControlStack loads one (``latency_ms_by_format``; ``--policy``
+    an exported file: that file alone).
 
 ``--geometry`` picks the safety filter's path for (a) and (c): ``fused`` (default, the fast path
 of :mod:`controllers.safety.fused`) or the reference ``fcl`` / ``analytic`` path, which gives the
@@ -36,7 +37,7 @@ same answers; run both to compare their latency.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
-"latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}},
+"latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}, "npz": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, ...}, ...}}``.
 """
@@ -188,7 +189,7 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
 def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
             geometry: str = "fused") -> tuple[dict, dict]:
     """Tick latency per N: the policy as a TorchScript module in memory (``latency_ms``), and the
-    same actor exported (``formation export``) as TorchScript, torch.export and ONNX, each file
+    same actor exported (``formation export``) as TorchScript, torch.export, ONNX and npz, each file
     loaded as the ControlStack loads one (``latency_ms_by_format``). All stacks run the same
     episodes in turn (:func:`_tick_latency`), so machine noise hits them alike. The actor:
     ``policy`` (a checkpoint; an exported file is measured alone), else a fresh typed actor."""

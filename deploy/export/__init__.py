@@ -1,14 +1,14 @@
 """Export a trained actor as self-verifying policy files for robots, and load them back.
 
-    export_checkpoint("checkpoint.pt", "out/policy", formats=("torchscript", "pt2", "onnx"))
-      -> out/policy.pt, out/policy.pt2, out/policy.onnx and out/policy.golden.npz
+    export_checkpoint("checkpoint.pt", "out/policy", formats=("torchscript", "pt2", "onnx", "npz"))
+      -> out/policy.pt, out/policy.pt2, out/policy.onnx, out/policy.npz and out/policy.golden.npz
     policy = load_exported("out/policy.onnx")      # digest checked; policy.run(tokens, mask)
 
 Every file holds :class:`~deploy.export.contract.PolicyContract` (the interface, its mask,
 NaN and bound rules are in :mod:`deploy.export.contract`) and its metadata::
 
     format, format_version     "formation-stack/policy", 2
-    file_format                "torchscript" | "pt2" | "onnx"
+    file_format                "torchscript" | "pt2" | "onnx" | "npz"
     layout_version, token_dim  sim.observations.LAYOUT_VERSION, 4
     token_features, io         each token feature with units; dtypes, shapes and mask rules
     dt, accel_limit            control period [s], acceleration bound (in norm) [m/s^2]
@@ -55,7 +55,15 @@ from deploy.export.contract import (
     TOKEN_FEATURES,
     PolicyContract,
 )
-from deploy.export.formats import FORMATS, META_FILE, ExportError, Runner, quiet, sniff_format
+from deploy.export.formats import (
+    FORMATS,
+    META_FILE,
+    ExportError,
+    Runner,
+    quiet,
+    sniff_format,
+    typed_rows_arrays,
+)
 from sim.files import atomic_path, sha256_file
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM, tokens
 from sim.scenario import Scenario, make_scenario
@@ -64,7 +72,8 @@ TOLERANCE = 1e-5
 VERIFY_COUNTS = tuple(range(1, MAX_ROBOTS + 1))
 VERIFY_BATCHES = (1, 16)
 GOLDEN_COUNTS = (1, 2, 3, 5, 8, 16)
-DEFAULT_FORMATS = ("torchscript", "pt2", "onnx")
+DEFAULT_FORMATS = ("torchscript", "pt2", "onnx", "npz")
+"""Every format; an export without ``formats`` writes those the actor can take (:func:`formats_for`)."""
 
 
 @dataclass(frozen=True)
@@ -189,23 +198,36 @@ def golden_cases(contract: PolicyContract, counts: Iterable[int], scenario: Scen
     return data
 
 
+def formats_for(actor: nn.Module) -> tuple[str, ...]:
+    """The formats ``actor`` can be written in: all of :data:`DEFAULT_FORMATS` for a typed actor
+    without token mixers; npz (the compiled kernel's layout) left out for any other."""
+    contract = PolicyContract.for_export(actor)
+    try:
+        typed_rows_arrays(contract.actor)
+    except ExportError:
+        return tuple(f for f in DEFAULT_FORMATS if f != "npz")
+    return DEFAULT_FORMATS
+
+
 def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robots: int,
-                  scenario: Scenario | None = None, formats: Sequence[str] = DEFAULT_FORMATS,
+                  scenario: Scenario | None = None, formats: Sequence[str] | None = None,
                   config: dict[str, Any] | None = None, source: str | None = None,
                   seed: int = 0) -> list[ExportReport]:
     """Write ``actor`` in each of ``formats`` beside one golden file, verify, publish atomically.
 
     ``out`` names the files: ``out/policy`` or ``out/policy.pt`` give ``out/policy.pt``,
-    ``.pt2``, ``.onnx`` and ``out/policy.golden.npz``. Raises ExportError (and publishes
-    nothing) if any reloaded file differs from the eager contract by more than TOLERANCE.
+    ``.pt2``, ``.onnx``, ``.npz`` and ``out/policy.golden.npz``; ``formats`` None: every format
+    the actor can take (:func:`formats_for`). Raises ExportError (and publishes nothing) if any
+    reloaded file differs from the eager contract by more than TOLERANCE.
     """
+    if getattr(actor, "obs_kind", "tokens") != "tokens" or not hasattr(actor, "rows"):
+        raise ExportError("only token actors (variant 'typed' or 'slot') can be exported: the "
+                          "robot runtime builds entity tokens; retrain with actor.variant='typed'")
+    formats = formats_for(actor) if formats is None else formats
     unknown = [f for f in formats if f not in FORMATS]
     if unknown or not formats:
         raise ExportError(f"unknown export format(s) {unknown or list(formats)}; choose from "
                           f"{', '.join(FORMATS)}")
-    if getattr(actor, "obs_kind", "tokens") != "tokens" or not hasattr(actor, "rows"):
-        raise ExportError("only token actors (variant 'typed' or 'slot') can be exported: the "
-                          "robot runtime builds entity tokens; retrain with actor.variant='typed'")
     scenario = scenario or make_scenario("paper-5")
     out = Path(out)
     stem = out.with_suffix("") if out.suffix in {f.suffix for f in FORMATS.values()} else out
@@ -252,7 +274,7 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     return reports
 
 
-def export_checkpoint(checkpoint: str | Path, out: str | Path, formats: Sequence[str] = DEFAULT_FORMATS,
+def export_checkpoint(checkpoint: str | Path, out: str | Path, formats: Sequence[str] | None = None,
                       seed: int = 0) -> list[ExportReport]:
     """Export the actor of a training checkpoint (``controllers.mappo`` format)."""
     from controllers.mappo.checkpoint import (
@@ -300,5 +322,5 @@ def check_export(path: str | Path) -> ExportReport:
 
 
 __all__ = ["DEFAULT_FORMATS", "ExportError", "ExportReport", "ExportedPolicy", "META_FILE",
-           "TOLERANCE", "check_export", "compare", "random_fleet_rows", "export_checkpoint", "export_policy",
+           "TOLERANCE", "check_export", "compare", "random_fleet_rows", "export_checkpoint", "export_policy", "formats_for",
            "golden_path", "load_exported"]

@@ -1,4 +1,4 @@
-"""The file formats of an exported policy: TorchScript, ``torch.export`` (.pt2) and ONNX.
+"""The file formats of an exported policy: TorchScript, ``torch.export`` (.pt2), ONNX and npz.
 
 Each format writes :class:`deploy.export.contract.PolicyContract` with the metadata inside the
 file and loads it back as a :data:`Runner`, checking the digest every time. Adding a format is
@@ -10,11 +10,13 @@ format         suffix    metadata                                digest (``conte
 torchscript    ``.pt``   ``meta.json`` in ``_extra_files``        every member + metadata
 pt2            ``.pt2``  ``meta.json`` in the archive's extras    every member + metadata
 onnx           ``.onnx`` ``metadata_props["formation.meta"]``      every byte of the file
+npz            ``.npz``  the ``formation.meta`` array (JSON)       every array + metadata
 =============  ========  ======================================  ============================
 
 TorchScript is scripted (never traced: a trace bakes in one N). ``torch.export`` and ONNX keep
 B and T dynamic (``T`` in 3..2*21+1, every team a scenario can hold); a typed actor's graph is
-:class:`deploy.export.graph.TypedRows`.
+:class:`deploy.export.graph.TypedRows`. The npz format holds that module's arrays for the compiled
+kernel of :mod:`deploy.npz_policy` (typed actors without token mixers only).
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ from deploy.export.contract import (
     archive_digest,
     check_meta,
 )
+from deploy.export.graph import TypedRows
+from deploy.npz_policy import META_MEMBER, NpzPolicyError, npz_bytes, open_npz
 from deploy.robot import (
     META_KEY,
     PLACEHOLDER,
@@ -238,7 +242,51 @@ class BoundRunner:
         return accel.copy(), valid.copy()
 
 
-FORMATS = {f.name: f for f in (TorchScriptFormat, Pt2Format, OnnxFormat)}
+def typed_rows_arrays(rows: torch.nn.Module) -> dict[str, np.ndarray]:
+    """The arrays of an npz policy (:mod:`deploy.npz_policy`'s layout) from a TypedRows module;
+    ExportError for any other module or one the kernel does not run (token mixers)."""
+    if not isinstance(rows, TypedRows) or len(rows.mixers):
+        raise ExportError("the npz format holds typed actors (actor.variant 'typed') without token "
+                          "mixers (actor.token_layers 0); export this one with --format onnx")
+    layers = list(rows.mlp)
+    linears = layers[0::2]
+    if not all(isinstance(m, torch.nn.Linear) for m in linears) or not all(
+            isinstance(m, torch.nn.ReLU) for m in layers[1::2]) or len(layers) % 2 != 1:
+        raise ExportError("the npz format runs heads of Linear layers with ReLU between them; "
+                          "export this actor with --format onnx")
+    width, w1, w2 = (rows.wide - 4) // 4, rows.w1[0].numpy(), rows.w2.numpy()
+    blocks = [slice(c * width, (c + 1) * width) for c in range(4)]
+    arrays = {
+        "embed_w1": np.stack([w1[:, b] for b in blocks]), "embed_b1": np.stack([rows.b1.numpy()[b] for b in blocks]),
+        "embed_w2": np.stack([w2[b] for b in blocks]), "embed_b2": w2[4 * width:4 * width + 4],
+        "scores": rows.scores.numpy(), "head_in": rows.head_in.numpy(),
+        "heads": np.array(rows.heads), "turning": np.array(rows.turning),
+        "two_layers": np.array(rows.two_layers), "damping": np.array(rows.damping),
+    }
+    for i, linear in enumerate(linears):
+        arrays[f"mlp_w{i}"] = linear.weight.detach().numpy().T
+        arrays[f"mlp_b{i}"] = linear.bias.detach().numpy()
+    return {k: np.ascontiguousarray(v) if v.ndim else v for k, v in arrays.items()}
+
+
+class NpzFormat:
+    name, suffix = "npz", ".npz"
+
+    @staticmethod
+    def write(contract: PolicyContract, path: Path, meta: dict[str, Any], fixed_n: int | None) -> None:
+        path.write_bytes(npz_bytes(typed_rows_arrays(contract.actor), meta))
+
+    @staticmethod
+    def load(path: Path) -> tuple[Runner, dict[str, Any]]:
+        try:
+            runner, meta = open_npz(path)
+        except NpzPolicyError as err:
+            raise ExportError(str(err)) from None
+        check_meta(meta, repr(str(path)), ExportError)
+        return runner, meta
+
+
+FORMATS = {f.name: f for f in (TorchScriptFormat, Pt2Format, OnnxFormat, NpzFormat)}
 
 
 def file_format(path: Path) -> str | None:
@@ -252,7 +300,11 @@ def file_format(path: Path) -> str | None:
     if names is not None:
         if any(n.endswith("/constants.pkl") for n in names):
             return "torchscript"
+        if f"{META_MEMBER}.npy" in names:
+            return "npz"
         return "pt2" if any(n.endswith("/archive_format") for n in names) else None
+    if path.suffix == ".npz":          # a zip it cannot read: the npz loader says what is wrong
+        return "npz"
     if path.suffix == ".onnx" or META_KEY.encode() in path.read_bytes():
         return "onnx"
     return None
@@ -266,9 +318,9 @@ def sniff_format(path: Path) -> str:
     name = file_format(path)
     if name is None:
         raise ExportError(f"{str(path)!r} is not an exported policy (TorchScript .pt, torch.export "
-                          ".pt2 or ONNX .onnx); export one with `formation export CKPT --out policy`")
+                          ".pt2, ONNX .onnx or npz .npz); export one with `formation export CKPT --out policy`")
     return name
 
 
 __all__ = ["BoundRunner", "ExportError", "FORMATS", "META_FILE", "Runner", "dynamic_shapes", "example_inputs",
-           "file_format", "onnx_model", "quiet", "sniff_format"]
+           "file_format", "onnx_model", "quiet", "sniff_format", "typed_rows_arrays"]

@@ -1,11 +1,12 @@
 """`formation export`: a checkpoint -> verified policy files (+ one golden file).
 
-    formation export CKPT --out policy                  # policy.pt, .pt2, .onnx + policy.golden.npz
+    formation export CKPT --out policy                  # policy.pt, .pt2, .onnx, .npz + policy.golden.npz
     formation export CKPT --out policy --format onnx    # only policy.onnx (+ golden file)
     formation export --check policy.onnx                # re-verify a file against its golden file
 
 Formats: torchscript (.pt), pt2 (torch.export), onnx (runs with numpy + onnxruntime only,
-`deploy/robot.py`). Each file is reloaded and compared with the eager actor for 1..21 robots
+`deploy/robot.py`), npz (the weights for a compiled kernel, numpy + numba only,
+`deploy/npz_policy.py`; the fastest on the control path; typed actors without token mixers). Each file is reloaded and compared with the eager actor for 1..21 robots
 before anything is published. Exit code 0 when every file is verified, 1 when one is not (an
 export then leaves no file), 2 for bad arguments.
 """
@@ -15,7 +16,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from deploy.export import DEFAULT_FORMATS, ExportError, check_export, export_checkpoint
+from deploy.export import ExportError, check_export, export_checkpoint
 from deploy.export.formats import FORMATS
 
 
@@ -33,8 +34,9 @@ def register(sub) -> None:
     p.add_argument("checkpoint", type=Path, nargs="?", help="training checkpoint (checkpoint.pt)")
     p.add_argument("--out", type=Path, default=None,
                    help="output stem: 'policy' (or 'policy.pt') writes policy.<suffix> per format")
-    p.add_argument("--format", default=",".join(DEFAULT_FORMATS), metavar="LIST",
-                   help=f"comma-separated formats from {', '.join(FORMATS)} (default: all)")
+    p.add_argument("--format", default=None, metavar="LIST",
+                   help=f"comma-separated formats from {', '.join(FORMATS)} (default: every one the "
+                        "actor can take)")
     p.add_argument("--check", type=Path, default=None, metavar="POLICY",
                    help="re-verify an exported file (any format) against its golden file instead")
     p.set_defaults(func=run)
@@ -54,7 +56,7 @@ def run(args) -> int:
             print("error: give CKPT and --out policy (or --check policy.onnx)", file=sys.stderr)
             return 2
         try:
-            formats = _formats(args.format)
+            formats = None if args.format is None else _formats(args.format)
         except ValueError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

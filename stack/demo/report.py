@@ -262,7 +262,7 @@ def _summary_rows(metrics: dict) -> list[list[str]]:
         ["paper-5 transfer: final distance (last evaluation)", _mm(t5["final_distance"]), "—"],
         ["zero-shot: 3-robot policy on paper-5, success rate",
          f"{_rate(shot['success'])} ({shot['episodes']} episodes)", "— (not reported)"],
-        ["export: max abs diff file vs eager (torchscript, pt2, onnx)", f"{ex['max_abs_diff']:.2g} "
+        [f"export: max abs diff file vs eager ({', '.join(ex['files'])})", f"{ex['max_abs_diff']:.2g} "
          f"({'verified' if ex['verified'] else 'NOT verified'}, tolerance {ex['tolerance']:g})", "—"],
         ["fleet: success rate (pymunk, model error, Zenoh)", f"{_rate(fl['success_rate'])} "
          f"({fl['episodes']} episodes)", paper_fleet],
@@ -303,12 +303,17 @@ def _training_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     ]
 
 
+FORMAT_NAMES = {"torchscript": "TorchScript", "pt2": "torch.export", "onnx": "ONNX",
+                "npz": "npz for the compiled kernel"}
+
+
 def _export_and_fleet_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     """The exported files and their checks, then the fleet stage: setting, episodes, paths."""
     ex, fl = metrics["export"], metrics["fleet"]
     return [
         ("h2", "Export"),
-        ("p", f"{', '.join(ex['files'].values())} (TorchScript, torch.export, ONNX; robots "
+        ("p", f"{', '.join(ex['files'].values())} "
+              f"({', '.join(FORMAT_NAMES.get(name, name) for name in ex['files'])}; robots "
               f"{_counts(ex['robot_counts'])}) with one golden file {ex['golden']}: each reloaded, its "
               f"digest checked, and compared with the eager actor for N = 1..21 "
               f"({ex['comparisons']} comparisons in all), then re-checked against the golden file as a "

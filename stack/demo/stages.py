@@ -133,12 +133,12 @@ def transfer_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
 
 
 def export_stage(settings: DemoSettings, out: Path) -> dict[str, Any]:
-    """Export the 5-robot actor as TorchScript, torch.export and ONNX (each verified against the
-    eager actor for N = 1..21), then re-check every file against the golden file as a robot
+    """Export the 5-robot actor as TorchScript, torch.export, ONNX and npz (each verified against
+    the eager actor for N = 1..21), then re-check every file against the golden file as a robot
     would. The fleet stage runs the ONNX file (:data:`POLICY`)."""
     from deploy.export import TOLERANCE, ExportError, check_export, export_checkpoint
 
-    with tqdm(total=2, unit="step", desc="export torchscript, pt2, onnx", dynamic_ncols=True) as bar:
+    with tqdm(total=2, unit="step", desc="export torchscript, pt2, onnx, npz", dynamic_ncols=True) as bar:
         try:
             exported = export_checkpoint(run_dir(out, "5") / CHECKPOINT, out / POLICY_STEM,
                                          seed=settings.seed)

@@ -37,7 +37,7 @@ def test_safety_bench_json_shape():
         assert 0 < row["p50"] <= row["p99"]
         assert 0 < row["policy_p50"] and 0 < row["safety_p50"]
     by_format = doc["latency_ms_by_format"]            # the key other tools read
-    assert set(by_format) == {"torchscript", "pt2", "onnx"}
+    assert set(by_format) == {"torchscript", "pt2", "onnx", "npz"}
     for rows in by_format.values():
         assert set(rows) == {"3", "5"}
         for row in rows.values():
