@@ -14,7 +14,7 @@ class StackError(ValueError):
     """A stack that cannot be built or a policy that cannot be loaded; the message says the fix."""
 
 
-EXPORTED_SUFFIXES = (".pt2", ".onnx")
+EXPORTED_SUFFIXES = (".pt2", ".onnx", ".npz")
 
 
 def load_policy(path: str | Path, num_robots: int | None = None):

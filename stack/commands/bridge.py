@@ -82,7 +82,7 @@ def register(sub) -> None:
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="preset, transport-N or a .json/.toml scenario file (default paper-5)")
     p.add_argument("--policy", required=True,
-                   help="exported policy (.pt, .pt2, .onnx), training checkpoint, or 'scripted'")
+                   help="exported policy (.pt, .pt2, .onnx, .npz), training checkpoint, or 'scripted'")
     argtypes.add_transport_flags(p, "controller")
     argtypes.add_stage_flags(p, True)
     add_command_delay_arg(p)

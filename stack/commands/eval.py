@@ -47,7 +47,7 @@ class EvalArgumentError(ValueError):
 def register(sub) -> None:
     p = sub.add_parser("eval", description=__doc__)
     p.add_argument("policy_path", nargs="?", metavar="POLICY_FILE",
-                   help="a training checkpoint or an exported policy (.pt, .pt2, .onnx)")
+                   help="a training checkpoint or an exported policy (.pt, .pt2, .onnx, .npz)")
     p.add_argument("--policy", choices=["scripted"], default=None,
                    help="evaluate a built-in controller instead of a file")
     p.add_argument("--scenario", default="paper-3", help="preset, transport-N or a .json/.toml scenario file (default paper-3)")

@@ -157,3 +157,26 @@ def test_bad_shapes_are_named_and_every_call_reuses_one_compiled_kernel(npz_file
     for n in (1, 3, 16):
         runner(rng.normal(0, 0.3, (n, 2 * n + 1, 4)), np.ones((n, 2 * n + 1), bool))
     assert len(typed_rows_forward.signatures) == compiled
+
+
+def test_the_control_stack_gives_the_npz_file_the_onnx_files_commands(npz_file, tmp_path):
+    """The default stack (filter, latency, MEC) on the states of a pymunk episode with model
+    error: the npz file's nominal commands are the ONNX file's within the export tolerance."""
+    from controllers.scripted import ScriptedController
+    from sim.pymunk_world import ModelError, PymunkWorld
+    from sim.scenario import transport_scenario
+    from stack.pipeline import ControlStack
+
+    actor, _ = npz_file
+    reports = export_policy(actor, tmp_path / "p", dt=0.05, trained_robots=5, formats=("onnx", "npz"))
+    scenario = transport_scenario(5)
+    world = PymunkWorld(scenario, ModelError(gain=0.8, delay_ticks=1))
+    state, scripted, states = world.reset(seed=3), ScriptedController(scenario), []
+    for _ in range(60):
+        states.append(state)
+        world.send_accelerations(scripted(state))
+        state = world.step()
+    stacks = [ControlStack(scenario, load_exported(r.path)) for r in reports]
+    nominal = [[stack.tick(s).a_nom for s in states] for stack in stacks]
+    differences = np.abs(np.array(nominal[0]) - np.array(nominal[1]))
+    assert differences.max() <= 1e-5 and np.abs(np.array(nominal[1])).max() > 0.1
