@@ -4,7 +4,9 @@
     accel, valid = policy.act(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena)
 
 The file is what ``formation export CKPT --format onnx`` writes; its golden file
-(``policy.golden.npz``) must lie beside it. Loading refuses a file whose ``content_sha256``
+(``policy.golden.npz``) must lie beside it. ``RobotPolicy("policy.npz")`` runs the npz format
+instead (``--format npz``, the compiled kernel: numpy and numba, no onnxruntime), with
+``npz_policy.py`` (``deploy/npz_policy.py``) copied beside this file. Loading refuses a file whose ``content_sha256``
 does not match its bytes (:func:`onnx_content_ok`: any changed byte, weights or metadata), a
 foreign format or observation layout, and a file whose actions differ from its golden file.
 
@@ -160,18 +162,42 @@ def open_onnx(path: str | Path, threads: int = 1):
     return session, meta
 
 
+def _open_npz(path: Path):
+    """``(runner, meta)`` of an npz policy through ``npz_policy.py`` (the project's, or a copy
+    beside this file on a robot); RobotPolicyError naming what is wrong."""
+    try:
+        from deploy.npz_policy import NpzPolicyError, open_npz
+    except ImportError:
+        try:
+            from npz_policy import NpzPolicyError, open_npz
+        except ImportError as err:
+            raise RobotPolicyError(f"{str(path)!r} is an npz policy: copy deploy/npz_policy.py beside "
+                                   f"robot.py and `pip install numba` ({err})") from None
+    try:
+        return open_npz(path)
+    except NpzPolicyError as err:
+        raise RobotPolicyError(str(err)) from None
+
+
 class RobotPolicy:
-    """An exported ONNX policy on one robot (see the module docstring).
+    """An exported ONNX (or npz) policy on one robot (see the module docstring).
 
     Args:
-        path: the ``.onnx`` file; its golden file (``meta.golden_file``) must lie beside.
+        path: the ``.onnx`` (or ``.npz``) file; its golden file (``meta.golden_file``) must lie beside.
         threads: onnxruntime intra-op threads (1 on the control path).
         warmup: forward passes at start-up (the first calls after loading are slow).
     """
 
     def __init__(self, path: str | Path, threads: int = 1, warmup: int = 20):
         self.path = Path(path)
-        self.session, self.meta = open_onnx(self.path, threads)
+        if self.path.suffix == ".npz":
+            self.session, self.meta = _open_npz(self.path)
+        else:
+            self.session, self.meta = open_onnx(self.path, threads)
+        if self.meta.get("layout_version") != LAYOUT_VERSION or self.meta.get("token_dim") != TOKEN_DIM:
+            raise RobotPolicyError(f"{str(path)!r}: observation layout {self.meta.get('layout_version')} "
+                                   f"with {self.meta.get('token_dim')} features, but this runtime builds "
+                                   f"layout {LAYOUT_VERSION} with {TOKEN_DIM}; update robot.py or re-export")
         self.accel_limit = float(self.meta["accel_limit"])
         self.golden_diff = self._check_golden()
         for _ in range(warmup):
@@ -211,7 +237,11 @@ class RobotPolicy:
     def _forward(self, toks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, T, 4) tokens, all valid -> accel (B, 2) float64, valid (B,) bool."""
         x = np.ascontiguousarray(toks, dtype=np.float32)
-        accel, valid = self.session.run(None, {"tokens": x, "mask": np.ones(x.shape[:2], dtype=bool)})
+        mask = np.ones(x.shape[:2], dtype=bool)
+        if callable(self.session):                      # the npz kernel
+            accel, valid = self.session(x, mask)
+        else:
+            accel, valid = self.session.run(None, {"tokens": x, "mask": mask})
         return accel.astype(np.float64), valid
 
     def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena) -> Action:

@@ -65,8 +65,10 @@ def test_the_kernel_matches_the_eager_actor_for_each_actor_shape(config, tmp_pat
 
 
 def test_a_copy_of_the_module_runs_the_golden_file_without_torch_or_the_project(npz_file, tmp_path):
+    """npz_policy.py and robot.py copied alone, torch, onnxruntime and the project refused."""
     _, path = npz_file
-    for source in (path, path.with_name("policy.golden.npz"), ROOT / "deploy" / "npz_policy.py"):
+    for source in (path, path.with_name("policy.golden.npz"), ROOT / "deploy" / "npz_policy.py",
+                   ROOT / "deploy" / "robot.py"):
         shutil.copy(source, tmp_path / source.name)
     driver = """
 import importlib.abc, json, sys
@@ -81,18 +83,29 @@ import npz_policy
 runner, meta = npz_policy.open_npz("policy.npz")
 worst = 0.0
 with np.load("policy.golden.npz") as golden:
+    polygon, arena = golden["polygon"], golden["arena"]
     for n in golden["counts"]:
         toks = golden[f"n{n}_tokens"][0]
         accel, valid = runner(toks, np.ones(toks.shape[:2], dtype=bool))
         worst = max(worst, float(np.abs(accel - golden[f"n{n}_actions"][0]).max()) if valid.all() else 1e9)
-print(json.dumps({"worst": worst, "limit": meta["accel_limit"], "torch": "torch" in sys.modules}))
+import robot
+policy = robot.RobotPolicy("policy.npz")          # golden file replayed through robot_tokens
+act = policy.act([0.5, 0.5], [0.1, 0.0], [[0.2, 0.2], [0.8, 0.8]], [[0.3, 0.7]], [[0.0, 0.0]],
+                 polygon, arena)
+nan = policy.act([0.5, float("nan")], [0.0, 0.0], [[0.2, 0.2]], np.zeros((0, 2)), np.zeros((0, 2)),
+                 polygon, arena)
+print(json.dumps({"worst": worst, "limit": meta["accel_limit"], "golden_diff": policy.golden_diff,
+                  "act": [float(np.linalg.norm(act.accel)), act.valid], "nan": [nan.accel.tolist(), nan.valid],
+                  "loaded": sorted(m for m in ("torch", "onnxruntime") if m in sys.modules)}))
 """
     (tmp_path / "driver.py").write_text(driver)
     result = subprocess.run([sys.executable, "-I", "driver.py"], cwd=tmp_path, capture_output=True,
                             text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout.strip().splitlines()[-1])
-    assert out["worst"] <= 1e-5 and out["limit"] == 1.0 and out["torch"] is False
+    assert out["worst"] <= 1e-5 and out["limit"] == 1.0 and out["loaded"] == []
+    assert out["golden_diff"] <= 1e-5 and 1e-3 < out["act"][0] <= 1.0 + 1e-6 and out["act"][1] is True
+    assert out["nan"] == [[0.0, 0.0], False]
 
 
 def _rewrite(path: Path, dest: Path, *, meta_changes=None, array_changes=None, keep_digest=True) -> Path:
