@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import json
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -37,6 +36,7 @@ from torch import nn
 
 from controllers.policy import TypedSDPAActor
 from deploy.export.graph import TypedRows
+from deploy.npz_policy import canonical_meta as canonical_json
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM
 from sim.scenario import MAX_ROBOTS
 
@@ -113,12 +113,6 @@ class PolicyContract(nn.Module):
             norm = norm * (1.0 / self.accel_limit)
         a = a / torch.clamp(norm, min=1.0).unsqueeze(-1)
         return torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype)), valid
-
-
-def canonical_json(meta: dict[str, Any]) -> bytes:
-    """The metadata as the hash sees it: sorted keys, no whitespace, the hash field left out."""
-    return json.dumps({k: v for k, v in meta.items() if k != HASH_FIELD}, sort_keys=True,
-                      separators=(",", ":")).encode()
 
 
 def archive_digest(path: Path, meta: dict[str, Any]) -> str:
