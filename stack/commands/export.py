@@ -5,9 +5,10 @@
     formation export --check policy.onnx                # re-verify a file against its golden file
 
 Formats: torchscript (.pt), pt2 (torch.export), onnx (runs with numpy + onnxruntime only,
-`deploy/robot.py`), npz (the weights for a compiled kernel, numpy + numba only,
-`deploy/npz_policy.py`; the fastest on the control path; typed actors without token mixers). Each file is reloaded and compared with the eager actor for 1..21 robots
-before anything is published. Exit code 0 when every file is verified, 1 when one is not (an
+`deploy/robot.py`), npz (weights for one compiled kernel, numpy + numba only,
+`deploy/npz_policy.py`: the fastest on the control path; typed actors without token mixers).
+Each file is reloaded and compared with the eager actor for 1..21 robots before anything is
+published. Exit code 0 when every file is verified, 1 when one is not (an
 export then leaves no file), 2 for bad arguments.
 """
 
