@@ -281,7 +281,7 @@ def condition_list(text: str) -> list[str]:
     return names
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=positive_int, default=1000, help="invariance episodes (1000)")
     parser.add_argument("--steps", type=positive_int, default=60, help="ticks per invariance episode (60)")
@@ -306,7 +306,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions"], default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
     if args.policy is not None and not Path(args.policy).is_file():
         print(f"error: --policy {args.policy!r} does not exist", file=sys.stderr)
         return 2
@@ -339,7 +343,13 @@ def main(argv: list[str] | None = None) -> int:
     doc.update(threads=threads, wall_s=time.perf_counter() - start)
     if args.json:
         print_json(doc)
-        return 0
+    else:
+        _print_tables(doc)
+    return 0
+
+
+def _print_tables(doc: dict) -> None:
+    """The document of :func:`main` as one table per part it holds."""
     if "invariance" in doc:
         inv = doc["invariance"]
         print_table(["invariance", "episodes", "contact episodes, filter on", "filter off"],
@@ -373,7 +383,6 @@ def main(argv: list[str] | None = None) -> int:
                     [[fmt, n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_stage_p50", "policy_stage_p99")),
                       f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x" if n in doc["latency_ms"] else "-"]
                      for fmt, rows in doc["latency_ms_by_format"].items() for n, r in rows.items()])
-    return 0
 
 
 if __name__ == "__main__":

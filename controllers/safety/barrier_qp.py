@@ -312,27 +312,12 @@ class SafetyFilter:
             nominal = clip_norm(a_nom, self.dynamics.accel_limit)
             values = terms.rows_times(nominal)
             met = bool((values >= terms.bound).all())
-        status, reason, slack, solve_time = SafetyStatus.UNCHANGED, "", 0.0, 0.0
-        solver = ""
         if met:
-            a = nominal
+            a, status, solver, slack, reason, solve_time = nominal, SafetyStatus.UNCHANGED, "", 0.0, "", 0.0
         else:
-            t_solve = time.perf_counter()
-            status, solver, osqp_status = SafetyStatus.INTERVENED, "projection", ""
-            a = self._projection(terms, nominal, values, prob, fixed)
-            if a is None:
-                a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
-                solver = "osqp"
-            if a is None:
-                a, slack, reason = self._slack_qp(terms, nominal, prob, fixed)
-                reason = f"OSQP: {osqp_status}; {reason}"
-                status, solver = SafetyStatus.SLACK, "daqp"
-            solve_time = time.perf_counter() - t_solve
+            a, status, solver, slack, reason, solve_time = self._solve(terms, nominal, values, prob, fixed)
             if a is None:
                 return self._brake_all(vel, reason, start, clearance, terms, solve_time, prediction)
-            a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
-            if fixed is not None and np.count_nonzero(fixed):
-                a[fixed] = 0.0                       # held at 0 by the QP, to solver tolerance
         braked, contact = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if self.config.postcheck:
             if isinstance(terms, FusedTerms):
@@ -348,6 +333,28 @@ class SafetyFilter:
                             min_barrier=min_barrier, min_clearance=clearance,
                             max_slack=slack, solve_time_s=solve_time,
                             total_time_s=time.perf_counter() - start, terms=terms)
+
+    def _solve(self, terms: BarrierTerms, nominal: np.ndarray, values: np.ndarray, prob: _Problem,
+               fixed: np.ndarray | None) -> tuple[np.ndarray | None, SafetyStatus, str, float, str, float]:
+        """The QP of a tick whose nominal breaks a row: the closed-form projection where it is the
+        optimum, else OSQP, else the slack QP. ``(a (N, 2) or None: brake all, status, solver,
+        max slack, reason, solve time [s])``; ``a`` clipped to the filter's bound, fixed rows 0."""
+        t_solve = time.perf_counter()
+        status, solver, osqp_status, slack, reason = SafetyStatus.INTERVENED, "projection", "", 0.0, ""
+        a = self._projection(terms, nominal, values, prob, fixed)
+        if a is None:
+            a, osqp_status = prob.solve(terms, nominal, self.config.tighten, fixed)
+            solver = "osqp"
+        if a is None:
+            a, slack, reason = self._slack_qp(terms, nominal, prob, fixed)
+            reason = f"OSQP: {osqp_status}; {reason}"
+            status, solver = SafetyStatus.SLACK, "daqp"
+        solve_time = time.perf_counter() - t_solve
+        if a is not None:
+            a = clip_norm(a, self.config.accel_fraction * self.dynamics.accel_limit)
+            if fixed is not None and np.count_nonzero(fixed):
+                a[fixed] = 0.0                       # held at 0 by the QP, to solver tolerance
+        return a, status, solver, slack, reason, solve_time
 
     # ------------------------------------------------------------------ fallbacks
     def _slack_qp(self, terms: BarrierTerms, nominal: np.ndarray, prob: _Problem,

@@ -125,9 +125,25 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children, *, scenar
                    "--connect", endpoint, "--episode-ticks", str(ticks), "--lockstep",
                    "--report", str(folder / "bridge.json")],
             stdout=bridge_log, stderr=subprocess.STDOUT)
+    _watch(sim, bridge, lines, pump, folder, episodes, f"fleet over Zenoh ({scenario}, pymunk)", children)
+    _stop(sim, bridge, folder, children)
+    children.forget(sim)
+    children.forget(bridge)
+    sim_report = json.loads((folder / "sim.json").read_text())
+    bridge_report = json.loads((folder / "bridge.json").read_text())
+    result = merge_reports(sim_report, bridge_report, episodes, ticks, dataclasses.asdict(me),
+                           scenario=scenario, policy=policy, folder_name=folder_name)
+    result["tracking_noise_floor_m"] = tracking_noise_floor(result["model_error"], dynamics.dt,
+                                                           dynamics.damping)
+    return result
+
+
+def _watch(sim: subprocess.Popen, bridge: subprocess.Popen, lines: queue.Queue, pump: threading.Thread,
+           folder: Path, episodes: int, title: str, children: Children) -> list[dict]:
+    """Follow fleet-sim's episode records until it exits (a progress bar of ``episodes``);
+    DemoError, every child stopped, if the bridge exits first or no episode finishes in time."""
     finished: list[dict] = []
-    with tqdm(total=episodes, unit="ep", desc=f"fleet over Zenoh ({scenario}, pymunk)",
-              dynamic_ncols=True) as bar:
+    with tqdm(total=episodes, unit="ep", desc=title, dynamic_ncols=True) as bar:
         def take(record: dict) -> None:
             finished.append(record)
             bar.update(1)
@@ -152,6 +168,11 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children, *, scenar
         pump.join(timeout=10)
         while not lines.empty():
             take(lines.get())
+    return finished
+
+
+def _stop(sim: subprocess.Popen, bridge: subprocess.Popen, folder: Path, children: Children) -> None:
+    """After fleet-sim's exit: DemoError unless it succeeded and the bridge stops cleanly on SIGTERM."""
     if sim.returncode != 0:
         children.terminate_all()
         raise DemoError(f"fleet-sim exited with code {sim.returncode}; its log "
@@ -166,15 +187,6 @@ def fleet_stage(settings: DemoSettings, out: Path, children: Children, *, scenar
     if bridge.returncode != 0:
         raise DemoError(f"the bridge exited with code {bridge.returncode}; its log "
                         f"({folder / 'bridge.log'}):\n{_tail(folder / 'bridge.log')}")
-    children.forget(sim)
-    children.forget(bridge)
-    sim_report = json.loads((folder / "sim.json").read_text())
-    bridge_report = json.loads((folder / "bridge.json").read_text())
-    result = merge_reports(sim_report, bridge_report, episodes, ticks, dataclasses.asdict(me),
-                           scenario=scenario, policy=policy, folder_name=folder_name)
-    result["tracking_noise_floor_m"] = tracking_noise_floor(result["model_error"], dynamics.dt,
-                                                           dynamics.damping)
-    return result
 
 
 def unseen_fleet_stage(settings: DemoSettings, out: Path, children: Children) -> dict[str, Any]:
