@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import statistics
 import sys
@@ -235,8 +236,13 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
         tuner = tune.Tuner(trainable, param_space=space, run_config=tune.RunConfig(
             name=experiment, storage_path=str(storage), verbose=verbose,
             failure_config=tune.FailureConfig(max_failures=1)))
-    with contextlib.redirect_stdout(sys.stderr):   # Tune's progress reports; stdout stays the result's
-        grid = tuner.fit()
+    tune_logger = logging.getLogger("ray.tune.tune")
+    tune_logger.addFilter(_no_tuner_restore_hint)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):   # Tune's progress reports; stdout stays the result's
+            grid = tuner.fit()
+    finally:
+        tune_logger.removeFilter(_no_tuner_restore_hint)
     by_folder, errored = {}, []
     for result in grid:
         if not result.config:           # a trial Ctrl-C left pending: it never started
@@ -252,6 +258,12 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
     if any(t.folder not in by_folder for t in trials):
         raise KeyboardInterrupt("the sweep was stopped before every trial finished")
     return [_trial_row(t, by_folder[t.folder]) for t in trials]
+
+
+def _no_tuner_restore_hint(record: logging.LogRecord) -> bool:
+    """Drop Tune's "Resume experiment with: Tuner.restore(...)" after a Ctrl-C: the command
+    prints its own hint (``formation sweep --resume --out DIR``), which also reuses the folders."""
+    return "Resume experiment with" not in record.getMessage()
 
 
 def _trial_row(trial: TrialSpec, summary: dict) -> dict:

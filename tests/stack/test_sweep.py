@@ -141,7 +141,7 @@ def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and "--resume --out" in err, err
-    assert "Traceback" not in err, err
+    assert "Traceback" not in err and "Tuner.restore" not in err, err    # one hint: ours
     logged = (seed0 / "train.jsonl").read_text().splitlines()
     assert not (seed0 / "result.json").exists()
     assert not (tmp_path / "trials" / "000" / "seed-1" / "result.json").exists()
