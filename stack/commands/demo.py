@@ -7,7 +7,7 @@
                 checkpoint (budget --budget-generalist; its training runs in a child process
                 beside stage 2, on the second core), its zero-shot table on 1..8 robots, and
                 its export as generalist/policy.onnx
-    4 export    the 5-robot policy as policy.pt, .pt2, .onnx and .npz, each verified against the eager actor
+    4 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
     5 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
                 MEC) as separate processes on loopback Zenoh for --episodes episodes
     6 fleet-unseen  the same with the generalist on 6 robots, a team size it never trained on

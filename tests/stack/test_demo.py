@@ -91,7 +91,7 @@ def test_metrics_are_complete_and_consistent(quick_run):
 
     ex = m["export"]
     assert ex["verified"] is True and ex["max_abs_diff"] <= TOLERANCE
-    assert ex["policy"] == "policy.onnx" and set(ex["files"]) == {"torchscript", "pt2", "onnx", "npz"}
+    assert ex["policy"] == "policy.onnx" and set(ex["files"]) == {"torchscript", "pt2", "onnx"}
     for name in ex["files"].values():
         assert check_export(out / name).max_abs_diff <= TOLERANCE
 
