@@ -273,7 +273,7 @@ def test_bad_messages_are_rejected_and_counted_while_the_nodes_keep_running(tmp_
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fmt", ["torchscript", "onnx"])
+@pytest.mark.parametrize("fmt", ["torchscript", "onnx", "npz"])
 def test_bridge_runs_an_exported_policy_through_the_control_stack(tmp_path, fmt):
     import torch
 
