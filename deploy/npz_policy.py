@@ -9,7 +9,7 @@ node and ~30 us per call whatever the graph computes, so at five robots the poli
 large products go to BLAS (``np.dot``): ~25 us for 5 robots.
 
 The arrays are :class:`deploy.export.graph.TypedRows` in the layout this kernel reads
-(:func:`typed_rows_arrays` builds them; ``w`` the embedding's hidden width, ``D`` the embedding
+(:func:`deploy.export.formats.typed_rows_arrays` builds them; ``w`` the embedding's hidden width, ``D`` the embedding
 width, ``H`` heads; kinds c: 0 self, 1 target, 2 other robot, 3 object)::
 
     embed_w1   (4, 4, w)        first layer of kind c on the token's 4 features (input scale in)
@@ -23,7 +23,8 @@ width, ``H`` heads; kinds c: 0 self, 1 target, 2 other robot, 3 object)::
 
 For row b (robot i of N, ``T = 2N + 1`` tokens ``f``, unread ones zeroed; ``read_0`` always)::
 
-    k        = argmax_q sum_t w_t (f_t P)_q,  w_t = [t target, read]/#read targets - [t object]
+    k        = argmax_q sum_t w_t m(f_t)_q,  m(f) = (-f_x, f_y, f_x, -f_y),
+               w_t = [t target, read] / #read targets - [t object]
     f'_t     = f_t blockdiag(R_k^T, R_k^T)                   (the formation's quarter turn: exact)
     x_t      = act(f'_t W1_c + b1_c) W2_c + b2_c             (c: the kind of token t)
     p_j      = softmax_t over read t of (x_t u)_j,  u = x_0 U reshaped (D + 1, H)
