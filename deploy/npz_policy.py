@@ -6,7 +6,8 @@ r"""The ``npz`` policy format: a typed actor's weights as numpy arrays, run by o
 Needs numpy and numba only (no torch, no onnxruntime). ONNX Runtime spends about 1 us per graph
 node and ~30 us per call whatever the graph computes, so at five robots the policy stage was
 0.09-0.13 ms for a few hundred thousand multiply-adds; here the forward is one numba kernel whose
-large products go to BLAS (``np.dot``): ~25 us for 5 robots.
+large products go to BLAS (``np.dot``): a policy stage of 0.04-0.07 ms in the 5-robot tick
+(``bench/safety.py --only latency``).
 
 The arrays are :class:`deploy.export.graph.TypedRows` in the layout this kernel reads
 (:func:`deploy.export.formats.typed_rows_arrays` builds them; ``w`` the embedding's hidden width, ``D`` the embedding

@@ -135,7 +135,8 @@ def onnx_session(data: bytes, threads: int = 1):
 
 def open_onnx(path: str | Path, threads: int = 1):
     """``(onnxruntime.InferenceSession, meta)`` of an exported ONNX file, its digest and format
-    checked; raises RobotPolicyError naming what is wrong."""
+    checked (not its observation layout: the caller knows which it builds); raises
+    RobotPolicyError naming what is wrong."""
     import onnxruntime  # noqa: F401  (a missing runtime raises ImportError here, not "a bad file")
 
     path = Path(path)
@@ -155,10 +156,6 @@ def open_onnx(path: str | Path, threads: int = 1):
     if not onnx_content_ok(data, meta):
         raise RobotPolicyError(f"{str(path)!r}: its bytes do not match its content_sha256: the "
                                "file was changed after export (weights or metadata); export it again")
-    if meta.get("layout_version") != LAYOUT_VERSION or meta.get("token_dim") != TOKEN_DIM:
-        raise RobotPolicyError(f"{str(path)!r}: observation layout {meta.get('layout_version')} with "
-                               f"{meta.get('token_dim')} features, but this runtime builds layout "
-                               f"{LAYOUT_VERSION} with {TOKEN_DIM}; update robot.py or re-export")
     return session, meta
 
 

@@ -60,9 +60,9 @@ from deploy.export.formats import (
     META_FILE,
     ExportError,
     Runner,
+    npz_refusal,
     quiet,
     sniff_format,
-    typed_rows_arrays,
 )
 from sim.files import atomic_path, sha256_file
 from sim.observations import LAYOUT_VERSION, TOKEN_DIM, tokens
@@ -201,12 +201,14 @@ def golden_cases(contract: PolicyContract, counts: Iterable[int], scenario: Scen
 def formats_for(actor: nn.Module) -> tuple[str, ...]:
     """The formats ``actor`` can be written in: all of :data:`DEFAULT_FORMATS` for a typed actor
     without token mixers; npz (the compiled kernel's layout) left out for any other."""
-    contract = PolicyContract.for_export(actor)
-    try:
-        typed_rows_arrays(contract.actor)
-    except ExportError:
-        return tuple(f for f in DEFAULT_FORMATS if f != "npz")
-    return DEFAULT_FORMATS
+    return _formats_of(PolicyContract.for_export(actor))
+
+
+def _formats_of(exported: PolicyContract) -> tuple[str, ...]:
+    """:func:`formats_for` of the contract the files would hold."""
+    if npz_refusal(exported.actor) is None:
+        return DEFAULT_FORMATS
+    return tuple(f for f in DEFAULT_FORMATS if f != "npz")
 
 
 def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robots: int,
@@ -223,7 +225,8 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     if getattr(actor, "obs_kind", "tokens") != "tokens" or not hasattr(actor, "rows"):
         raise ExportError("only token actors (variant 'typed' or 'slot') can be exported: the "
                           "robot runtime builds entity tokens; retrain with actor.variant='typed'")
-    formats = formats_for(actor) if formats is None else formats
+    exported = PolicyContract.for_export(actor).eval()  # what the files hold (same numbers)
+    formats = _formats_of(exported) if formats is None else formats
     unknown = [f for f in formats if f not in FORMATS]
     if unknown or not formats:
         raise ExportError(f"unknown export format(s) {unknown or list(formats)}; choose from "
@@ -233,7 +236,6 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     stem = out.with_suffix("") if out.suffix in {f.suffix for f in FORMATS.values()} else out
     stem.parent.mkdir(parents=True, exist_ok=True)
     contract = PolicyContract(actor).eval()             # the actor's own rows: the reference
-    exported = PolicyContract.for_export(actor).eval()  # what the files hold (same numbers)
     fixed_n = int(getattr(actor, "num_robots", -1))
     counts = VERIFY_COUNTS if fixed_n < 0 else (fixed_n,)
     golden = golden_path(stem.with_suffix(".pt"))

@@ -242,18 +242,27 @@ class BoundRunner:
         return accel.copy(), valid.copy()
 
 
+def npz_refusal(rows: torch.nn.Module) -> str | None:
+    """Why the npz kernel cannot run ``rows`` (what a file holds, :meth:`PolicyContract.for_export`),
+    or None when it can: a TypedRows without token mixers whose head is Linear, ReLU, ..., Linear."""
+    if not isinstance(rows, TypedRows) or len(rows.mixers):
+        return ("the npz format holds typed actors (actor.variant 'typed') without token "
+                "mixers (actor.token_layers 0); export this one with --format onnx")
+    layers = list(rows.mlp)
+    if not all(isinstance(m, torch.nn.Linear) for m in layers[0::2]) or not all(
+            isinstance(m, torch.nn.ReLU) for m in layers[1::2]) or len(layers) % 2 != 1:
+        return ("the npz format runs heads of Linear layers with ReLU between them; "
+                "export this actor with --format onnx")
+    return None
+
+
 def typed_rows_arrays(rows: torch.nn.Module) -> dict[str, np.ndarray]:
     """The arrays of an npz policy (:mod:`deploy.npz_policy`'s layout) from a TypedRows module;
-    ExportError for any other module or one the kernel does not run (token mixers)."""
-    if not isinstance(rows, TypedRows) or len(rows.mixers):
-        raise ExportError("the npz format holds typed actors (actor.variant 'typed') without token "
-                          "mixers (actor.token_layers 0); export this one with --format onnx")
-    layers = list(rows.mlp)
-    linears = layers[0::2]
-    if not all(isinstance(m, torch.nn.Linear) for m in linears) or not all(
-            isinstance(m, torch.nn.ReLU) for m in layers[1::2]) or len(layers) % 2 != 1:
-        raise ExportError("the npz format runs heads of Linear layers with ReLU between them; "
-                          "export this actor with --format onnx")
+    ExportError naming :func:`npz_refusal`'s reason for one the kernel does not run."""
+    refusal = npz_refusal(rows)
+    if refusal is not None:
+        raise ExportError(refusal)
+    linears = list(rows.mlp)[0::2]
     width, w1, w2 = (rows.wide - 4) // 4, rows.w1[0].numpy(), rows.w2.numpy()
     blocks = [slice(c * width, (c + 1) * width) for c in range(4)]
     arrays = {
@@ -323,4 +332,4 @@ def sniff_format(path: Path) -> str:
 
 
 __all__ = ["BoundRunner", "ExportError", "FORMATS", "META_FILE", "Runner", "dynamic_shapes", "example_inputs",
-           "file_format", "onnx_model", "quiet", "sniff_format", "typed_rows_arrays"]
+           "file_format", "npz_refusal", "onnx_model", "quiet", "sniff_format", "typed_rows_arrays"]

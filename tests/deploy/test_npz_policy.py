@@ -193,3 +193,16 @@ def test_the_control_stack_gives_the_npz_file_the_onnx_files_commands(npz_file, 
     nominal = [[stack.tick(s).a_nom for s in states] for stack in stacks]
     differences = np.abs(np.array(nominal[0]) - np.array(nominal[1]))
     assert differences.max() <= 1e-5 and np.abs(np.array(nominal[1])).max() > 0.1
+
+
+def test_the_robot_runtime_refuses_an_npz_file_of_another_observation_layout(npz_file, tmp_path):
+    """Signed anew, so only the layout check can refuse it (ONNX and npz share that check)."""
+    from deploy.robot import RobotPolicy, RobotPolicyError
+
+    _, path = npz_file
+    shutil.copy(path.with_name("policy.golden.npz"), tmp_path / "policy.golden.npz")
+    good = _rewrite(path, tmp_path / "policy.npz", keep_digest=False)
+    assert RobotPolicy(good).golden_diff <= 1e-5
+    old = _rewrite(path, tmp_path / "old.npz", meta_changes={"layout_version": 99}, keep_digest=False)
+    with pytest.raises(RobotPolicyError, match="observation layout 99"):
+        RobotPolicy(old)
