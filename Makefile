@@ -20,8 +20,11 @@ demo: $(STAMP)
 
 # Two phases: the tests that only compute run two at a time (pytest-xdist); the ones that run
 # nodes on the wall clock (marker realtime) run alone afterwards, on an otherwise idle machine.
+# The control tick's kernels are compiled into numba's cache first, once, rather than by both
+# workers at the same time on a fresh clone.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(PY) -c "import stack.pipeline; from controllers.jit import warm_up; warm_up()"
 	$(PY) -m pytest -q -n 2 -m "not realtime"
 	$(PY) -m pytest -q -m realtime
 
