@@ -3,7 +3,8 @@
 A sweep is a list of :class:`TrialSpec` (a group name, a seed, the resolved
 :class:`controllers.mappo.MAPPOConfig` fields and the run folder). :func:`run_trials` runs them
 as Ray Tune trials, one CPU and one torch thread each, on a local Ray started with
-``ray.init(num_cpus=cpus)`` or on the cluster at ``address``. Every trial is an ordinary
+``ray.init(num_cpus=cpus)`` (its servers on 127.0.0.1 only, :func:`start_ray`) or on the
+cluster at ``address``. Every trial is an ordinary
 ``formation train`` run folder (``config.json``, ``run.json``, logs, ``checkpoint.pt``,
 ``result.json``), so anything that reads a run reads a trial.
 
@@ -197,6 +198,30 @@ def check_folders(trials: Sequence[TrialSpec]) -> None:
                              "another --out (or remove that folder)")
 
 
+LOCAL_ONLY_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+"""Ray's switch for multi-node clusters (on by default on Linux). Off, Ray takes the loopback
+address as the node's and binds every server (GCS, raylet, workers) to it."""
+
+
+def start_ray(cpus: int | None, address: str | None) -> None:
+    """Join the Ray cluster at ``address``, or start a local Ray with ``cpus`` CPUs (if this
+    process has none yet) whose servers listen on 127.0.0.1 only: a local sweep is no cluster,
+    and Ray's servers take unauthenticated work from anyone who reaches them (by default they
+    listen on every interface). Takes effect when Ray is first imported in this process."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # nothing leaves the machine
+    if not address:
+        os.environ.setdefault(LOCAL_ONLY_ENV, "0")
+    try:
+        import ray
+        from ray import tune  # noqa: F401
+    except ImportError:
+        raise SweepError("sweeps run on Ray Tune, which is not installed: "
+                         "pip install -c constraints.txt -e '.[sweep]'") from None
+    if not ray.is_initialized():
+        kwargs = {"address": address} if address else {"num_cpus": cpus}
+        ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False, **kwargs)
+
+
 def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = None,
                address: str | None = None, experiment: str = EXPERIMENT,
                restore: bool = True, verbose: int = 1) -> list[dict]:
@@ -213,19 +238,11 @@ def run_trials(trials: Sequence[TrialSpec], out: Path, *, cpus: int | None = Non
     check_folders(trials)
     if all(finished(Path(t.folder), t.budget) for t in trials):
         return [_trial_row(t, summarize(Path(t.folder), t.budget)) for t in trials]
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # nothing leaves the machine
-    try:
-        import ray
-        from ray import tune
-    except ImportError:
-        raise SweepError("sweeps run on Ray Tune, which is not installed: "
-                         "pip install -c constraints.txt -e '.[sweep]'") from None
+    start_ray(cpus, address)
+    from ray import tune
 
     storage = (Path(out).resolve() / "ray")
     storage.mkdir(parents=True, exist_ok=True)
-    if not ray.is_initialized():
-        kwargs = {"address": address} if address else {"num_cpus": cpus}
-        ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False, **kwargs)
     trainable = tune.with_resources(_tune_trial, {"cpu": 1})
     space = {"trial": tune.grid_search([asdict(t) for t in trials])}
     path = storage / experiment

@@ -66,7 +66,8 @@ def register(sub) -> None:
     p.add_argument("--cpus", type=int, default=None,
                    help="CPUs of the local Ray (one trial each; default: all of this machine)")
     p.add_argument("--address", default=None,
-                   help="join the Ray cluster at this address instead of starting one")
+                   help="join the Ray cluster at this address instead of starting a local one "
+                        "(which listens on 127.0.0.1 only)")
     p.add_argument("--out", type=Path, default=None,
                    help="sweep folder (default runs/sweep-<timestamp>)")
     p.add_argument("--resume", action="store_true",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -152,3 +153,47 @@ def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp
     iterations = [json.loads(line)["iteration"] for line in (seed0 / "train.jsonl").read_text().splitlines()]
     assert iterations == list(range(1, len(iterations) + 1))   # one curve, continued
     assert len(iterations) > len(logged) >= 1
+
+
+LOCAL_RAY = ("import sys; from stack.sweep import start_ray; start_ray(1, None); print('up', flush=True); "
+             "sys.stdin.read(); import ray; ray.shutdown()")
+
+
+def descendants(pid: int) -> set[int]:
+    """``pid`` and every process below it."""
+    found, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        found.add(p)
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                todo += [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                pass
+    return found
+
+
+def ray_listeners(env: dict) -> list[str]:
+    """Start a local Ray the way a sweep does, in a fresh process with ``env``: the local
+    addresses its processes (driver, GCS, raylet, workers) listen on."""
+    driver = subprocess.Popen([sys.executable, "-c", LOCAL_RAY], cwd=ROOT, env=env, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    try:
+        assert driver.stdout.readline().strip() == "up"
+        tree = descendants(driver.pid)
+        listening = subprocess.run(["ss", "-Hltnp"], capture_output=True, text=True, check=True).stdout
+        return [line.split()[3] for line in listening.splitlines()
+                if any(f"pid={p}," in line for p in tree)]
+    finally:
+        driver.communicate("", timeout=120)
+
+
+@pytest.mark.slow
+def test_a_local_sweeps_ray_listens_on_the_loopback_address_only():
+    """Ray's servers run whatever work reaches them; a local sweep keeps them off the network."""
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"}
+    local = ray_listeners(env)
+    assert len(local) >= 3, local   # the GCS, the raylet, the driver at least
+    assert all(a.rsplit(":", 1)[0] in ("127.0.0.1", "[::ffff:127.0.0.1]") for a in local), local
+    default = ray_listeners(env | {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "1"})   # Ray's own default
+    assert any(a.rsplit(":", 1)[0] not in ("127.0.0.1", "[::ffff:127.0.0.1]") for a in default), default
