@@ -323,4 +323,4 @@ def aggregate(results: Sequence[dict]) -> list[dict]:
 
 
 __all__ = ["SweepError", "TrialSpec", "aggregate", "check_folders", "finished", "grid_trials", "median_ci",
-           "parse_grid_option", "resolve_fields", "run_trials", "summarize", "train_trial"]
+           "parse_grid_option", "resolve_fields", "run_trials", "start_ray", "summarize", "train_trial"]
