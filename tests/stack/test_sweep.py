@@ -14,7 +14,15 @@ from pathlib import Path
 import pytest
 
 from stack.commands.sweep import seeds_arg
-from stack.sweep import SweepError, aggregate, grid_trials, median_ci, parse_grid_option, run_trials
+from stack.sweep import (
+    LOCAL_ONLY_ENV,
+    SweepError,
+    aggregate,
+    grid_trials,
+    median_ci,
+    parse_grid_option,
+    run_trials,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
@@ -188,12 +196,15 @@ def ray_listeners(env: dict) -> list[str]:
         driver.communicate("", timeout=120)
 
 
+LOOPBACK = ("127.0.0.1", "[::ffff:127.0.0.1]")
+
+
 @pytest.mark.slow
 def test_a_local_sweeps_ray_listens_on_the_loopback_address_only():
     """Ray's servers run whatever work reaches them; a local sweep keeps them off the network."""
-    env = {k: v for k, v in os.environ.items() if k != "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"}
+    env = {k: v for k, v in os.environ.items() if k != LOCAL_ONLY_ENV}
     local = ray_listeners(env)
     assert len(local) >= 3, local   # the GCS, the raylet, the driver at least
-    assert all(a.rsplit(":", 1)[0] in ("127.0.0.1", "[::ffff:127.0.0.1]") for a in local), local
-    default = ray_listeners(env | {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "1"})   # Ray's own default
-    assert any(a.rsplit(":", 1)[0] not in ("127.0.0.1", "[::ffff:127.0.0.1]") for a in default), default
+    assert all(a.rsplit(":", 1)[0] in LOOPBACK for a in local), local
+    default = ray_listeners(env | {LOCAL_ONLY_ENV: "1"})   # Ray's own default
+    assert any(a.rsplit(":", 1)[0] not in LOOPBACK for a in default), default
