@@ -79,14 +79,16 @@ def test_noise_floor_matches_a_sampled_estimate():
 def test_an_interrupted_training_stage_continues_from_its_checkpoint(tmp_path):
     settings = DemoSettings(quick=True, budget_3=32, budget_5=16, eval_episodes=4, eval_interval=16,
                             zero_shot_episodes=4, fleet_episodes=1)
-    # The run as it stands after an interruption at 16 of 32 episodes (checkpoint written).
-    first = train(train_config(settings, "3", tmp_path).replace(total_episodes=16, progress=False),
+    # The run as it stands after an interruption at 16 of 32 episodes (checkpoint written); one
+    # update epoch, which the continued run takes from the run's saved config.json.
+    first = train(train_config(settings, "3", tmp_path).replace(total_episodes=16, update_epochs=1, progress=False),
                   tmp_path / "train-3")
     assert first.episodes == 16
     rows_before = (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()
     result = train_stage(settings, "3", tmp_path)
     rows = [json.loads(r) for r in (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()]
     assert result["episodes"] == 32 and result["budget"] == 32
+    assert json.loads((tmp_path / "train-3" / "config.json").read_text())["update_epochs"] == 1
     assert [r["iteration"] for r in rows] == list(range(1, len(rows) + 1))
     assert [json.dumps(r) for r in rows[:len(rows_before)]] == [json.dumps(json.loads(r)) for r in rows_before]
     assert rows[-1]["episodes"] == 32

@@ -15,7 +15,7 @@ from stack import plots
 from stack.cli import main
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-TINY = '{"num_envs": 4, "rollout_steps": 16, "eval_episodes": 4, "eval_interval": 8, "progress": false}'
+TINY = '{"num_envs": 4, "rollout_steps": 16, "eval_episodes": 4, "eval_interval": 8, "update_epochs": 1, "progress": false}'
 
 
 def assert_png(path, min_width=300, min_height=200):

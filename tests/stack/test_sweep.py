@@ -26,7 +26,7 @@ from stack.sweep import (
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
-        "checkpoint_interval": 8}
+        "checkpoint_interval": 8, "update_epochs": 1}   # Ray and the run folders are tested, not learning
 
 
 def test_grid_options_read_values_as_json_and_keep_other_text():

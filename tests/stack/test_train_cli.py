@@ -4,7 +4,7 @@ import pytest
 
 from stack.cli import main
 
-TINY = '{"num_envs": 4, "rollout_steps": 16, "eval_episodes": 4, "eval_interval": 8, "progress": false}'
+TINY = '{"num_envs": 4, "rollout_steps": 16, "eval_episodes": 4, "eval_interval": 8, "update_epochs": 1, "progress": false}'
 
 
 def test_train_writes_a_resumable_run(tmp_path):
