@@ -139,8 +139,10 @@ def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp
     """One CPU, two seeds: Ctrl-C comes while seed 0 runs and seed 1 has not started (a pending
     trial has no config in Tune's results: reading it crashed the stop). The moment is set by
     seed 0's first checkpoint, not by the clock, so the test runs beside others."""
-    proc = _sweep(tmp_path, "--episodes", "48", "--seeds", "2", config=TINY | {"checkpoint_interval": 2},
-                  cpus=1)
+    # MAPPO's full 10 update epochs: seed 0 must still be running (~20 s on) when the SIGINT lands;
+    # with TINY's one epoch it finished first on a loaded 2-core machine
+    proc = _sweep(tmp_path, "--episodes", "48", "--seeds", "2",
+                  config=TINY | {"checkpoint_interval": 2, "update_epochs": 10}, cpus=1)
     seed0 = tmp_path / "trials" / "000" / "seed-0"
     deadline = time.monotonic() + 300
     while not (seed0 / "checkpoint.pt").exists() and time.monotonic() < deadline and proc.poll() is None:
