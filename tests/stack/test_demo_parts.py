@@ -81,8 +81,8 @@ def test_an_interrupted_training_stage_continues_from_its_checkpoint(tmp_path):
                             zero_shot_episodes=4, fleet_episodes=1)
     # The run as it stands after an interruption at 16 of 32 episodes (checkpoint written); one
     # update epoch, which the continued run takes from the run's saved config.json.
-    first = train(train_config(settings, "3", tmp_path).replace(total_episodes=16, update_epochs=1, progress=False),
-                  tmp_path / "train-3")
+    config = train_config(settings, "3", tmp_path).replace(total_episodes=16, update_epochs=1, progress=False)
+    first = train(config, tmp_path / "train-3")
     assert first.episodes == 16
     rows_before = (tmp_path / "train-3" / "train.jsonl").read_text().splitlines()
     result = train_stage(settings, "3", tmp_path)

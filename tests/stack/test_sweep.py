@@ -138,9 +138,10 @@ def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(t
 def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
     """One CPU, two seeds: Ctrl-C comes while seed 0 runs and seed 1 has not started (a pending
     trial has no config in Tune's results: reading it crashed the stop). The moment is set by
-    seed 0's first checkpoint, not by the clock, so the test runs beside others."""
-    # MAPPO's full 10 update epochs: seed 0 must still be running (~20 s on) when the SIGINT lands;
-    # with TINY's one epoch it finished first on a loaded 2-core machine
+    seed 0's first checkpoint, not by the clock; seed 0 must still be running when the SIGINT
+    lands, so it trains with MAPPO's full 10 update epochs (with TINY's one it finished first
+    beside another test on a 2-core machine), and its first checkpoint comes after 2 of its 24
+    iterations."""
     proc = _sweep(tmp_path, "--episodes", "48", "--seeds", "2",
                   config=TINY | {"checkpoint_interval": 2, "update_epochs": 10}, cpus=1)
     seed0 = tmp_path / "trials" / "000" / "seed-0"
