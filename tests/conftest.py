@@ -1,4 +1,6 @@
-"""Shared fixtures for the whole suite."""
+"""Shared fixtures and checks for the whole suite."""
+
+from importlib.metadata import version
 
 import pytest
 import torch
@@ -11,3 +13,17 @@ def single_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+def pytest_configure(config):
+    """``make test`` runs ``--dist loadgroup``: pytest-xdist sends the tests of one ``xdist_group``
+    to one worker (the demo's share one quick demo run). pytest 9.2 with pytest-xdist <= 3.8
+    drops the groups without a word (pytest-xdist issue 1386): refuse that pair."""
+    if config.getoption("dist", "no") != "loadgroup":
+        return
+    pytest_version, xdist_version = (tuple(int(x) for x in version(name).split(".")[:2])
+                                     for name in ("pytest", "pytest-xdist"))
+    if pytest_version >= (9, 2) and xdist_version <= (3, 8):
+        raise pytest.UsageError(f"--dist loadgroup: pytest {version('pytest')} with pytest-xdist "
+                                f"{version('pytest-xdist')} ignores xdist_group marks (pytest-xdist "
+                                "issue 1386); install the versions constraints.txt allows: make venv")

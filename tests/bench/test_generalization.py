@@ -89,6 +89,7 @@ def test_the_held_out_layout_is_non_convex_and_no_distribution_draws_one():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
 def test_finetuning_starts_from_the_generalist_and_reports_its_zero_shot_success(tmp_path):
     """A tiny generalist fine-tuned on the held-out layout through Ray: one run per generalist
     seed, its episode-0 evaluation (the generalist as it is) and the episodes it took."""

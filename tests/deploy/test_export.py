@@ -34,6 +34,8 @@ from sim.scenario import MAX_ROBOTS, make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig
 from stack.policy_io import StackError, load_policy
 
+pytestmark = pytest.mark.xdist_group("export")   # one worker exports the module's files (make test)
+
 ROOT = Path(__file__).resolve().parents[2]
 SUFFIX = {name: fmt.suffix for name, fmt in FORMATS.items()}
 

@@ -19,7 +19,8 @@ from sim.observations import tokens
 from sim.scenario import make_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning")
+pytestmark = [pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning"),
+              pytest.mark.xdist_group("robot_runtime")]   # one worker builds the robot's venv (make test)
 
 DRIVER = """
 import importlib.util, json, sys

@@ -19,8 +19,11 @@ from stack.cli import main
 from stack.demo.fleet import tracking_noise_floor
 from stack.demo.report import FIGURES
 from stack.demo.state import STAGES
+from tests.stack.conftest import QUICK_BUDGET
 
-pytestmark = pytest.mark.realtime   # the demo's fleet stage runs fleet-sim and bridge processes
+# One worker holds the quick demo (a session fixture) and runs these tests. Not `realtime`: the
+# fleet stage runs fleet-sim and bridge lock-stepped, so a busy machine slows it, not its numbers.
+pytestmark = pytest.mark.xdist_group("demo")
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -74,7 +77,7 @@ def test_metrics_are_complete_and_consistent(quick_run):
     out = quick_run
     m = json.loads((out / "metrics.json").read_text())
     assert m["complete"] is True and all(s["done"] for s in m["stages"].values())
-    for robots, budget in (("3", 32), ("5", 32), ("generalist", 32)):
+    for robots in ("3", "5", "generalist"):
         t = m["train"][robots]
         evals = _jsonl(out / f"train-{robots}" / "eval.jsonl")
         rule = converged_episode([e["episodes"] for e in evals], [e["success_rate"] for e in evals],
@@ -82,7 +85,7 @@ def test_metrics_are_complete_and_consistent(quick_run):
         assert t["converged_episode"] == rule
         assert t["converged"] is (rule is not None)
         assert t["success"] == evals[-1]["success_rate"]
-        assert t["budget"] == budget and (t["converged"] or t["episodes"] >= budget)
+        assert t["budget"] == QUICK_BUDGET and (t["converged"] or t["episodes"] >= QUICK_BUDGET)
         assert t["eval_episodes"] == 16
     assert json.loads((out / "train-5" / "result.json").read_text())["transferred_from"].endswith(
         "train-3/checkpoint.pt")

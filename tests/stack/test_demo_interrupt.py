@@ -3,7 +3,7 @@ trains in a child process: every child process stops cleanly, finished stages ar
 `--resume` finishes the run from there.
 
 The run starts from a copy of the quick demo's folder (``quick_run``) cut back to its trained
-(generalist included) and exported stages, with six fleet episodes (a window wide enough to interrupt mid-run): the
+(generalist included) and exported stages, with four fleet episodes (a window wide enough to interrupt mid-run): the
 demo resumes straight into the fleet stage, so the test trains nothing itself."""
 
 from __future__ import annotations
@@ -23,10 +23,14 @@ import pytest
 from stack.cli import main
 from stack.demo.report import save_metrics
 from stack.demo.state import STAGES, StageBook
+from tests.stack.conftest import QUICK_BUDGET
 
-pytestmark = pytest.mark.realtime   # SIGINT at a moment of a running demo
+# With the quick demo's worker (test_demo.py). The SIGINT waits for the moment it needs (files and
+# processes), not for the clock, and the fleet runs lock-stepped.
+pytestmark = pytest.mark.xdist_group("demo")
 
 LEARNED = ("train-3", "train-5", "generalist", "export")
+FLEET_EPISODES = 4   # the SIGINT comes once the first has ended: three left to interrupt
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 300.0
@@ -47,13 +51,14 @@ def processes_naming(text: str, exclude: int) -> dict[int, list[str]]:
     return found
 
 
-def trained_copy(finished: Path, out: Path, fleet_episodes: int, keep: tuple[str, ...] = LEARNED,
-                 drop: tuple[str, ...] = ()) -> None:
+def trained_copy(finished: Path, out: Path, keep: tuple[str, ...] = LEARNED, drop: tuple[str, ...] = (),
+                 **settings_changed) -> None:
     """``out``: the demo folder ``finished`` as it was when its stages ``keep`` had ended (the
-    folders ``drop`` removed), set to run ``fleet_episodes`` fleet episodes."""
+    folders ``drop`` removed), its settings changed as ``settings_changed`` says (fields of
+    :class:`stack.demo.state.DemoSettings`)."""
     shutil.copytree(finished, out, ignore=shutil.ignore_patterns("fleet", "report.*", "*.png", *drop))
     done = StageBook.load(out)
-    settings = dataclasses.replace(done.settings, fleet_episodes=fleet_episodes)
+    settings = dataclasses.replace(done.settings, **settings_changed)
     book = StageBook(out, settings, {name: done.stages[name] for name in keep}, done.created_unix)
     book.save()
     save_metrics(book, complete=False)
@@ -85,7 +90,7 @@ def interrupt_resumed_demo(out: Path, log_path: Path, ready) -> dict[int, list[s
 
 def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path, quick_run):
     out = tmp_path / "run"
-    trained_copy(quick_run, out, fleet_episodes=6)
+    trained_copy(quick_run, out, fleet_episodes=FLEET_EPISODES)
 
     def fleet_mid_run(demo_pid: int) -> dict | None:   # both fleet processes up, one episode finished
         children = processes_naming(str(out), exclude=demo_pid)
@@ -107,7 +112,7 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     assert partial["export"]["verified"] is True and "fleet" not in partial
     # Both children took their clean path on SIGTERM: they wrote their reports on the way out.
     sim = json.loads((out / "fleet" / "sim.json").read_text())
-    assert 1 <= len(sim["episodes"]) < 6
+    assert 1 <= len(sim["episodes"]) < FLEET_EPISODES
     assert (out / "fleet" / "bridge.json").is_file()
 
     assert main(["demo", "--out", str(out), "--resume"]) == 0
@@ -116,15 +121,16 @@ def test_sigint_in_the_fleet_stage_stops_everything_and_resume_finishes(tmp_path
     for name in LEARNED:   # kept, not redone
         assert finished["stages"][name] == book["stages"][name]
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["complete"] is True and metrics["fleet"]["episodes"] == 6
-    assert metrics["fleet_unseen"]["episodes"] == 6
-    assert len(metrics["fleet"]["per_episode"]) == 6
+    assert metrics["complete"] is True and metrics["fleet"]["episodes"] == FLEET_EPISODES
+    assert metrics["fleet_unseen"]["episodes"] == FLEET_EPISODES
+    assert len(metrics["fleet"]["per_episode"]) == FLEET_EPISODES
     assert (out / "report.html").is_file() and (out / "report.md").is_file()
 
 
 def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_path, quick_run):
     out = tmp_path / "run"
-    trained_copy(quick_run, out, fleet_episodes=2, keep=("train-3",),
+    # train-5 keeps the quick demo's 32 episodes: the SIGINT must land while it still trains
+    trained_copy(quick_run, out, keep=("train-3",), fleet_episodes=2, budget_5=32,
                  drop=("train-5", "train-generalist", "generalist", "fleet-unseen", "policy.*"))
 
     def generalist_training(demo_pid: int) -> dict | None:   # its child trains beside train-5
@@ -140,5 +146,6 @@ def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_pat
     finished = json.loads((out / "stages.json").read_text())
     assert list(finished["stages"]) == list(STAGES)
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["complete"] is True and metrics["train"]["generalist"]["budget"] == 32
-    assert metrics["train"]["generalist"]["episodes"] >= 32 and metrics["fleet_unseen"]["episodes"] == 2
+    generalist = metrics["train"]["generalist"]
+    assert metrics["complete"] is True and generalist["budget"] == QUICK_BUDGET
+    assert generalist["episodes"] >= QUICK_BUDGET and metrics["fleet_unseen"]["episodes"] == 2

@@ -110,6 +110,7 @@ def _sweep(out: Path, *extra: str, config: dict = TINY, cpus: int = 2, **kw) -> 
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
 def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(tmp_path):
     proc = _sweep(tmp_path, "--episodes", "16", "--seeds", "1", "--grid", "lr=3e-4,1e-3", "--json")
     out, err = proc.communicate(timeout=600)
@@ -135,14 +136,15 @@ def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(t
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
 def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
     """One CPU, two seeds: Ctrl-C comes while seed 0 runs and seed 1 has not started (a pending
     trial has no config in Tune's results: reading it crashed the stop). The moment is set by
     seed 0's first checkpoint, not by the clock; seed 0 must still be running when the SIGINT
     lands, so it trains with MAPPO's full 10 update epochs (with TINY's one it finished first
-    beside another test on a 2-core machine), and its first checkpoint comes after 2 of its 24
+    beside another test on a 2-core machine), and its first checkpoint comes after 2 of its 16
     iterations."""
-    proc = _sweep(tmp_path, "--episodes", "48", "--seeds", "2",
+    proc = _sweep(tmp_path, "--episodes", "32", "--seeds", "2",
                   config=TINY | {"checkpoint_interval": 2, "update_epochs": 10}, cpus=1)
     seed0 = tmp_path / "trials" / "000" / "seed-0"
     deadline = time.monotonic() + 300
@@ -160,7 +162,7 @@ def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp
                               str(tmp_path), "--json"], cwd=ROOT, capture_output=True, text=True,
                              timeout=600)
     assert resumed.returncode == 0, resumed.stderr
-    assert json.loads(resumed.stdout)["rows"][0]["episodes"] == [48, 48]
+    assert json.loads(resumed.stdout)["rows"][0]["episodes"] == [32, 32]
     iterations = [json.loads(line)["iteration"] for line in (seed0 / "train.jsonl").read_text().splitlines()]
     assert iterations == list(range(1, len(iterations) + 1))   # one curve, continued
     assert len(iterations) > len(logged) >= 1
@@ -203,6 +205,7 @@ LOOPBACK = ("127.0.0.1", "[::ffff:127.0.0.1]")
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
 def test_a_local_sweeps_ray_listens_on_the_loopback_address_only():
     """Ray's servers run whatever work reaches them; a local sweep keeps them off the network."""
     env = {k: v for k, v in os.environ.items() if k != LOCAL_ONLY_ENV}
