@@ -4,6 +4,7 @@ from importlib.metadata import version
 
 import pytest
 import torch
+from packaging.version import Version
 
 
 @pytest.fixture(autouse=True)
@@ -21,9 +22,7 @@ def pytest_configure(config):
     drops the groups without a word (pytest-xdist issue 1386): refuse that pair."""
     if config.getoption("dist", "no") != "loadgroup":
         return
-    pytest_version, xdist_version = (tuple(int(x) for x in version(name).split(".")[:2])
-                                     for name in ("pytest", "pytest-xdist"))
-    if pytest_version >= (9, 2) and xdist_version <= (3, 8):
+    if Version(version("pytest")) >= Version("9.2") and Version(version("pytest-xdist")) < Version("3.9"):
         raise pytest.UsageError(f"--dist loadgroup: pytest {version('pytest')} with pytest-xdist "
                                 f"{version('pytest-xdist')} ignores xdist_group marks (pytest-xdist "
                                 "issue 1386); install the versions constraints.txt allows: make venv")
