@@ -20,9 +20,9 @@ demo: $(STAMP)
 
 # Two phases: the tests that only compute run two at a time (pytest-xdist); the ones that run
 # nodes on the wall clock (marker realtime) run alone afterwards, on an otherwise idle machine.
-# --dist loadgroup keeps the tests of one xdist_group on one worker and hands the groups out
-# first, as the largest units of work: the demo's (they share one quick demo run) and Ray's (one
-# local Ray at a time).
+# --dist loadgroup keeps the tests of one xdist_group (tests/xdist_groups.py) on one worker and
+# hands the groups out first, as the largest units of work: the demo's tests share one quick demo
+# run, and one local Ray runs at a time.
 # The control tick's kernels are compiled into numba's cache first, once, rather than by both
 # workers at the same time on a fresh clone.
 test: $(STAMP)

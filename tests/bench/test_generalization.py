@@ -14,6 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from bench.generalization import LAYOUTS, judge, layout  # noqa: E402
+from tests.xdist_groups import RAY  # noqa: E402
 
 
 def test_layouts_are_the_transport_task_mirrored_enlarged_and_hexagonal():
@@ -89,7 +90,7 @@ def test_the_held_out_layout_is_non_convex_and_no_distribution_draws_one():
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
+@RAY
 def test_finetuning_starts_from_the_generalist_and_reports_its_zero_shot_success(tmp_path):
     """A tiny generalist fine-tuned on the held-out layout through Ray: one run per generalist
     seed, its episode-0 evaluation (the generalist as it is) and the episodes it took."""

@@ -14,6 +14,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench.paper_tables import row, zero_shot  # noqa: E402
 from stack.sweep import summarize  # noqa: E402
+from tests.xdist_groups import RAY  # noqa: E402
 
 
 def _write_run(folder: Path, converged, evals):
@@ -37,7 +38,7 @@ def test_summary_takes_the_first_of_two_evaluations_and_counts_a_failure_as_the_
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
+@RAY
 def test_tiny_run_prints_the_documented_json_and_reuses_finished_runs(tmp_path):
     cmd = [sys.executable, str(ROOT / "bench" / "paper_tables.py"), "--seeds", "1", "--settings",
            "sdpa-3,transfer-3to4,ddq-3", "--budget-scale", "0.0015", "--out", str(tmp_path), "--json",

@@ -33,8 +33,9 @@ from sim.observations import LAYOUT_VERSION
 from sim.scenario import MAX_ROBOTS, make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig
 from stack.policy_io import StackError, load_policy
+from tests.xdist_groups import EXPORT
 
-pytestmark = pytest.mark.xdist_group("export")   # one worker exports the module's files (make test)
+pytestmark = EXPORT
 
 ROOT = Path(__file__).resolve().parents[2]
 SUFFIX = {name: fmt.suffix for name, fmt in FORMATS.items()}

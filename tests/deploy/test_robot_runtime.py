@@ -17,10 +17,10 @@ from controllers.policy import ActorConfig, build_actor
 from deploy.export import export_policy
 from sim.observations import tokens
 from sim.scenario import make_scenario
+from tests.xdist_groups import ROBOT_RUNTIME
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = [pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning"),
-              pytest.mark.xdist_group("robot_runtime")]   # one worker builds the robot's venv (make test)
+pytestmark = [pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning"), ROBOT_RUNTIME]
 
 DRIVER = """
 import importlib.util, json, sys

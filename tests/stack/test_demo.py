@@ -20,10 +20,11 @@ from stack.demo.fleet import tracking_noise_floor
 from stack.demo.report import FIGURES
 from stack.demo.state import STAGES
 from tests.stack.conftest import QUICK_BUDGET
+from tests.xdist_groups import DEMO
 
 # One worker holds the quick demo (a session fixture) and runs these tests. Not `realtime`: the
 # fleet stage runs fleet-sim and bridge lock-stepped, so a busy machine slows it, not its numbers.
-pytestmark = pytest.mark.xdist_group("demo")
+pytestmark = DEMO
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

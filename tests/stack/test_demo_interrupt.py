@@ -2,9 +2,10 @@
 trains in a child process: every child process stops cleanly, finished stages are kept, and
 `--resume` finishes the run from there.
 
-The run starts from a copy of the quick demo's folder (``quick_run``) cut back to its trained
-(generalist included) and exported stages, with four fleet episodes (a window wide enough to interrupt mid-run): the
-demo resumes straight into the fleet stage, so the test trains nothing itself."""
+Each run starts from a copy of the quick demo's folder (``quick_run``) cut back: for the fleet
+test to its trained (generalist included) and exported stages, with four fleet episodes (a
+window wide enough to interrupt mid-run), so the demo resumes straight into the fleet stage and
+the test trains nothing itself; for the train-5 test to train-3 alone."""
 
 from __future__ import annotations
 
@@ -18,16 +19,15 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from stack.cli import main
 from stack.demo.report import save_metrics
 from stack.demo.state import STAGES, StageBook
 from tests.stack.conftest import QUICK_BUDGET
+from tests.xdist_groups import DEMO
 
 # With the quick demo's worker (test_demo.py). The SIGINT waits for the moment it needs (files and
 # processes), not for the clock, and the fleet runs lock-stepped.
-pytestmark = pytest.mark.xdist_group("demo")
+pytestmark = DEMO
 
 LEARNED = ("train-3", "train-5", "generalist", "export")
 FLEET_EPISODES = 4   # the SIGINT comes once the first has ended: three left to interrupt

@@ -23,6 +23,7 @@ from stack.sweep import (
     parse_grid_option,
     run_trials,
 )
+from tests.xdist_groups import RAY
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"scenario": "paper-3", "num_envs": 8, "eval_interval": 16, "eval_episodes": 8,
@@ -110,7 +111,7 @@ def _sweep(out: Path, *extra: str, config: dict = TINY, cpus: int = 2, **kw) -> 
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
+@RAY
 def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(tmp_path):
     proc = _sweep(tmp_path, "--episodes", "16", "--seeds", "1", "--grid", "lr=3e-4,1e-3", "--json")
     out, err = proc.communicate(timeout=600)
@@ -136,7 +137,7 @@ def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(t
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
+@RAY
 def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
     """One CPU, two seeds: Ctrl-C comes while seed 0 runs and seed 1 has not started (a pending
     trial has no config in Tune's results: reading it crashed the stop). The moment is set by
@@ -205,7 +206,7 @@ LOOPBACK = ("127.0.0.1", "[::ffff:127.0.0.1]")
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")   # one local Ray at a time, on one worker (make test)
+@RAY
 def test_a_local_sweeps_ray_listens_on_the_loopback_address_only():
     """Ray's servers run whatever work reaches them; a local sweep keeps them off the network."""
     env = {k: v for k, v in os.environ.items() if k != LOCAL_ONLY_ENV}

@@ -347,7 +347,7 @@ def test_a_distribution_draws_layouts_and_actuators_and_resumes_on_the_same_curv
     state = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")["env_state"]
     assert [s["layout"]["name"] for s in state] == [g.env.scenario.name for g in whole.groups]
     shorter = config.replace(total_episodes=16)
-    train(shorter.replace(total_episodes=8), tmp_path / "a")    # stops where a layout was just drawn
+    train(config.replace(total_episodes=8), tmp_path / "a")     # stops where a layout was just drawn
     train(shorter, tmp_path / "a", resume=True)                  # ... and draws another
     train(shorter, tmp_path / "b")
     assert rows(tmp_path / "a" / "train.jsonl") == rows(tmp_path / "b" / "train.jsonl")
