@@ -24,20 +24,22 @@ collision-free multirobot systems"), with a safety margin ``m`` [m] and ``z = s 
 
 ``h >= 0`` says the approach speed ``-s_dot`` is no more than what a constant deceleration
 ``alpha`` [m/s^2] can cancel within the remaining clearance ``z``, so ``s`` stays above ``m``.
-``alpha`` is the braking the barrier may count on: ``braking_share * a_box`` for a static obstacle
-and ``2 * braking_share * a_box`` for a pair (both robots brake), where ``a_box`` is the
-acceleration every robot can produce in any direction inside the QP's actuator octagon. With
-``braking_share = 0.5`` one robot alone can meet a pair's demand, so a robot pinned at a wall does
-not make its neighbour's constraint infeasible. Two static rows on their boundaries whose normals
-are ``theta`` apart (a robot heading into a corner) ask ``n_1 . u >= alpha`` and ``n_2 . u >=
-alpha`` at worst, which ``|u| <= a_box`` meets while ``alpha <= a_box cos(theta / 2)``: with half
-the actuator, up to 120 degrees (the arena's corners; the object near a wall). Counting on more
-trades margin for speed (measured 2026-12-05, a 3-5-robot generalist): with ``a_box / sqrt(2)``
-on the object and wall rows (corners up to 90 degrees) its robots reached their targets 0.33
-ticks sooner on a clean link and it matched bare with a robot freezing mid-episode (0.610 / 0.610
-of 600 episodes, against 0.603 / 0.610), but a robot under 2 cm / 4 cm/s of measurement noise
-crept into the object in one of the 30 adversarial episodes of
-``tests/stack/test_link_safety.py``'s noise test, which the half share keeps clear. Damping only adds deceleration while approaching
+``alpha`` is the braking the barrier may count on: ``2 * braking_share * a_box`` for a pair (both
+robots brake) and ``static_braking_share * a_box`` for the object and the walls, where ``a_box``
+is the acceleration every robot can produce in any direction inside the QP's actuator octagon.
+With ``braking_share = 0.5`` one robot alone can meet a pair's demand, so a robot pinned at a wall
+does not make its neighbour's constraint infeasible. Two static rows on their boundaries whose
+normals are ``theta`` apart (a robot heading into a corner) ask ``n_1 . u >= alpha`` and
+``n_2 . u >= alpha`` at worst, which ``|u| <= a_box`` meets while ``alpha <= a_box cos(theta /
+2)``: ``static_braking_share = 1/sqrt(2)`` keeps the arena's corners (90 degrees) jointly
+feasible; a robot heading diagonally into a corner counting on the whole ``a_box`` could not stop
+on both axes. Half the actuator (before) also covered wedges up to 120 degrees (the object close
+to a wall) and cost its robots time: a 3-5-robot generalist reached its targets 0.33 ticks later
+on a clean link and, with a robot freezing mid-episode, succeeded in 0.603 of 600 episodes
+against 0.610 bare (now 0.610). The margin it gave up matters on a noisy link, which the
+approach allowance of the measured velocity noise covers
+(:attr:`~controllers.safety.latency.LatencyConfig.measured_velocity_sigmas`).
+Damping only adds deceleration while approaching
 (``-c s_dot > 0`` when ``s_dot < 0``), so it is left out of ``alpha`` and kept in ``h_dot``.
 
 To keep ``h`` finite and differentiable at ``z <= 0`` (a robot already inside the margin), ``phi``
@@ -111,7 +113,10 @@ class SafetyConfig:
             :attr:`controllers.safety.latency.Prediction.unsure`): a brake the prediction counts
             on may be overtaken by a newer command, so these rows start braking earlier.
         class_k: ``"linear"`` (``gamma h``) or ``"cubic"`` (``gamma h^3``, as in the paper).
-        braking_share: fraction of one robot's acceleration the barrier counts on for braking.
+        braking_share: fraction of one robot's acceleration the pair rows count on each robot
+            braking with (the pair counts on ``2 * braking_share``).
+        static_braking_share: fraction of one robot's acceleration the object and wall rows count on
+            (module docstring).
         sqrt_floor: ``z_f``, below it the square root continues linearly [m].
         accel_fraction: the QP's actuator octagon is inscribed in a circle of
             ``accel_fraction * accel_limit`` (so the plant's norm clip never bites).
@@ -136,6 +141,7 @@ class SafetyConfig:
     gamma_unsure: float = 3.0
     class_k: str = "linear"
     braking_share: float = 0.5
+    static_braking_share: float = math.sqrt(0.5)
     sqrt_floor: float = 1e-3
     accel_fraction: float = 0.999
     tighten: float = 1e-3
@@ -148,11 +154,13 @@ class SafetyConfig:
     exact_projection: bool = True
 
     def __post_init__(self) -> None:
-        check_numbers(self, ("gamma", "gamma_unsure", "braking_share", "sqrt_floor", "accel_fraction", "eps", "slack_weight"),
+        check_numbers(self, ("gamma", "gamma_unsure", "braking_share", "static_braking_share", "sqrt_floor",
+                             "accel_fraction", "eps", "slack_weight"),
                       "safety", SafetyConfigError, positive=True)
         check_numbers(self, ("margin", "tighten", "postcheck_margin"), "safety", SafetyConfigError)
-        if self.braking_share > 1:
-            raise SafetyConfigError(f"safety.braking_share must be in (0, 1], got {self.braking_share}")
+        for name in ("braking_share", "static_braking_share"):
+            if getattr(self, name) > 1:
+                raise SafetyConfigError(f"safety.{name} must be in (0, 1], got {getattr(self, name)}")
         if self.accel_fraction > 1:
             raise SafetyConfigError(f"safety.accel_fraction must be in (0, 1], got {self.accel_fraction}")
         if self.class_k not in ("linear", "cubic"):
@@ -256,7 +264,7 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
     A ``prediction`` tightens the rows as in :meth:`controllers.safety.fused.FusedScene.terms`
     (grown discs, approach-speed allowance, fixed robots)."""
     a_box = octagon_accel(dynamics, config)
-    alpha_static = config.braking_share * a_box
+    alpha_static = config.static_braking_share * a_box
     alpha_pair = 2.0 * config.braking_share * a_box
     c = dynamics.damping
 
@@ -284,7 +292,8 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
         if prediction.fixed.any():
             free = row_sums((~prediction.fixed).astype(np.float64), dist.pair_i, dist.pair_j)
             dropped = free == 0
-            alpha = alpha_static * np.maximum(free, 1.0)
+            pair = np.arange(len(s)) < len(sdot_pair)
+            alpha = np.where(pair, config.braking_share * a_box * np.maximum(free, 1.0), alpha_static)
 
     phi, dphi = _phi(s - config.margin, alpha, config.sqrt_floor)
     h = phi + sdot

@@ -130,7 +130,7 @@ class FusedScene:
         self.gather_abs_t = np.abs(self.gather_t)                            # (N, K): sums per row
         self.share_alpha = config.braking_share * octagon_accel(dynamics, config)
         a_box = octagon_accel(dynamics, config)
-        alpha = np.full(k, config.braking_share * a_box)
+        alpha = np.full(k, config.static_braking_share * a_box)
         alpha[:p] = 2.0 * config.braking_share * a_box
         self.alpha = alpha
         self.two_alpha = 2.0 * alpha
@@ -199,9 +199,10 @@ class FusedScene:
         but adds no phantom approach either: with the full ``s_dot - e`` there, robots at rest
         pushed each other apart for ever (1 cm / 2 cm/s of noise: scripted success 0.75 against
         0.83 without the filter); with the plain ``s_dot``, a robot predicted to move away was
-        released towards the object on a jittering link and rocked into it (1 of 20 episodes); a row with one fixed robot counts on the other one's
-        braking alone (``alpha`` of a static obstacle), a row of two fixed robots is dropped
-        (bound -inf).
+        released towards the object on a jittering link and rocked into it (1 of 20 episodes); a pair
+        row with one fixed robot counts on the other one's braking alone (``braking_share *
+        a_box``), a row of two fixed robots (or of a fixed robot and the object or a wall) is
+        dropped (bound -inf).
         """
         p, k, n = self.p, self.k, self.n
         if polygon is not self._polygon:

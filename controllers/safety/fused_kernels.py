@@ -81,7 +81,8 @@ def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over
 
     Args:
         wall_offset: (4,) ``(0, W, 0, H) - r``; wall_normal_xy: (2, 4N) fixed wall normals.
-        alpha, two_alpha: (K,) braking allowances of the rows without fixed robots.
+        alpha, two_alpha: (K,) braking allowances of the rows without fixed robots (the object and
+            wall rows keep theirs with fixed robots about).
         floor_s: ``margin + sqrt_floor`` [m]; cubic: the class-K function is ``h^3``.
         normal_xy (2, K), dist, h, drift, bound (K,), pair_delta (2, P), obj_n (N, 2): written.
     """
@@ -134,7 +135,7 @@ def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over
             if any_fixed:
                 free = (0.0 if fixed[i] else 1.0) + ((0.0 if fixed[j] else 1.0) if j >= 0 else 0.0)
                 dropped = free == 0
-                row_alpha = share_alpha * np.maximum(free, 1.0)
+                row_alpha = share_alpha * np.maximum(free, 1.0) if k < p else alpha[k]
                 row_two_alpha = 2.0 * row_alpha
         clamped = np.maximum(dist[k], floor_s)
         root = math.sqrt(row_two_alpha * (clamped - margin))

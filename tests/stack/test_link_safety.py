@@ -118,19 +118,27 @@ def test_a_frozen_robot_is_kept_clear_of_and_is_run_into_without_the_latency_ter
 
 
 @pytest.mark.slow
-def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_the_estimator():
+def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_the_noise_terms():
+    """2 cm / 4 cm/s of measurement noise. The stack's two answers to it: the position estimator
+    (filtered positions, its standard deviation grows the discs) and two standard deviations of
+    the measured velocity noise counted as approach speed. Without both, seeds 1, 9, 10, 17, 19,
+    23, 26, ... of 0-63 touch (14 of 64, measured); without the velocity allowance alone, seed 19
+    does (a robot creeping into the object: the static rows count on ``a_box / sqrt(2)``)."""
     noisy = ModelError(position_noise_std=0.02, velocity_noise_std=0.04)
-    touched_raw = (27, 54, 60, 63)          # of seeds 0-63, those that touch on raw positions
-    seeds = [*range(16), *touched_raw]
+    touched_bare = (17, 19, 23, 26)          # of seeds 16-63, the first that touch without both
+    seeds = [*range(16), *touched_bare]
     on = [s for s in seeds if collided(s, noisy, StackConfig())]
     assert on == [], f"seeds {on} collided with the default stack"
-    raw = [s for s in touched_raw if collided(s, noisy, StackConfig(estimated_position=False))]
-    assert raw == list(touched_raw), "no teeth: the filter on raw noisy positions did not collide"
+    no_allowance = LatencyConfig(measured_velocity_sigmas=0.0)
+    assert collided(19, noisy, StackConfig(latency=no_allowance)), "no teeth: the velocity allowance"
+    raw = [s for s in touched_bare if collided(s, noisy, StackConfig(estimated_position=False, latency=no_allowance))]
+    assert raw == list(touched_bare), "no teeth: the filter on raw noisy positions did not collide"
 
 
 def crowd_collided(seed: int, config: StackConfig) -> bool:
     """One episode of ``bench/safety.py``'s conditions (its adversary, 3-16 robots) with a delay
-    that jitters 1-3 ticks, each robot acting on the newest command that arrived."""
+    that jitters 1-3 ticks, each robot acting on the newest command that arrived; the robots
+    start inside the safe set of ``config``'s filter (the bench's, for the default)."""
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
@@ -138,7 +146,7 @@ def crowd_collided(seed: int, config: StackConfig) -> bool:
     rng = np.random.default_rng(seed)
     sc = transport_scenario(int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1)))
     world = PymunkWorld(sc, CONDITIONS["delay_jitter"])
-    barrier = SafetyFilter(sc)
+    barrier = SafetyFilter(sc, config.safety_config)
     stack = ControlStack(sc, AdversarialPolicy(sc, rng), config)
     return run_episode(world, stack, seed, STEPS, start=lambda w: random_start(w, barrier, rng)).collided
 
@@ -160,13 +168,14 @@ def test_a_jittering_robot_braked_from_its_prediction_is_run_into_and_not_from_i
     (bench/safety.py ``delay_jitter`` seeds 3, 24, 33: each touched before the rule). Since the
     post-check excuses commands no worse than braking, these seeds stay clear even without the
     rule (so do seeds 0-79, measured); the rule's teeth are shown with the excuse off. Since the
-    filter's gain is 6 (3 for unsure robots), seed 3 stays clear without the rule too."""
+    filter's gain is 6 (3 for unsure robots), seed 3 stays clear without the rule too, and since
+    the static rows count on ``a_box / sqrt(2)`` (was ``a_box / 2``), seed 24 as well."""
     seeds = (3, 24, 33)
     old = StackConfig(latency=LatencyConfig(jitter_brake_measured=False))
     assert [s for s in seeds if crowd_collided(s, StackConfig())] == []
     no_excuses(monkeypatch)
     assert [s for s in seeds if crowd_collided(s, StackConfig())] == []
-    assert [s for s in seeds if crowd_collided(s, old)] == [24, 33]
+    assert [s for s in seeds if crowd_collided(s, old)] == [33]
 
 
 def scripted_paper5_succeeds(seed: int) -> bool:
@@ -184,10 +193,11 @@ def test_robots_braked_inside_their_grown_discs_move_apart_instead_of_freezing(m
     stopped 16 mm apart, inside their discs grown by the jitter allowance (7.1 and 8.0 mm); the
     post-check braked both on 121 of 128 ticks, even while the QP pushed them apart, and the
     episode ended 0.209 m off. Excusing commands no worse than braking lets the pair move apart,
-    and the episode succeeds."""
-    assert scripted_paper5_succeeds(8)
+    and the episode succeeds. Since the static rows count on ``a_box / sqrt(2)`` seed 8 succeeds
+    without the excuse too; seeds 2 and 12 of 0-23 do not (measured; not traced robot by robot)."""
+    assert scripted_paper5_succeeds(2)
     no_excuses(monkeypatch)
-    assert not scripted_paper5_succeeds(8)
+    assert not scripted_paper5_succeeds(2)
 
 
 @pytest.mark.slow
@@ -195,8 +205,14 @@ def test_robots_whose_delay_jitters_brake_earlier_and_touch_without_it():
     """The filter starts braking later (class-K gain ``gamma`` 6) except in the rows of a robot
     whose delay is not known to hold (``gamma_unsure`` 3): there a brake the prediction counted
     on may be overtaken and never act. ``bench/safety.py`` ``delay_jitter`` seed 184 (8 robots)
-    touches the object (0.2 mm deep) with the raised gain on every row, not with the default."""
+    touches the object (0.2 mm deep) with the raised gain on every row, not with the default. With
+    the static rows at ``a_box / sqrt(2)`` and the measured velocity noise in the approach
+    allowance, the raised gain touched in none of seeds 0-149 (measured), so its teeth are shown
+    where the rule was made: static rows at ``a_box / 2``, no velocity allowance."""
     from controllers.safety import SafetyConfig
 
+    before = LatencyConfig(measured_velocity_sigmas=0.0)
     assert not crowd_collided(184, StackConfig())
-    assert crowd_collided(184, StackConfig(safety_config=SafetyConfig(gamma_unsure=6.0)))
+    assert not crowd_collided(184, StackConfig(safety_config=SafetyConfig(static_braking_share=0.5), latency=before))
+    raised = SafetyConfig(gamma_unsure=6.0, static_braking_share=0.5)
+    assert crowd_collided(184, StackConfig(safety_config=raised, latency=before))

@@ -80,9 +80,10 @@ class NumpyFusedScene(FusedScene):
         but adds no phantom approach either: with the full ``s_dot - e`` there, robots at rest
         pushed each other apart for ever (1 cm / 2 cm/s of noise: scripted success 0.75 against
         0.83 without the filter); with the plain ``s_dot``, a robot predicted to move away was
-        released towards the object on a jittering link and rocked into it (1 of 20 episodes); a row with one fixed robot counts on the other one's
-        braking alone (``alpha`` of a static obstacle), a row of two fixed robots is dropped
-        (bound -inf).
+        released towards the object on a jittering link and rocked into it (1 of 20 episodes); a pair
+        row with one fixed robot counts on the other one's braking alone (``braking_share *
+        a_box``), a row of two fixed robots (or of a fixed robot and the object or a wall) is
+        dropped (bound -inf).
         """
         p, cfg = self.p, self.config
         # pairs
@@ -112,7 +113,7 @@ class NumpyFusedScene(FusedScene):
             if prediction.fixed.any():
                 free = (~prediction.fixed).astype(np.float64) @ self.gather_abs_t     # (K,) 0, 1, 2
                 dropped = free == 0
-                alpha = self.share_alpha * np.maximum(free, 1.0)
+                alpha = np.where(np.arange(self.k) < p, self.share_alpha * np.maximum(free, 1.0), self.alpha)
                 two_alpha = 2.0 * alpha
         # phi with its linear floor: s_c = max(s, m + z_f), phi = sqrt(2 alpha (s_c - m)) + phi' (s - s_c)
         clamped = np.maximum(dist, cfg.margin + cfg.sqrt_floor)

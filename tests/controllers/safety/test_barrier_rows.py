@@ -49,9 +49,9 @@ def test_pair_h_matches_the_paper_formula():
         dist = math.hypot(*dp)
         want = math.sqrt(2 * alpha * (dist - 2 * R - cfg.margin)) + dp @ dv / dist
         assert terms.h[k] == pytest.approx(want, rel=1e-12)
-    # a wall row by hand: robot 0, wall x = 0, alpha = share * a_box
+    # a wall row by hand: robot 0, wall x = 0, alpha = a_box / sqrt(2)
     p = 10
-    alpha_s = cfg.braking_share * octagon_accel(DYN, cfg)
+    alpha_s = octagon_accel(DYN, cfg) / math.sqrt(2)
     want = math.sqrt(2 * alpha_s * (pos[0, 0] - R - cfg.margin)) + vel[0, 0]
     assert terms.h[p + 5] == pytest.approx(want, rel=1e-12)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -48,6 +50,17 @@ def test_prediction_runs_the_recorded_commands_and_grows_by_the_hand_worked_boun
     np.testing.assert_allclose(out.grow, [0.003 + 0.001 + 0.002])
     np.testing.assert_allclose(out.closing, [0.04 + 0.01])
     assert not out.fixed.any()
+    # two standard deviations of a measured velocity noise of 0.02 m/s join the approach allowance
+    # (and not the bound on the velocity's error the post-check reads: 3 sigma of it there already)
+    noisy = pred.predict(ids, pos, vel, np.zeros(1), np.array([[0.4, 0.3]]), velocity_noise=np.array([0.02]))
+    np.testing.assert_allclose(noisy.closing, [0.04 + 0.01 + 2 * 0.02])
+    np.testing.assert_allclose(noisy.grow, out.grow)
+    np.testing.assert_allclose(noisy.velocity_error, [0.04 + 0.01 + 3 * 0.02])
+    off = LatencyPredictor(DYN, dataclasses.replace(cfg, measured_velocity_sigmas=0.0))
+    off.record(ids, u1)
+    off.record(ids, u2)
+    quiet = off.predict(ids, pos, vel, np.zeros(1), np.array([[0.4, 0.3]]), velocity_noise=np.array([0.02]))
+    np.testing.assert_allclose(quiet.closing, out.closing)
 
 
 def test_history_is_keyed_by_robot_id_and_a_new_robot_holds_no_command():
@@ -142,6 +155,8 @@ def test_bad_latency_settings_name_the_field():
         LatencyConfig(command_delay_s=-0.1)
     with pytest.raises(LatencyConfigError, match="latency.stale_after_s"):
         LatencyConfig(stale_after_s=0.0)
+    with pytest.raises(LatencyConfigError, match="latency.measured_velocity_sigmas"):
+        LatencyConfig(measured_velocity_sigmas=-1.0)
 
 
 @pytest.mark.parametrize("delay", [0, 1, 2, 3])

@@ -178,15 +178,16 @@ def test_output_is_always_finite_and_within_limits(seed, n, speed, geometry):
 @given(zx=st.floats(0.002, 0.1), zy=st.floats(0.002, 0.1))
 def test_a_robot_on_both_wall_curves_of_a_corner_can_still_meet_both(zx, zy):
     """Heading into the arena's corner (0, 0) on the braking curve of both walls (h = 0 on each),
-    full thrust into the corner: the static rows count on ``braking_share * a_box = a_box / 2``,
-    so the two rows stay jointly feasible inside the octagon (up to 120 degrees apart, module
-    docstring of :mod:`controllers.safety.barrier`) and the QP answers without slack; counting on
-    the whole actuator (``braking_share = 1``) they are not, and the slack QP has to give way."""
+    full thrust into the corner: the static rows count on ``a_box / sqrt(2)``, so the two rows
+    stay jointly feasible inside the octagon (module docstring of
+    :mod:`controllers.safety.barrier`) and the QP answers without slack; counting on the whole
+    actuator (``static_braking_share = 1``) they are not, and the slack QP has to give way."""
     margin = SafetyConfig().margin
     pos = np.array([[R + margin + zx, R + margin + zy]])
     a_nom = np.array([[-0.7, -0.7]])
-    for share, feasible in ((SafetyConfig().braking_share, True), (1.0, False)):
-        config = SafetyConfig(braking_share=share)
+    assert SafetyConfig().static_braking_share == pytest.approx(np.sqrt(0.5))
+    for share, feasible in ((SafetyConfig().static_braking_share, True), (1.0, False)):
+        config = SafetyConfig(static_braking_share=share)
         vel = -np.sqrt(2 * share * octagon_accel(DYN, config) * np.array([[zx, zy]]))
         f = SafetyFilter(SCENARIO, config)
         walls = f.barrier(pos, vel).h[1:5]                       # rows: object, walls x=0, W, y=0, H
