@@ -34,7 +34,7 @@ normals are ``theta`` apart (a robot heading into a corner) ask ``n_1 . u >= alp
 2)``: ``static_braking_share = 1/sqrt(2)`` keeps the arena's corners (90 degrees) jointly
 feasible; a robot heading diagonally into a corner counting on the whole ``a_box`` could not stop
 on both axes. Half the actuator (before) also covered wedges up to 120 degrees (the object close
-to a wall) and cost its robots time: a 3-5-robot generalist reached its targets 0.33 ticks later
+to a wall) and cost its robots time: a 3-5-robot generalist reached its targets 0.31 ticks later
 on a clean link and, with a robot freezing mid-episode, succeeded in 0.603 of 600 episodes
 against 0.610 bare (now 0.610). The margin it gave up matters on a noisy link, which the
 approach allowance of the measured velocity noise covers

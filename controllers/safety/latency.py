@@ -392,10 +392,11 @@ class LatencyPredictor:
         brake_vel, measured = v, jittering & ~fixed
         if cfg.jitter_brake_measured and np.count_nonzero(measured):
             brake_vel = np.where(measured[:, None], vel, v)
-        velocity_error = closing + (0.0 if velocity_noise is None else
-                                    VELOCITY_NOISE_BOUND * np.asarray(velocity_noise))
-        if velocity_noise is not None and cfg.measured_velocity_sigmas > 0:
-            closing = closing + cfg.measured_velocity_sigmas * np.asarray(velocity_noise, dtype=np.float64)
+        velocity_error = closing.copy()
+        if velocity_noise is not None:
+            sigma_v = np.asarray(velocity_noise, dtype=np.float64)
+            velocity_error = closing + VELOCITY_NOISE_BOUND * sigma_v
+            closing = closing + cfg.measured_velocity_sigmas * sigma_v
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
                           brake_vel=brake_vel, velocity_error=velocity_error,
                           unsure=unsure)
