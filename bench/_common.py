@@ -142,7 +142,13 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], file=None
 
 
 def print_json(document: dict[str, Any]) -> None:
-    """The result document on stdout, one line, nothing else."""
+    """The result document on stdout, one line, nothing else; it gains a ``provenance`` entry
+    (:func:`sim.provenance.provenance`: git commit, package versions, threads, host, command line)
+    unless it holds one, so every saved result says what code and packages made it."""
+    if "provenance" not in document:
+        from sim.provenance import provenance
+
+        document = {**document, "provenance": provenance()}
     print(json.dumps(document), flush=True)
 
 

@@ -1,20 +1,23 @@
 """Part (d) of bench/safety.py: the safety layer under the imperfections of a real link.
 
 Each condition is a pymunk :class:`~sim.pymunk_world.ModelError` (see :data:`CONDITIONS`):
-command delay of 1, 2, 3 ticks (50-150 ms), a delay that jitters 1-3 ticks from command to
-command (robots acting on the newest command that arrived; robots with a 3-tick playout
-buffer, ``ModelError.playout_ticks``, which turns it into exactly 3; and robots with an adaptive
-one, ``ModelError.adaptive_playout``, which settles at the largest delay seen), measurement noise (1 cm on positions, 2 cm/s on velocities), 20 % of the states lost on
-the way, a robot that freezes mid-episode (silent and deaf, its own watchdog brakes it after
-two ticks), gain 0.7 with two ticks of delay, and the randomised gain/lag/friction/disturbance
-model error of part (a). Per condition, on the same seeds:
+none at all (``clean``, the reference); command delay of 1, 2, 3 ticks (50-150 ms); a delay
+that jitters 1-3 ticks from command to command (robots acting on the newest command that
+arrived; robots with a 3-tick playout buffer, ``ModelError.playout_ticks``, which turns it into
+exactly 3; and robots with an adaptive one, ``ModelError.adaptive_playout``, which settles at
+the largest delay seen); measurement noise (1 cm on positions, 2 cm/s on velocities); 20 % of
+the states lost on the way; a robot that freezes mid-episode (silent and deaf, its own watchdog
+brakes it after two ticks); gain 0.7 with two ticks of delay; and the randomised
+gain/lag/friction/disturbance model error of part (a). Per condition, on the same seeds:
 
 * ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
   starts inside ``h >= 0``), once with the default stack (filter + MEC, ``StackConfig()``) and
   once bare (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
   ``collisions_filter_off``;
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
-  given): success and contact episodes with the default stack and bare;
+  given): success and contact episodes with the default stack and bare, and how soon the team
+  first stands on its targets (``arrival_scripted``/``arrival_policy``:
+  :func:`arrival_summary`): what a filter that keeps robots safe by slowing them costs;
 * the MEC's tracking error [mm]: the scripted commands (``|a| <= 0.6``, within a 0.7-gain
   robot's reach) recorded on the nominal model, replayed open loop through the condition's world
   with the MEC on and off (filter off), against the nominal trajectory under the same delay (the
@@ -40,6 +43,7 @@ from sim.scenario import make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
 
 CONDITIONS: dict[str, dict] = {
+    "clean": {},
     "delay1": {"delay_ticks": 1},
     "delay2": {"delay_ticks": 2},
     "delay3": {"delay_ticks": 3},
@@ -111,6 +115,7 @@ def task_episode(task: tuple[str, int, str | None]) -> dict:
         source = _network(policy) if policy is not None else ScriptedController(sc)
         m = run_episode(world, ControlStack(sc, source, config), seed)
         out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
+        out[f"arrival_{key}"] = m.arrival_step
     return out
 
 
@@ -150,6 +155,20 @@ def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
     return {key: 1000.0 * float(np.mean(v)) for key, v in errors.items()}
 
 
+def arrival_summary(rows: list[dict]) -> dict:
+    """When the team first stood on its targets, default stack against bare, on the episodes
+    where both arrived (paired: the same seed and model error): mean tick of each, and how
+    many episodes arrived with each."""
+    both = [r for r in rows if r["arrival_on"] is not None and r["arrival_off"] is not None]
+
+    def mean(key: str) -> float | None:
+        return float(np.mean([r[key] for r in both])) if both else None
+
+    return {"paired_episodes": len(both), "mean_step": mean("arrival_on"), "mean_step_bare": mean("arrival_off"),
+            "arrived": sum(r["arrival_on"] is not None for r in rows),
+            "arrived_bare": sum(r["arrival_off"] is not None for r in rows)}
+
+
 def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: int,
                    mec_episodes: int, workers: int, seed: int, policy: str | None) -> dict:
     """The ``conditions`` document: one entry per condition (module docstring)."""
@@ -173,6 +192,7 @@ def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: i
             entry[f"success_{tag}_bare"] = float(np.mean([r["success_off"] for r in rows])) if rows else None
             entry[f"collisions_{tag}"] = sum(r["collided_on"] for r in rows)
             entry[f"collisions_{tag}_bare"] = sum(r["collided_off"] for r in rows)
+            entry[f"arrival_{tag}"] = arrival_summary(rows)
         entry["tracking_error_mm"] = tracking_error_mm(nm, mec_episodes, seed)
         doc[nm] = entry
     return doc

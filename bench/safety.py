@@ -39,7 +39,9 @@ Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
 "latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}, "npz": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
-"success_scripted", "tracking_error_mm": {"mec", "no_mec"}, ...}, ...}}``.
+"success_scripted", "tracking_error_mm": {"mec", "no_mec"}, "arrival_scripted": {...}, ...}, ...},
+"stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the default
+``StackConfig()`` every "filter + MEC" column ran, resolved (filter, latency and MEC settings).
 """
 
 from __future__ import annotations
@@ -340,12 +342,17 @@ def main(argv: list[str] | None = None) -> int:
         doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.steps,
                                            args.task_episodes, args.mec_episodes, args.workers,
                                            args.seed, args.policy)
-    doc.update(threads=threads, wall_s=time.perf_counter() - start)
+    doc.update(threads=threads, wall_s=time.perf_counter() - start,
+               stack_config=dataclasses.asdict(StackConfig()))
     if args.json:
         print_json(doc)
     else:
         _print_tables(doc)
     return 0
+
+
+def _tick(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def _print_tables(doc: dict) -> None:
@@ -364,12 +371,22 @@ def _print_tables(doc: dict) -> None:
         print()
     if "conditions" in doc:
         print_table(["condition", "episodes", "contact, filter+MEC", "bare", "scripted success", "bare",
-                     "scripted contact", "bare", "tracking MEC [mm]", "no MEC"],
+                     "scripted contact", "bare", "arrival tick", "bare", "tracking MEC [mm]", "no MEC"],
                     [[name, c["episodes"], c["collisions_filter_on"], c["collisions_filter_off"],
                       f"{c['success_scripted']:.2f}", f"{c['success_scripted_bare']:.2f}",
                       c["collisions_scripted"], c["collisions_scripted_bare"],
+                      *(_tick(c["arrival_scripted"][k]) for k in ("mean_step", "mean_step_bare")),
                       f"{c['tracking_error_mm']['mec']:.2f}", f"{c['tracking_error_mm']['no_mec']:.2f}"]
                      for name, c in doc["conditions"].items()])
+        if any("success_policy" in c for c in doc["conditions"].values()):
+            print()
+            print_table(["condition", "policy success, filter+MEC", "bare", "policy contact", "bare",
+                         "arrival tick", "bare", "paired episodes"],
+                        [[name, f"{c['success_policy']:.3f}", f"{c['success_policy_bare']:.3f}",
+                          c["collisions_policy"], c["collisions_policy_bare"],
+                          *(_tick(c["arrival_policy"][k]) for k in ("mean_step", "mean_step_bare")),
+                          c["arrival_policy"]["paired_episodes"]]
+                         for name, c in doc["conditions"].items()])
         print()
     if "latency_ms" in doc:
         print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",

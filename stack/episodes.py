@@ -48,6 +48,10 @@ class EpisodeMetrics:
             driven by ``a_safe`` from the measured state (:func:`nominal_step`); what the MEC
             drives towards 0.
         p50_tick_ms, p99_tick_ms: tick latency percentiles [ms].
+        arrival_step: the first tick count t (1..steps) after which every robot stood within
+            ``target_tolerance`` of its assigned target (the true state where the fleet has one,
+            collisions aside); None if that never happened. How fast a layer lets the team
+            arrive, which success at the end does not show.
     """
 
     success: bool
@@ -64,9 +68,24 @@ class EpisodeMetrics:
     tracking_error: float
     p50_tick_ms: float
     p99_tick_ms: float
+    arrival_step: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
+
+
+def _all_within(fleet: Fleet, state: FleetState, tolerance: float) -> bool:
+    """Every robot within ``tolerance`` of its assigned target (the fleet's true state if it
+    has one); the optimal assignment runs only when every robot has some target that near."""
+    true_state = getattr(fleet, "true_state", None)
+    if true_state is not None:
+        state = true_state()
+    gaps = np.linalg.norm(state.positions[:, None] - state.targets[None], axis=-1)    # (N, N)
+    if not (gaps.min(1) <= tolerance).all():
+        return False
+    outcome = episode_outcome(torch.from_numpy(state.positions)[None], torch.from_numpy(state.targets)[None],
+                              torch.tensor([False]), tolerance)
+    return bool(outcome.success[0])
 
 
 def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int | None = None,
@@ -92,7 +111,8 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
     counts = np.zeros(3, dtype=np.int64)
     counters = dict.fromkeys(("interventions", "infeasible", "fallbacks", "braking"), 0)
     tracking, latency = [], []
-    for _ in range(steps):
+    arrival_step = None
+    for step in range(steps):
         tick = stack.tick(state)
         latency.append(tick.timings_ns["total"])
         counters["interventions"] += tick.intervened
@@ -103,6 +123,8 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
         fleet.send_accelerations(tick.a_cmd)
         state = fleet.step()
         tracking.append(float(np.linalg.norm(state.positions - predicted, axis=1).mean()))
+        if arrival_step is None and _all_within(fleet, state, scenario.target_tolerance):
+            arrival_step = step + 1
         if not self_judging:
             ev = collision_events(torch.from_numpy(state.positions)[None], polygon,
                                   scenario.robot_radius, scenario.arena)
@@ -124,4 +146,4 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
         object_collisions=int(counts[1]), wall_collisions=int(counts[2]), steps=steps,
         tracking_error=float(np.mean(tracking)) if tracking else math.nan,
         p50_tick_ms=float(np.percentile(lat, 50)), p99_tick_ms=float(np.percentile(lat, 99)),
-        **counters)
+        arrival_step=arrival_step, **counters)

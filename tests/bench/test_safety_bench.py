@@ -33,6 +33,14 @@ def test_safety_bench_json_shape():
         assert entry["collisions_filter_on"] <= entry["collisions_filter_off"] <= 2
         assert set(entry["tracking_error_mm"]) == {"mec", "no_mec"}
     assert cond["delay2"]["collisions_filter_off"] == 2     # bare robots at full thrust collide
+    for entry in cond.values():          # the scripted controller arrives within its 128 ticks
+        arrival = entry["arrival_scripted"]
+        if arrival["paired_episodes"]:
+            assert 1 <= arrival["mean_step"] <= 128 and 1 <= arrival["mean_step_bare"] <= 128
+    assert cond["delay2"]["arrival_scripted"]["paired_episodes"] == 1
+    assert doc["stack_config"]["latency"]["command_delay_s"] == 0.15    # what "filter + MEC" ran
+    assert doc["stack_config"]["safety"] and doc["stack_config"]["mec"]
+    assert len(doc["provenance"]["git"]["commit"]) == 40 and doc["provenance"]["packages"]["torch"]
     for row in doc["latency_ms"].values():
         assert 0 < row["p50"] <= row["p99"]
         assert 0 < row["policy_p50"] and 0 < row["safety_p50"]

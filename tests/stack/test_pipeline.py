@@ -263,6 +263,23 @@ def test_run_episode_metrics_on_both_worlds():
     assert with_mec.tracking_error < 0.6 * without.tracking_error
 
 
+def test_run_episode_reports_the_first_tick_the_team_stands_on_its_targets():
+    from sim.metrics import episode_outcome
+
+    sc = make_scenario("paper-3")
+    off = StackConfig(safety=False, mec=False)
+    fleet, states = BatchedFleet(sc), []
+    step = fleet.step
+    fleet.step = lambda: states.append(step()) or states[-1]
+    m = run_episode(fleet, ControlStack(sc, ScriptedController(sc), off), seed=0)
+    within = [bool(episode_outcome(torch.from_numpy(s.positions)[None], torch.from_numpy(s.targets)[None],
+                                   torch.tensor([False]), sc.target_tolerance).success[0]) for s in states]
+    assert m.success and not within[0]
+    assert m.arrival_step == within.index(True) + 1 < sc.dynamics.episode_steps
+    idle = run_episode(BatchedFleet(sc), ControlStack(sc, lambda s: np.zeros((3, 2)), off), seed=0)
+    assert idle.arrival_step is None and not idle.success
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
 def test_numpy_tokens_equal_sim_observations_tokens(n):
     from sim.observations import tokens
