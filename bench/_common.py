@@ -141,14 +141,15 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], file=None
         print(line(row), file=file)
 
 
-def print_json(document: dict[str, Any]) -> None:
+def print_json(document: dict[str, Any], *, provenance: bool = True) -> None:
     """The result document on stdout, one line, nothing else; it gains a ``provenance`` entry
     (:func:`sim.provenance.provenance`: git commit, package versions, threads, host, command line)
-    unless it holds one, so every saved result says what code and packages made it."""
-    if "provenance" not in document:
-        from sim.provenance import provenance
+    unless it holds one, so every saved result says what code and packages made it.
+    ``provenance=False`` for a document whose top-level keys are data that tools iterate over."""
+    if provenance and "provenance" not in document:
+        from sim.provenance import provenance as record
 
-        document = {**document, "provenance": provenance()}
+        document = {**document, "provenance": record()}
     print(json.dumps(document), flush=True)
 
 
