@@ -5,7 +5,11 @@
   stages off.
 * ``--world pymunk``: :func:`stack.pipeline.run_episode` with a :class:`stack.pipeline.ControlStack`
   (safety filter and MEC on by default) in :class:`sim.pymunk_world.PymunkWorld` with
-  ``--model-error``.
+  ``--model-error``. These worlds (and the scripted controller in the batched one) also report
+  ``arrival_rate``, the fraction of episodes in which every robot stood within tolerance of its
+  target at some tick, and ``arrival_tick``, the mean first such tick over those episodes
+  (:attr:`stack.pipeline.EpisodeMetrics.arrival_step`; None when none arrived): how much a
+  layer slows a team down, which the final success does not show.
 * ``--world zenoh``: the same stack and episodes driving a fleet over Zenoh
   (:class:`deploy.zenoh_fleet.ZenohFleet`: a real one, or ``formation fleet-sim --episodes``),
   judged on the states it reports; the episodes and seeds are the fleet's own. A fleet publishes
@@ -208,7 +212,10 @@ def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> dict:
     def mean(name: str) -> float:
         return float(np.mean([getattr(r, name) for r in rows]))
 
+    arrivals = [r.arrival_step for r in rows if r.arrival_step is not None]
     return {"success_rate": mean("success"), "final_distance": mean("final_distance"),
+            "arrival_rate": len(arrivals) / len(rows),
+            "arrival_tick": float(np.mean(arrivals)) if arrivals else None,
             "collision_rate": mean("collided"), "robot_collisions": mean("robot_collisions"),
             "object_collisions": mean("object_collisions"), "wall_collisions": mean("wall_collisions"),
             "interventions_per_episode": mean("interventions"), "infeasible_per_episode": mean("infeasible"),

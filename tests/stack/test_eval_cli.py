@@ -50,7 +50,26 @@ def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
     assert data["collision_rate"] == 0.0
     assert data["tick_p50_ms"] > 0
     assert data["command_delay_ms"] == 150.0                 # safe for 150 ms by default
+    assert (data["arrival_rate"], data["arrival_tick"]) == (0.0, None)    # 40 ticks: not there yet
     assert "success_rate" in capsys.readouterr().out
+
+
+def test_eval_reports_when_the_team_first_stands_on_its_targets(tmp_path):
+    """The scripted controller on paper-3, bare, batched world: every episode arrives, at the
+    mean of run_episode's arrival ticks for the same seeds."""
+    from controllers.scripted import ScriptedController
+    from sim.fleet import BatchedFleet
+    from sim.scenario import make_scenario
+    from stack.pipeline import ControlStack, StackConfig, run_episode
+
+    out = tmp_path / "eval.json"
+    assert main(["eval", "--policy", "scripted", "--episodes", "2", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    sc = make_scenario("paper-3")
+    ticks = [run_episode(BatchedFleet(sc), ControlStack(sc, ScriptedController(sc), StackConfig(safety=False, mec=False)),
+                         seed).arrival_step for seed in (0, 1)]
+    assert data["arrival_rate"] == 1.0 and data["arrival_tick"] == pytest.approx(sum(ticks) / 2)
+    assert 1 < data["arrival_tick"] < sc.dynamics.episode_steps
 
 
 def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
