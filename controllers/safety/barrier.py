@@ -292,8 +292,7 @@ def barrier_terms(dist: SceneDistances, vel: np.ndarray, dynamics: Dynamics,
         if prediction.fixed.any():
             free = row_sums((~prediction.fixed).astype(np.float64), dist.pair_i, dist.pair_j)
             dropped = free == 0
-            pair = np.arange(len(s)) < len(sdot_pair)
-            alpha = np.where(pair, config.braking_share * a_box * np.maximum(free, 1.0), alpha_static)
+            alpha[:len(sdot_pair)] = config.braking_share * a_box * np.maximum(free[:len(sdot_pair)], 1.0)
 
     phi, dphi = _phi(s - config.margin, alpha, config.sqrt_floor)
     h = phi + sdot

@@ -128,8 +128,8 @@ class FusedScene:
         self.pair_gather_t = np.ascontiguousarray(gather[:p].T)              # (N, P)
         self.pair_both_t = np.abs(self.pair_gather_t)                        # (N, P): e_i + e_j
         self.gather_abs_t = np.abs(self.gather_t)                            # (N, K): sums per row
-        self.share_alpha = config.braking_share * octagon_accel(dynamics, config)
         a_box = octagon_accel(dynamics, config)
+        self.share_alpha = config.braking_share * a_box
         alpha = np.full(k, config.static_braking_share * a_box)
         alpha[:p] = 2.0 * config.braking_share * a_box
         self.alpha = alpha

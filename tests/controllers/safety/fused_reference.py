@@ -113,7 +113,8 @@ class NumpyFusedScene(FusedScene):
             if prediction.fixed.any():
                 free = (~prediction.fixed).astype(np.float64) @ self.gather_abs_t     # (K,) 0, 1, 2
                 dropped = free == 0
-                alpha = np.where(np.arange(self.k) < p, self.share_alpha * np.maximum(free, 1.0), self.alpha)
+                alpha = self.alpha.copy()
+                alpha[:p] = self.share_alpha * np.maximum(free[:p], 1.0)
                 two_alpha = 2.0 * alpha
         # phi with its linear floor: s_c = max(s, m + z_f), phi = sqrt(2 alpha (s_c - m)) + phi' (s - s_c)
         clamped = np.maximum(dist, cfg.margin + cfg.sqrt_floor)
