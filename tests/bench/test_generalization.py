@@ -107,7 +107,12 @@ def test_finetuning_starts_from_the_generalist_and_reports_its_zero_shot_success
     train(config, folder)
     spec = TrialSpec("generalist", 0, config.to_dict(), str(folder))
     args = types.SimpleNamespace(finetune_budget=4, cpus=1)
-    doc = finetune(args, [spec], tmp_path)
+    try:
+        doc = finetune(args, [spec], tmp_path)
+    finally:    # the local Ray it started in this process: left up, it runs beside every later test
+        import ray
+
+        ray.shutdown()
     assert doc["layout"] == "l-shape-4" and doc["robots"] == 4 and doc["budget"] == 4
     (row,) = doc["runs"]
     run = tmp_path / "finetune" / "seed-0"
