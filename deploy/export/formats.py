@@ -187,9 +187,14 @@ class OnnxFormat:
 
     @staticmethod
     def write(contract: PolicyContract, path: Path, meta: dict[str, Any], fixed_n: int | None) -> None:
+        OnnxFormat.write_signed(onnx_model(contract, fixed_n), path, meta)
+
+    @staticmethod
+    def write_signed(proto, path: Path, meta: dict[str, Any]) -> None:
+        """Write the ONNX ``proto`` to ``path`` with ``meta`` as its only metadata, signed: the
+        digest field holds the sha256 of the file with a placeholder in its place."""
         import onnx
 
-        proto = onnx_model(contract, fixed_n)
         del proto.metadata_props[:]
         entry = proto.metadata_props.add()
         entry.key, entry.value = META_KEY, onnx_meta_json(meta | {HASH_FIELD: PLACEHOLDER})
