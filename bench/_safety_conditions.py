@@ -17,7 +17,9 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
   given): success and contact episodes with the default stack and bare, and how soon the team
   first stands on its targets (``arrival_scripted``/``arrival_policy``:
-  :func:`arrival_summary`): what a filter that keeps robots safe by slowing them costs;
+  :func:`arrival_summary`): what a filter that keeps robots safe by slowing them costs; and the
+  episodes only one of the two won (``success_scripted_pairs``/``success_policy_pairs``:
+  :func:`success_pairs`, with the sign test of that split);
 * the MEC's tracking error [mm]: the scripted commands (``|a| <= 0.6``, within a 0.7-gain
   robot's reach) recorded on the nominal model, replayed open loop through the condition's world
   with the MEC on and off (filter off), against the nominal trajectory under the same delay (the
@@ -28,6 +30,7 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import torch
@@ -169,6 +172,18 @@ def arrival_summary(rows: list[dict]) -> dict:
             "arrived_bare": sum(r["arrival_off"] is not None for r in rows)}
 
 
+def success_pairs(rows: list[dict]) -> dict:
+    """Success paired episode by episode (the same seed and model error): how many episodes only
+    the default stack won (``stack_only``), only bare won (``bare_only``), and the two-sided sign
+    test's p-value of that split (exact binomial, p = 1/2 under "neither layer differs"):
+    whether a gap between the success rates is more than the draw of seeds."""
+    stack_only = sum(bool(r["success_on"] and not r["success_off"]) for r in rows)
+    bare_only = sum(bool(r["success_off"] and not r["success_on"]) for r in rows)
+    n, k = stack_only + bare_only, min(stack_only, bare_only)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n if n else 1.0
+    return {"stack_only": stack_only, "bare_only": bare_only, "sign_test_p": round(min(1.0, 2 * tail), 4)}
+
+
 def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: int,
                    mec_episodes: int, workers: int, seed: int, policy: str | None) -> dict:
     """The ``conditions`` document: one entry per condition (module docstring)."""
@@ -193,6 +208,7 @@ def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: i
             entry[f"collisions_{tag}"] = sum(r["collided_on"] for r in rows)
             entry[f"collisions_{tag}_bare"] = sum(r["collided_off"] for r in rows)
             entry[f"arrival_{tag}"] = arrival_summary(rows)
+            entry[f"success_{tag}_pairs"] = success_pairs(rows)
         entry["tracking_error_mm"] = tracking_error_mm(nm, mec_episodes, seed)
         doc[nm] = entry
     return doc

@@ -380,9 +380,10 @@ def _print_tables(doc: dict) -> None:
                      for name, c in doc["conditions"].items()])
         if any("success_policy" in c for c in doc["conditions"].values()):
             print()
-            print_table(["condition", "policy success, filter+MEC", "bare", "policy contact", "bare",
-                         "arrival tick", "bare", "paired episodes"],
+            print_table(["condition", "policy success, filter+MEC", "bare", "won by stack only", "bare only",
+                         "sign test p", "policy contact", "bare", "arrival tick", "bare", "paired episodes"],
                         [[name, f"{c['success_policy']:.3f}", f"{c['success_policy_bare']:.3f}",
+                          *(c["success_policy_pairs"][k] for k in ("stack_only", "bare_only", "sign_test_p")),
                           c["collisions_policy"], c["collisions_policy_bare"],
                           *(_tick(c["arrival_policy"][k]) for k in ("mean_step", "mean_step_bare")),
                           c["arrival_policy"]["paired_episodes"]]

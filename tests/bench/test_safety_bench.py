@@ -38,6 +38,10 @@ def test_safety_bench_json_shape():
         if arrival["paired_episodes"]:
             assert 1 <= arrival["mean_step"] <= 128 and 1 <= arrival["mean_step_bare"] <= 128
     assert cond["delay2"]["arrival_scripted"]["paired_episodes"] == 1
+    for entry in cond.values():          # the split agrees with the two success rates
+        pairs = entry["success_scripted_pairs"]
+        gap = (entry["success_scripted"] - entry["success_scripted_bare"]) * entry["scripted_episodes"]
+        assert round(gap) == pairs["stack_only"] - pairs["bare_only"]
     assert doc["stack_config"]["latency"]["command_delay_s"] == 0.15    # what "filter + MEC" ran
     assert doc["stack_config"]["safety"] and doc["stack_config"]["mec"]
     assert len(doc["provenance"]["git"]["commit"]) == 40 and doc["provenance"]["packages"]["torch"]
@@ -62,3 +66,19 @@ def test_safety_bench_rejects_a_missing_policy():
     out = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--policy", "/no/such.pt"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "does not exist" in out.stderr
+
+
+def test_success_pairs_count_the_split_episodes_and_its_sign_test():
+    sys.path.insert(0, str(REPO / "bench"))
+    from _safety_conditions import success_pairs
+
+    def rows(stack_only: int, bare_only: int, both: int) -> list[dict]:
+        return ([{"success_on": True, "success_off": False}] * stack_only
+                + [{"success_on": False, "success_off": True}] * bare_only
+                + [{"success_on": True, "success_off": True}] * both)
+
+    # 1 against 13: p = 2 (C(14, 0) + C(14, 1)) / 2^14 = 30 / 16384
+    assert success_pairs(rows(1, 13, 5)) == {"stack_only": 1, "bare_only": 13, "sign_test_p": 0.0018}
+    assert success_pairs(rows(0, 5, 0))["sign_test_p"] == 0.0625          # 2 / 2^5
+    assert success_pairs(rows(3, 3, 2))["sign_test_p"] == 1.0
+    assert success_pairs(rows(0, 0, 4)) == {"stack_only": 0, "bare_only": 0, "sign_test_p": 1.0}
