@@ -11,8 +11,8 @@ brakes it after two ticks); gain 0.7 with two ticks of delay; and the randomised
 gain/lag/friction/disturbance model error of part (a). Per condition, on the same seeds:
 
 * ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
-  starts inside ``h >= 0``), once with the default stack (filter + MEC, ``StackConfig()``) and
-  once bare (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
+  starts inside ``h >= 0``), once with the stack (filter + MEC: ``StackConfig()``, or its latency
+  bound narrowed by ``--command-delay-ms`` as a user who knows their link would) and once bare (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
   ``collisions_filter_off``;
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
   given): success and contact episodes with the default stack and bare, and how soon the team
@@ -88,12 +88,12 @@ def _network(path: str | None):
     return _NETWORKS[path]
 
 
-def adversarial_episode(task: tuple[str, int, int]) -> dict:
-    """One adversarial seed of a condition, default stack and bare: did each collide?"""
-    name, seed, steps = task
+def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
+    """One adversarial seed of a condition, the stack (filter + MEC) and bare: did each collide?"""
+    name, seed, steps, stack_config = task
     torch.set_num_threads(1)
     out = {"condition": name, "seed": seed}
-    for key, config in (("on", StackConfig()), ("off", BARE)):
+    for key, config in (("on", stack_config), ("off", BARE)):
         rng = np.random.default_rng(seed)
         n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
         sc = transport_scenario(n)
@@ -106,13 +106,13 @@ def adversarial_episode(task: tuple[str, int, int]) -> dict:
     return out
 
 
-def task_episode(task: tuple[str, int, str | None]) -> dict:
-    """One paper-3/4/5 episode of the scripted controller (or a policy), default stack and bare."""
-    name, seed, policy = task
+def task_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
+    """One paper-3/4/5 episode of the scripted controller (or a policy), the stack and bare."""
+    name, seed, policy, stack_config = task
     torch.set_num_threads(1)
     sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
     out = {"condition": name, "seed": seed, "policy": policy or "scripted"}
-    for key, config in (("on", StackConfig()), ("off", BARE)):
+    for key, config in (("on", stack_config), ("off", BARE)):
         rng = np.random.default_rng(seed)
         world = PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps))
         source = _network(policy) if policy is not None else ScriptedController(sc)
@@ -185,13 +185,16 @@ def success_pairs(rows: list[dict]) -> dict:
 
 
 def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: int,
-                   mec_episodes: int, workers: int, seed: int, policy: str | None) -> dict:
-    """The ``conditions`` document: one entry per condition (module docstring)."""
-    adversarial = map_episodes(adversarial_episode, [(nm, seed + k, steps) for nm in names for k in range(episodes)],
-                       workers, "conditions: adversarial")
+                   mec_episodes: int, workers: int, seed: int, policy: str | None,
+                   stack: StackConfig | None = None) -> dict:
+    """The ``conditions`` document: one entry per condition (module docstring); ``stack`` is what
+    the "filter + MEC" columns run (default ``StackConfig()``)."""
+    stack = stack or StackConfig()
+    adversarial = map_episodes(adversarial_episode, [(nm, seed + k, steps, stack) for nm in names
+                                                     for k in range(episodes)], workers, "conditions: adversarial")
     sources = [None] + ([policy] if policy is not None else [])
-    tasks = map_episodes(task_episode, [(nm, seed + k, src) for nm in names for k in range(task_episodes)
-                                for src in sources], workers, "conditions: scripted/policy")
+    tasks = map_episodes(task_episode, [(nm, seed + k, src, stack) for nm in names for k in range(task_episodes)
+                                        for src in sources], workers, "conditions: scripted/policy")
     doc = {}
     for nm in names:
         adv = [r for r in adversarial if r["condition"] == nm]

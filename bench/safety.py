@@ -40,8 +40,10 @@ Output: a table, or with ``--json`` one document
 "latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}, "npz": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, "arrival_scripted": {...}, ...}, ...},
-"stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the default
-``StackConfig()`` every "filter + MEC" column ran, resolved (filter, latency and MEC settings).
+"stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the ``StackConfig`` the
+"filter + MEC" columns of (d) ran, resolved (filter, latency and MEC settings): the default,
+which covers 150 ms of command delay, unless ``--command-delay-ms`` narrows its latency bound as a
+user who knows their link would (``formation eval --command-delay-ms``); (a)-(c) run the default.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
 from sim.pymunk_world import ModelError, PymunkWorld  # noqa: E402
 from sim.scenario import make_scenario, transport_scenario  # noqa: E402
+from stack.commands.latency_args import add_command_delay_arg, latency_config  # noqa: E402
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode  # noqa: E402
 
 MEC_ERROR = ModelError(gain=0.7, lag_tau=0.05, floor_friction=0.1)
@@ -305,6 +308,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="adversarial episodes per condition for (d) (300)")
     parser.add_argument("--task-episodes", type=positive_int, default=30,
                         help="scripted (and --policy) paper-3/4/5 episodes per condition for (d) (30)")
+    add_command_delay_arg(parser)
     parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions"], default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
@@ -322,6 +326,11 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as exc:
             print(f"error: --policy {args.policy}: {exc}", file=sys.stderr)
             return 2
+    try:
+        stack_config = StackConfig(latency=latency_config(args))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     threads = set_threads(args.threads)
     start = time.perf_counter()
     doc: dict = {}
@@ -341,9 +350,9 @@ def main(argv: list[str] | None = None) -> int:
         progress(f"(d) conditions {args.conditions}, {args.condition_episodes} adversarial episodes each")
         doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.steps,
                                            args.task_episodes, args.mec_episodes, args.workers,
-                                           args.seed, args.policy)
+                                           args.seed, args.policy, stack_config)
     doc.update(threads=threads, wall_s=time.perf_counter() - start,
-               stack_config=dataclasses.asdict(StackConfig()))
+               stack_config=dataclasses.asdict(stack_config))
     if args.json:
         print_json(doc)
     else:

@@ -62,6 +62,20 @@ def test_safety_bench_rejects_an_unknown_condition():
     assert out.returncode == 2 and "unknown condition" in out.stderr and "delay_jitter" in out.stderr
 
 
+def test_safety_bench_narrows_the_latency_bound_of_the_stack_columns_as_asked():
+    out = subprocess.run(
+        [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--only", "conditions", "--conditions", "clean",
+         "--condition-episodes", "1", "--task-episodes", "1", "--mec-episodes", "1", "--steps", "5",
+         "--workers", "1", "--command-delay-ms", "50"],
+        cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
+    doc = json.loads(out.stdout)
+    assert doc["stack_config"]["latency"]["command_delay_s"] == 0.05
+    assert doc["conditions"]["clean"]["episodes"] == 1
+    bad = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--command-delay-ms", "-5"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--command-delay-ms" in bad.stderr
+
+
 def test_safety_bench_rejects_a_missing_policy():
     out = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--policy", "/no/such.pt"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
