@@ -1,8 +1,11 @@
-"""Where a result came from: git commit, package versions, torch threads, host (one helper).
+"""Where a result came from: git commit, package versions, torch threads, host, CPU (one helper).
 
 Every training run writes it to ``run.json`` when it starts and into ``result.json`` when it
 ends; the demo's ``metrics.json`` carries it too. A commit is recorded when the code runs from a
-git checkout (``dirty``: uncommitted changes to tracked files), else None.
+git checkout (``dirty``: uncommitted changes to tracked files), else None. The CPU is recorded
+because the same command runs at different speeds, and trains to different weights, on different
+processors: torch picks its kernels by instruction set (``capability``: AVX2, AVX512, ...) and
+their float sums round differently, so a seed repeats a run exactly only on the same kind of CPU.
 """
 
 from __future__ import annotations
@@ -44,14 +47,32 @@ def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str | None]
     return versions
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> dict[str, Any]:
+    """``{"model_name", "family", "model", "stepping"}`` of the first processor in ``cpuinfo``
+    (Linux); ``model_name`` from :func:`platform.processor` and None for the rest elsewhere."""
+    fields = {"model name": "model_name", "cpu family": "family", "model": "model", "stepping": "stepping"}
+    out: dict[str, Any] = dict.fromkeys(fields.values())
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return {**out, "model_name": platform.processor() or None}
+    for line in text.split("\n\n", 1)[0].splitlines():
+        key, _, value = (part.strip() for part in line.partition(":"))
+        if key in fields:
+            out[fields[key]] = value if key == "model name" else int(value) if value.isdigit() else value
+    return out
+
+
 def provenance() -> dict[str, Any]:
-    """The record: git, package versions, Python, torch threads, host, CPUs, command line, time."""
+    """The record: git, package versions, Python, torch threads, host, CPUs (count, model and the
+    instruction set torch's kernels use), command line, time."""
     import torch
 
     return {"git": git_commit(), "packages": package_versions(), "python": platform.python_version(),
             "torch_threads": torch.get_num_threads(), "host": platform.node(),
-            "machine": platform.machine(), "cpus": os.cpu_count(), "argv": list(sys.argv),
-            "time_unix": time.time()}
+            "machine": platform.machine(), "cpus": os.cpu_count(),
+            "cpu": {**cpu_model(), "capability": torch.backends.cpu.get_cpu_capability()},
+            "argv": list(sys.argv), "time_unix": time.time()}
 
 
-__all__ = ["git_commit", "package_versions", "provenance"]
+__all__ = ["cpu_model", "git_commit", "package_versions", "provenance"]
