@@ -153,6 +153,7 @@ class FleetSimConfig:
             raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
         if not 0.0 <= self.drop_commands < 1.0:
             raise ValueError(f"drop_commands must be in [0, 1), got {self.drop_commands!r}")
+        self.model_error.check_team(self.scenario)
         names = robot_names(self.scenario.num_robots)
         for tick, robot, kind in self.events:
             if robot not in names or kind not in ("leave", "join") or tick < 0:

@@ -178,6 +178,13 @@ class ModelError:
         object.__setattr__(self, "disturbance",
                            (number("disturbance", dist[0]), number("disturbance", dist[1])))
 
+    def check_team(self, scenario: Scenario) -> None:
+        """ValueError unless the fields that name a robot (``freeze``) name one of ``scenario``'s."""
+        n = scenario.num_robots
+        if self.freeze is not None and self.freeze[0] >= n:
+            raise ValueError(f"ModelError.freeze (--model-error freeze=ROBOT:TICK) names robot row "
+                             f"{self.freeze[0]}, but {scenario.name} has {n} robots: pick a row in 0..{n - 1}")
+
 
 @dataclass(frozen=True)
 class Contacts:
@@ -236,6 +243,7 @@ class PymunkWorld:
             raise ValueError(f"contact_friction must be >= 0, got {contact_friction!r}")
         if not (math.isfinite(contact_elasticity) and 0 <= contact_elasticity <= 1):
             raise ValueError(f"contact_elasticity must be in [0, 1], got {contact_elasticity!r}")
+        model_error.check_team(scenario)
         self.scenario = scenario
         self.model_error = model_error
         self.substeps = substeps

@@ -55,3 +55,10 @@ def test_a_real_time_run_without_a_tick_limit_keeps_a_bounded_trace():
     assert len(endless.trace) == TRACE_TICKS and endless.trace[0]["tick"] == 5
     bounded = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=None))
     assert bounded.trace.maxlen is None              # lock-step (and --ticks) runs keep every tick
+
+
+def test_fleet_sim_refuses_to_freeze_a_robot_the_team_does_not_have(capsys):
+    from stack.cli import main
+
+    assert main(["fleet-sim", "--fleet", "fz", "--scenario", "paper-4", "--model-error", "freeze=4:20"]) == 2
+    assert "paper-4 has 4 robots: pick a row in 0..3" in capsys.readouterr().err

@@ -208,6 +208,12 @@ def test_each_state_counts_the_commands_sent_after_the_one_the_robot_acted_on():
 
 
 
+def test_a_frozen_robot_must_be_one_of_the_team():
+    with pytest.raises(ValueError, match=r"freeze.*robot row 3, but paper-3 has 3 robots: pick a row in 0\.\.2"):
+        PymunkWorld(SC3, ModelError(freeze=(3, 10)))
+    assert PymunkWorld(SC3, ModelError(freeze=(2, 10))).reset(seed=0).positions.shape == (3, 2)
+
+
 def test_an_adaptive_playout_buffer_fixes_a_jittering_delay_at_its_maximum_and_adds_none():
     """adaptive_playout: once robot i has seen a 3-tick delay it acts on every command 3 ticks
     after the tick it answers (the count is 3 for good); on a constant 2-tick link it changes

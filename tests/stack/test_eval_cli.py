@@ -102,6 +102,8 @@ def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
     (["eval", "--policy", "scripted", "--episodes", "0"], "--episodes"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--model-error", "gain"], "FIELD=VALUE"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--command-delay-ms", "-5"], "--command-delay-ms"),
+    (["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--model-error", "freeze=4:20"],
+     "paper-4 has 4 robots: pick a row in 0..3"),
 ])
 def test_bad_arguments_exit_2_with_a_message(argv, message, capsys):
     assert main(argv) == 2
