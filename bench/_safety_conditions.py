@@ -12,7 +12,8 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
 
 * ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
   starts inside ``h >= 0``), once with the stack (filter + MEC: ``StackConfig()``, or its latency
-  bound narrowed by ``--command-delay-ms`` as a user who knows their link would) and once bare (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
+  bound narrowed by ``--command-delay-ms`` as a user who knows their link would) and once bare
+  (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
   ``collisions_filter_off``;
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
   given): success and contact episodes with the default stack and bare, and how soon the team
