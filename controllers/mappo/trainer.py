@@ -45,6 +45,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -103,9 +104,12 @@ class TrainResult:
         return asdict(self)
 
 
-def train(config: MAPPOConfig, run_dir: str | Path, *, resume: bool = False) -> TrainResult:
-    """Train (or, with ``resume``, continue the run in ``run_dir``) and return the summary."""
-    return MAPPOTrainer(config, run_dir, resume=resume).run()
+def train(config: MAPPOConfig, run_dir: str | Path, *, resume: bool = False,
+          on_iteration: Callable[[dict], None] | None = None) -> TrainResult:
+    """Train (or, with ``resume``, continue the run in ``run_dir``) and return the summary;
+    ``on_iteration`` (if given) gets each iteration's log row once it is logged and any checkpoint
+    due is written (a sweep reports there, which is where its scheduler can stop the run)."""
+    return MAPPOTrainer(config, run_dir, resume=resume).run(on_iteration)
 
 
 class MAPPOTrainer:
@@ -163,7 +167,7 @@ class MAPPOTrainer:
         write_json_atomic(self.run_dir / "run.json", self.provenance)
 
     # ------------------------------------------------------------------ main loop
-    def run(self) -> TrainResult:
+    def run(self, on_iteration: Callable[[dict], None] | None = None) -> TrainResult:
         cfg = self.config
         bar = tqdm(total=cfg.total_episodes, initial=self.episodes, unit="ep", disable=not cfg.progress,
                    dynamic_ncols=True, desc=f"MAPPO {cfg.scenario_name}"
@@ -185,6 +189,8 @@ class MAPPOTrainer:
                     shown = {"ret": _fmt(row["return_mean"]), "succ": _fmt(row["success_rate"])}
                 bar.set_postfix(**shown, eval=_fmt(self.last_eval["success_rate"] if self.last_eval else None),
                                 refresh=False)
+                if on_iteration is not None:
+                    on_iteration(row)
         finally:
             bar.close()
             if self.scalars is not None:

@@ -141,10 +141,11 @@ def test_a_ray_sweep_writes_run_folders_and_a_table_and_reuses_finished_trials(t
 def test_ctrl_c_stops_a_sweep_that_resume_then_finishes_from_its_checkpoints(tmp_path):
     """One CPU, two seeds: Ctrl-C comes while seed 0 runs and seed 1 has not started (a pending
     trial has no config in Tune's results: reading it crashed the stop). The moment is set by
-    seed 0's first checkpoint, not by the clock; seed 0 must still be running when the SIGINT
-    lands, so it trains with MAPPO's full 10 update epochs (with TINY's one it finished first
-    beside another test on a 2-core machine), and its first checkpoint comes after 2 of its 16
-    iterations."""
+    seed 0's first checkpoint (after 2 of its 16 iterations), not by the clock, and Tune stops
+    the trial at its next iteration's report. Before the trials reported every iteration, Tune
+    let a running trial train on for its 10 s grace period, and on a fast machine seed 0
+    finished in it; the 10 update epochs keep its remaining iterations longer than the stop
+    takes (with TINY's one it finished first beside another test on a 2-core machine)."""
     proc = _sweep(tmp_path, "--episodes", "32", "--seeds", "2",
                   config=TINY | {"checkpoint_interval": 2, "update_epochs": 10}, cpus=1)
     seed0 = tmp_path / "trials" / "000" / "seed-0"

@@ -69,6 +69,20 @@ def test_a_run_writes_config_logs_checkpoint_and_result(tmp_path):
         assert key in data
 
 
+def test_on_iteration_sees_every_logged_row_and_an_exception_in_it_stops_the_run_like_ctrl_c(tmp_path):
+    seen = []
+    train(tiny(), tmp_path / "whole", on_iteration=seen.append)
+    assert seen == rows(tmp_path / "whole" / "train.jsonl", drop=())
+
+    def stop_after_the_fifth(row):
+        if row["iteration"] == 5:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        train(tiny(), tmp_path / "stopped", on_iteration=stop_after_the_fifth)
+    assert not (tmp_path / "stopped" / "result.json").exists()
+    assert load_checkpoint(tmp_path / "stopped" / "checkpoint.pt")["counters"]["iteration"] == 5
+
+
 @pytest.mark.parametrize("ema", [0.0, 0.5])
 def test_resume_continues_the_same_curve(tmp_path, ema):
     whole = tmp_path / "whole"
