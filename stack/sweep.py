@@ -12,11 +12,10 @@ Resuming: Tune's experiment state lives in ``<out>/ray``; a sweep started again 
 folder calls ``Tuner.restore`` (unfinished and errored trials run again). Inside a trial the run
 folder decides: a finished run (converged, or its budget spent) is only summarised, an
 interrupted one continues from its last checkpoint (``train(..., resume=True)``), so Ctrl-C
-or a lost worker costs at most ``checkpoint_interval`` episodes of one run. An SDPA-/MLP-MAPPO
-trial reports to Tune every iteration, where Tune stops it on Ctrl-C: the sweep exits in
-seconds (2.8 s after the SIGINT in one measured case, against 12.3 s when trials reported only at
-the end and trained on through Tune's 10 s grace period); a baseline trial (MADDPG, GASIL, DDQ)
-reports at its end only and still takes that grace period.
+or a lost worker costs at most ``checkpoint_interval`` episodes of one run. A trial reports to
+Tune every iteration, where Tune stops it on Ctrl-C: the sweep exits in seconds (2.8 s after
+the SIGINT in one measured case, against 12.3 s when trials reported only at the end and trained
+on through Tune's 10 s grace period).
 
 Aggregation (:func:`aggregate`): per group, over its seeds, episodes to convergence (the budget
 for a seed that never converged) as median, min-max and a 95 % bootstrap confidence interval
@@ -170,8 +169,7 @@ def summarize(folder: Path, budget: int) -> dict:
 
 def train_trial(spec: TrialSpec, on_iteration: Callable[[dict], None] | None = None) -> dict:
     """Run (or continue, or only summarise) one trial's folder; its :func:`summarize`.
-    ``on_iteration``: called with each SDPA-/MLP-MAPPO iteration's log row (the baselines
-    train without it)."""
+    ``on_iteration``: called with each iteration's log row (a baseline's: each collection's)."""
     import torch
 
     from controllers.mappo import train
@@ -182,20 +180,20 @@ def train_trial(spec: TrialSpec, on_iteration: Callable[[dict], None] | None = N
         resume = (folder / "checkpoint.pt").exists()
         baseline = _baseline(spec.fields)
         if baseline:
-            baseline[1](baseline[0].from_dict(spec.fields), folder, resume=resume)
+            baseline[1](baseline[0].from_dict(spec.fields), folder, resume=resume, on_iteration=on_iteration)
         else:
             train(MAPPOConfig.from_dict(spec.fields), folder, resume=resume, on_iteration=on_iteration)
     return summarize(folder, spec.budget)
 
 
 def _tune_trial(space: dict) -> None:
-    """One trial on Tune: a progress report every iteration (``{"iteration": k}``), where Tune
-    stops a trial it is asked to stop (Ctrl-C) at once, and the run's summary at the end (the
+    """One trial on Tune: a progress report every iteration (``{"running_episodes": n}``), where
+    Tune stops a trial it is asked to stop (Ctrl-C) at once, and the run's summary at the end (the
     only report with ``"episodes"``: :func:`run_trials` counts a trial finished by it)."""
     from ray import tune
 
     spec = TrialSpec(**space["trial"])
-    tune.report(train_trial(spec, lambda row: tune.report({"iteration": row["iteration"]})))
+    tune.report(train_trial(spec, lambda row: tune.report({"running_episodes": row["episodes"]})))
 
 
 def check_folders(trials: Sequence[TrialSpec]) -> None:

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -251,9 +252,10 @@ class DDQAgent:
         self.greedy.epsilon = float(state["epsilon"])
 
 
-def train_ddq(config: DDQConfig, run_dir: str | Path, *, resume: bool = False) -> BaselineResult:
+def train_ddq(config: DDQConfig, run_dir: str | Path, *, resume: bool = False,
+              on_iteration: Callable[[dict], None] | None = None) -> BaselineResult:
     """Train Deep Dyna-Q (or continue the run in ``run_dir``); returns the summary."""
-    return OffPolicyTrainer(config, DDQAgent, run_dir, resume=resume).run()
+    return OffPolicyTrainer(config, DDQAgent, run_dir, resume=resume).run(on_iteration)
 
 
 __all__ = ["NUM_ACTIONS", "DDQAgent", "DDQConfig", "EpsilonGreedy", "GreedyActor", "WorldModel", "action_table",

@@ -42,6 +42,7 @@ episode (a resumed run is not bit-identical to an uninterrupted one).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -258,9 +259,10 @@ class MADDPGAgent:
             self.gasil.load_state_dict(state["gasil"])
 
 
-def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = False) -> BaselineResult:
+def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = False,
+                 on_iteration: Callable[[dict], None] | None = None) -> BaselineResult:
     """Train MADDPG or GASIL-MADDPG (or continue the run in ``run_dir``); returns the summary."""
-    return OffPolicyTrainer(config, MADDPGAgent, run_dir, resume=resume).run()
+    return OffPolicyTrainer(config, MADDPGAgent, run_dir, resume=resume).run(on_iteration)
 
 
 __all__ = ["BoundedActor", "CentralCritic", "MADDPGAgent", "MADDPGConfig", "MADDPGConfigError", "MADDPGParts",

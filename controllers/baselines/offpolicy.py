@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Protocol
@@ -223,7 +224,9 @@ class OffPolicyTrainer:
             write_json_atomic(self.run_dir / "run.json", provenance())
 
     # ---------------------------------------------------------------- loop
-    def run(self) -> BaselineResult:
+    def run(self, on_iteration: Callable[[dict], None] | None = None) -> BaselineResult:
+        """Train until the budget or convergence; ``on_iteration`` (if given) gets each
+        collection's log row once it is logged and any checkpoint due is written."""
         cfg = self.config
         bar = tqdm(total=cfg.total_episodes, initial=self.episodes, desc=f"{cfg.algo} {cfg.scenario_name}",
                    unit="ep")
@@ -238,7 +241,7 @@ class OffPolicyTrainer:
                 self.agent.after_collection()
                 now = time.perf_counter()              # collection, updates and evaluations
                 self.wall_time_s, clock = self.wall_time_s + now - clock, now
-                self._log(data, finished, losses)
+                row = self._log(data, finished, losses)
                 bar.update(finished)
                 if evaluation_due(self.episodes, self.last_eval_episodes, cfg.eval_interval, cfg.num_envs):
                     self._evaluate()
@@ -247,6 +250,8 @@ class OffPolicyTrainer:
                     cfg.stop_at_convergence and self.tracker.converged_episode is not None)
                 if done or self.episodes - self.last_checkpoint_episodes >= CHECKPOINT_EVERY:
                     self._checkpoint()
+                if on_iteration is not None:
+                    on_iteration(row)
                 if done:
                     break
         except KeyboardInterrupt:
@@ -270,7 +275,7 @@ class OffPolicyTrainer:
             self.added_since_update -= cfg.samples_per_update
         return out
 
-    def _log(self, data: TensorDict, finished: int, losses: dict[str, float]) -> None:
+    def _log(self, data: TensorDict, finished: int, losses: dict[str, float]) -> dict:
         reward = float(data.get(("next", GROUP, "reward")).mean())
         success = data.get(("next", GROUP, "success"))[..., 0, 0]
         done = data.get(("next", "done"))[..., 0]
@@ -278,7 +283,9 @@ class OffPolicyTrainer:
                "reward_per_step": reward, "episodes_finished": finished,
                "success_rate": float(success[done].float().mean()) if finished else None}
         row |= {name: losses.get(name) for name in self.agent.loss_names}
-        self.train_log.append(row | self.agent.log_row() | {"buffer": len(self.buffer)})
+        row |= self.agent.log_row() | {"buffer": len(self.buffer)}
+        self.train_log.append(row)
+        return row
 
     def _evaluate(self) -> None:
         seed = 1_000_000 * (self.config.seed + 1) + 1_000 * self.eval_count

@@ -89,10 +89,12 @@ def test_q_updates_on_a_fixed_batch_learn_the_rewarded_action():
 def test_a_ddq_run_writes_its_folder_and_resumes(tmp_path):
     small = dict(num_envs=8, steps_per_collection=16, buffer_size=4096, batch_size=128, eval_interval=16,
                  eval_episodes=8)
-    first = train_ddq(DDQConfig(total_episodes=16, **small), tmp_path)
+    seen = []
+    first = train_ddq(DDQConfig(total_episodes=16, **small), tmp_path, on_iteration=seen.append)
     assert first.episodes == 16
     assert json.loads((tmp_path / "config.json").read_text())["algo"] == "ddq"
     rows = [json.loads(line) for line in (tmp_path / "train.jsonl").read_text().splitlines()]
+    assert [r["episodes"] for r in seen] == [r["episodes"] for r in rows] and seen[-1] == rows[-1]   # the sweep's hook
     assert rows[-1]["epsilon"] < 1.0 and rows[-1]["loss_q_planned"] is not None
     again = train_ddq(DDQConfig(total_episodes=32, **small), tmp_path, resume=True)
     assert again.episodes == 32
