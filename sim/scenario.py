@@ -360,6 +360,8 @@ def make_scenario(name: str) -> Scenario:
     if name == "crowd-16":
         return transport_scenario(16, name=name)
     if name.startswith("transport-") and name[10:].isdigit():
+        if not 1 <= int(name[10:]) <= MAX_ROBOTS:
+            raise ScenarioError(f"scenario {name!r}: transport-N takes N = 1..{MAX_ROBOTS} robots")
         return transport_scenario(int(name[10:]))
     raise ScenarioError(f"unknown scenario {name!r}; choose one of {sorted(PRESETS)}, transport-N "
                         f"(N = 1..{MAX_ROBOTS}) or a .json/.toml scenario file")

@@ -40,6 +40,13 @@ def test_any_robot_count_from_1_to_max(n):
     assert sc.num_robots == n
 
 
+@pytest.mark.parametrize("name", ["transport-0", f"transport-{MAX_ROBOTS + 1}"])
+def test_a_transport_name_out_of_range_names_the_scenario_and_the_range(name):
+    with pytest.raises(ScenarioError, match=rf"scenario '{name}': transport-N takes N = 1\.\.{MAX_ROBOTS} robots"):
+        make_scenario(name)
+    assert make_scenario(f"transport-{MAX_ROBOTS}").num_robots == MAX_ROBOTS
+
+
 def _base(**kw):
     sc = make_scenario("paper-3")
     fields = {f.name: getattr(sc, f.name) for f in dataclasses.fields(sc)}
