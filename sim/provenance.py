@@ -3,9 +3,9 @@
 Every training run writes it to ``run.json`` when it starts and into ``result.json`` when it
 ends; the demo's ``metrics.json`` carries it too. A commit is recorded when the code runs from a
 git checkout (``dirty``: uncommitted changes to tracked files), else None. The CPU is recorded
-because the same command runs at different speeds, and trains to different weights, on different
-processors: torch picks its kernels by instruction set (``capability``: AVX2, AVX512, ...) and
-their float sums round differently, so a seed repeats a run exactly only on the same kind of CPU.
+because the same command runs 2-3x faster or slower on the processors this project's machines
+change between, and torch picks its kernels by instruction set (``capability``: AVX2, AVX512,
+...): a timing, or a run that does not repeat, can be read against the processor it ran on.
 """
 
 from __future__ import annotations
