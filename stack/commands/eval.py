@@ -173,11 +173,10 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
         out["model_error"] = None         # the fleet's own
         out["command_delay_ms"] = args.command_delay_ms
         return out
-    try:
-        model_error.check_team(scenario)
+    try:             # the world checks the model error against the team (a frozen robot it has)
+        world = PymunkWorld(scenario, model_error, seed=args.seed)
     except ValueError as exc:
         raise EvalArgumentError(str(exc)) from None
-    world = PymunkWorld(scenario, model_error, seed=args.seed)
     out = _episodes(args, world, stack, safety=safety, mec=mec)
     out["model_error"] = dataclasses.asdict(model_error)
     out["command_delay_ms"] = args.command_delay_ms

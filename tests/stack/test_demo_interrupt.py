@@ -145,8 +145,8 @@ def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_pat
     assert list(json.loads((out / "stages.json").read_text())["stages"]) == ["train-3"]
 
     # The resume restarts this very child (stack.demo.stages OUT: train_stage on the same folder)
-    # beside train-5; run here, it must take up the interrupted run and finish it to its budget. That the demo's
-    # --resume then runs every later stage is the fleet test's part, from a folder like this one.
+    # beside train-5; run here, it must take up the interrupted run and finish it to its budget.
+    # That the demo's --resume then runs every later stage is the fleet test's part.
     interrupted = run_dir(out, "generalist")
     had_checkpoint = (interrupted / "checkpoint.pt").is_file()
     before = (interrupted / "train.jsonl").read_text().splitlines() if had_checkpoint else []
@@ -155,5 +155,7 @@ def test_sigint_in_train_5_stops_the_generalists_background_training_too(tmp_pat
     rows = (interrupted / "train.jsonl").read_text().splitlines()
     iterations = [json.loads(row)["iteration"] for row in rows]
     assert iterations == list(range(1, len(iterations) + 1))   # one curve
-    if had_checkpoint:                                          # continued, not started afresh
+    # continued, not started afresh: a fresh start would rewrite the first row's wall_time_s (rows
+    # after the checkpoint are dropped and run again, so only the first is compared)
+    if had_checkpoint:
         assert rows[0] == before[0]
