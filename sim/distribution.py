@@ -10,7 +10,11 @@ with ``distribution=``) draws from it every episode:
   ``"polygon"``: 5-8 vertices at random angles, at least ``pi / k`` apart, on the ellipse
   inscribed in the width x height box, so always convex), the direction of the formation change
   (:data:`DIRECTIONS`), the start jitter [m] and the spacing of the slots along each column [m]
-  (longer columns meet walls and queues that a few robots at the preset spacing never do).
+  (longer columns meet walls and queues that a few robots at the preset spacing never do), and
+  the size K of the slot pool that the team's starts and targets are drawn from (``slot_pool``:
+  n robots take n of the K start slots and, independently, n of the K target slots of the
+  K-robot layout, so three robots meet the outer slots, the walls and the second columns of a
+  ten-robot layout without ever training ten).
   Team sizes are the training run's
   ``team_sizes`` (one group each, so every update sees every size).
 * **Dynamics** (per environment, at each of its resets): the actuator's gain (one per
@@ -40,14 +44,14 @@ from typing import Any
 
 import numpy as np
 
-from sim.scenario import Scenario, ScenarioError, transport_scenario
+from sim.scenario import MAX_ROBOTS, Scenario, ScenarioError, transport_scenario
 
 DIRECTIONS = {"right_to_left": 0, "top_to_bottom": 90, "left_to_right": 180, "bottom_to_top": 270}
 """Direction of the formation change -> the angle [deg] the right-to-left layout is turned by,
 counter-clockwise: at 90 its start columns (right of the object, +x) come to lie above it (+y)."""
 SHAPES = ("box", "polygon")
 _LAYOUT_FIELDS = ("object_width", "object_height", "object_offset", "object_shapes", "directions", "start_jitter",
-                  "slot_spacing")
+                  "slot_spacing", "slot_pool")
 ATTEMPTS = 200
 MAX_DELAY_TICKS = 8
 
@@ -84,6 +88,9 @@ class ScenarioDistribution:
             (the preset's 0.125; at least 0.09). Start slots need two radii plus 2 sqrt(2) times the
             start jitter (0.122 m at the default 1.5 cm), so closer draws are drawn again: the
             range in effect starts there.
+        slot_pool: ``[lo, hi]`` integers: the layout is built for K ~ U{max(n, lo)..max(n, hi)}
+            robots and the team's n starts and n targets are drawn from its K slots without
+            replacement, each set on its own; ``[0, 0]`` (the default): K = n, every slot used.
         gain: ``[lo, hi]`` of an environment's actuator gain (achieved / commanded).
         gain_spread: each robot's gain is the environment's plus U(-spread, spread).
         lag_tau: ``[lo, hi]`` of the actuator lag time constant [s] (0: none).
@@ -97,6 +104,7 @@ class ScenarioDistribution:
     directions: tuple[str, ...] = ("right_to_left",)
     start_jitter: tuple[float, float] = (0.015, 0.015)
     slot_spacing: tuple[float, float] = (0.125, 0.125)
+    slot_pool: tuple[int, int] = (0, 0)
     gain: tuple[float, float] = (1.0, 1.0)
     gain_spread: float = 0.0
     lag_tau: tuple[float, float] = (0.0, 0.0)
@@ -117,6 +125,7 @@ class ScenarioDistribution:
                 continue
             object.__setattr__(self, name, _pair(name, value, lo, hi))
         object.__setattr__(self, "delay_ticks", _pair("delay_ticks", self.delay_ticks, 0, MAX_DELAY_TICKS, True))
+        object.__setattr__(self, "slot_pool", _pair("slot_pool", self.slot_pool, 0, MAX_ROBOTS, True))
         for name, allowed in (("object_shapes", SHAPES), ("directions", tuple(DIRECTIONS))):
             value = getattr(self, name)
             if isinstance(value, str) or not isinstance(value, list | tuple) or not value:
@@ -169,11 +178,17 @@ class ScenarioDistribution:
         spacing = float(rng.uniform(lo, hi)) if lo < hi else lo
         vertices = object_polygon(shape, centre + offset, (w, h), rng)
         angle = DIRECTIONS[direction]
-        canonical = transport_scenario(n, object_vertices=turn_points(vertices, -angle, centre),
+        pool = n if self.slot_pool == (0, 0) else int(rng.integers(max(n, self.slot_pool[0]),
+                                                                   max(n, self.slot_pool[1]) + 1))
+        canonical = transport_scenario(pool, object_vertices=turn_points(vertices, -angle, centre),
                                        start_jitter=jitter, spacing=spacing, dynamics=base.dynamics)
+        starts, targets = np.asarray(canonical.starts), np.asarray(canonical.targets)
+        if pool > n:
+            starts = starts[np.sort(rng.choice(pool, n, replace=False))]
+            targets = targets[np.sort(rng.choice(pool, n, replace=False))]
         return Scenario(
             name=f"{direction}-{shape}-{n}", num_robots=n,
-            start_slots=turn_points(canonical.starts, angle, centre), target_slots=turn_points(canonical.targets, angle, centre),
+            start_slots=turn_points(starts, angle, centre), target_slots=turn_points(targets, angle, centre),
             object_vertices=vertices, arena=base.arena, robot_radius=base.robot_radius,
             target_tolerance=base.target_tolerance, start_jitter=jitter, dynamics=base.dynamics)
 

@@ -124,6 +124,54 @@ def test_slot_spacing_varies_between_draws_and_refuses_overlapping_robots():
         ScenarioDistribution(slot_spacing=(0.05, 0.1))
 
 
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(1, 6), seed=st.integers(0, 2**32 - 1), direction=st.sampled_from(sorted(DIRECTIONS)))
+def test_slot_pool_draws_starts_and_targets_among_the_slots_of_a_larger_layout(n, seed, direction):
+    """With slot_pool [lo, hi] a team of n robots takes n distinct start slots and n distinct
+    target slots of the K-robot layout, K in max(n, lo)..max(n, hi): every slot of the draw is one
+    of transport-K's (turned the drawn way), for some K in the range."""
+    from sim.distribution import turn_points
+    from sim.scenario import transport_scenario
+
+    d = ScenarioDistribution(slot_pool=(3, 10), directions=(direction,))
+    sc = d.layout(BASE, n, np.random.default_rng(seed))
+    centre = np.asarray(BASE.arena) / 2
+
+    def slots_of(k):
+        full = transport_scenario(k, object_vertices=turn_points(BASE.polygon, -DIRECTIONS[direction], centre))
+        return (np.asarray(turn_points(full.starts, DIRECTIONS[direction], centre)),
+                np.asarray(turn_points(full.targets, DIRECTIONS[direction], centre)))
+
+    def within(points, slots):
+        return all(np.abs(slots - p).max(1).min() < 1e-9 for p in points)
+
+    fits = [k for k in range(max(n, 3), max(n, 10) + 1)
+            if within(sc.starts, slots_of(k)[0]) and within(sc.targets, slots_of(k)[1])]
+    assert fits, "the draw's slots are not those of any transport-K layout in the pool's range"
+    for slots in (sc.starts, sc.targets):
+        assert len({tuple(t) for t in np.round(slots, 9)}) == n      # without replacement
+
+
+def test_slot_pool_reaches_the_outer_and_second_column_slots_and_is_refused_out_of_range():
+    """Three robots drawn from a pool of up to ten reach target slots no 3-robot preset has: the
+    second column (x 0.125 further out) and the column's ends near the walls; an empty pool (the
+    default) is the preset itself; a pool past 21 robots or of non-integers is refused by name."""
+    d = ScenarioDistribution(slot_pool=(3, 10))
+    rng = np.random.default_rng(0)
+    targets = np.concatenate([d.layout(BASE, 3, rng).targets for _ in range(200)])
+    preset = BASE.targets
+    assert targets[:, 0].min() == pytest.approx(preset[:, 0].min() - 0.125)       # a second column
+    assert targets[:, 1].min() == pytest.approx(0.5 - 3 * 0.125)                   # 7 to a column
+    default = ScenarioDistribution()
+    assert not default.varies_layout and ScenarioDistribution(slot_pool=(3, 10)).varies_layout
+    same = ScenarioDistribution(slot_pool=(0, 0), slot_spacing=(0.14, 0.14)).layout(BASE, 3, np.random.default_rng(1))
+    assert np.diff(same.targets[:, 1]) == pytest.approx([0.14, 0.14])             # every slot used
+    with pytest.raises(DistributionError, match=r"slot_pool must satisfy 0 <= low <= high <= 21"):
+        ScenarioDistribution(slot_pool=(3, 22))
+    with pytest.raises(DistributionError, match=r"slot_pool must be a pair of integers"):
+        ScenarioDistribution(slot_pool=(3, 7.5))
+
+
 def test_a_single_value_other_than_the_presets_is_drawn_too():
     """object_width [0.3, 0.3] alone is a 0.3 m object in the training world, not the preset's
     0.2 (a varies_layout that looked for ranges only kept the preset); slot_spacing alike."""
