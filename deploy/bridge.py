@@ -326,9 +326,10 @@ class Bridge:
         for robot in self.registry.names:
             rs = states.get(robot)
             if robot not in alive:
-                self._heard_since.pop(robot, None)
+                was_alive = self._heard_since.pop(robot, None) is not None
                 if rs is not None:
-                    self._discard[robot] = _key(rs)
+                    if was_alive or not self._new_link(robot, rs):
+                        self._discard[robot] = _key(rs)
                     view.silent.append((rs, self._age_s(rs, now)))
                 continue
             since = max(self._heard_since.setdefault(robot, now), self._resume_ns)
@@ -348,6 +349,15 @@ class Bridge:
                 if rs is not None:
                     view.silent.append((rs, age))
         return view
+
+    def _new_link(self, robot: str, rs: ReceivedState) -> bool:
+        """Whether ``rs``, from a robot without a liveliness token, opens a new link: another epoch
+        than the state discarded when it went. A rejoining robot's first STATE can reach the bridge
+        before its token does (they travel apart); kept, it is answered as soon as the token comes
+        (discarded, the robot waited a tick for its next one, and a lock-stepped fleet stalled
+        for its whole timeout). A late STATE of the old link (same epoch) is discarded."""
+        gone = self._discard.get(robot)
+        return gone is None or rs.msg.epoch != gone[0]
 
     def _check_estop(self, view: _View) -> None:
         self._silence = view.silence

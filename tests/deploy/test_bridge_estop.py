@@ -17,7 +17,7 @@ from deploy.bridge import ESTOP_STALE_PICTURE, Bridge, BridgeConfig, row_flags
 from deploy.fleet_sim import FleetSim, FleetSimConfig, robot_names
 from deploy.network import TransportConfig, free_tcp_port
 from deploy.robot_link import RobotLink
-from deploy.wire import CmdFlags, RobotRegistry, StateStatus
+from deploy.wire import CmdFlags, RobotRegistry, StateMsg, StateStatus, encode
 from sim.pymunk_world import ModelError
 from sim.scenario import make_scenario
 
@@ -128,6 +128,48 @@ def test_a_robot_that_leaves_stays_a_silent_obstacle_until_it_rejoins(fleet):
     record = _tick(bridge, links, links[1:2])
     assert record.robots == ROBOTS and record.silent == ()
     assert np.allclose(seen[-1].positions[1], [0.71, 0.6])
+
+
+def test_a_rejoining_robots_state_that_outruns_its_liveliness_token_is_answered_once_it_comes(fleet):
+    """A new link's STATE and its liveliness token travel apart, and the STATE can come first
+    (a clean-clone CI run: the lock-stepped fleet then stalled 2 s and re-armed the robot a tick
+    late). Here the order is forced: r1 leaves, a STATE of a new epoch arrives without a token,
+    then the token. The bridge must answer that STATE as a row, not wait for the robot's next
+    one; a late STATE of the old link (its epoch) stays discarded."""
+    bridge, links, seen = fleet
+    _tick(bridge, links, links)
+    old = links[1].publish_state((0.7, 0.6), (0.05, 0.0))   # the last STATE r1 sends
+    _tick(bridge, links, links[:1])
+    links[1].close()
+    assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+    _tick(bridge, links, links[:1])
+    keys, session, r1 = links[0].keys, links[0].session, REGISTRY.id_of("r1")
+
+    def arrive(msg):
+        """``msg`` reaches the bridge before r1's liveliness token; a tick, the token, a tick."""
+        session.put(keys.state("r1"), encode(msg))
+        assert bridge.link.wait_for(lambda: bridge.link.state_of("r1").msg == msg, 5.0)
+        before = _tick(bridge, links, links[:1])
+        assert before.robots == ("r0",) and before.silent == ("r1",)   # no token: an obstacle
+        token = session.liveliness().declare_token(keys.robot_alive("r1"))
+        assert bridge.link.wait_for(lambda: "r1" in bridge.link.alive_robots, 5.0)
+        return _tick(bridge, links, links[:1]), token
+
+    # a late STATE of the old link (its epoch), then a token: nothing to act on
+    late = StateMsg(r1, old.epoch, old.seq + 1, time.monotonic_ns(), (0.7, 0.61), (0.0, 0.0))
+    record, token = arrive(late)
+    assert record.robots == ("r0",)
+    token.undeclare()
+    assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+    _tick(bridge, links, links[:1])
+    # the rejoined link's first STATE (a new epoch), its token after it: a row at once
+    fresh = StateMsg(r1, old.epoch % 1000 + 1, 1, time.monotonic_ns(), (0.72, 0.6), (0.0, 0.0))
+    record, token = arrive(fresh)
+    try:
+        assert record.robots == ROBOTS and record.silent == ()
+        assert np.allclose(seen[-1].positions[1], [0.72, 0.6])
+    finally:
+        token.undeclare()
 
 
 def test_a_failing_controller_brakes_every_robot_and_is_counted(fleet):
