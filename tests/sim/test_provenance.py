@@ -36,3 +36,11 @@ def test_cpu_model_without_cpuinfo_names_what_platform_knows(tmp_path):
 
 def test_provenance_records_the_instruction_set_torch_runs_on():
     assert provenance()["cpu"]["capability"] == torch.backends.cpu.get_cpu_capability()
+
+
+def test_provenance_records_the_variables_that_choose_the_kernels(monkeypatch):
+    """A run held to other kernels (here MKL's AVX2 code path) trains differently: the record says so."""
+    monkeypatch.setenv("MKL_ENABLE_INSTRUCTIONS", "AVX2")
+    monkeypatch.delenv("ATEN_CPU_CAPABILITY", raising=False)
+    assert provenance()["cpu"]["kernel_env"]["MKL_ENABLE_INSTRUCTIONS"] == "AVX2"
+    assert "ATEN_CPU_CAPABILITY" not in provenance()["cpu"]["kernel_env"]
