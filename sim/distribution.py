@@ -165,7 +165,7 @@ class ScenarioDistribution:
         raise DistributionError(
             f"no layout of {n} robots drawn from this distribution fits the {base.arena[0]:g} x "
             f"{base.arena[1]:g} arena in {ATTEMPTS} draws (last: {last}); narrow object_width / "
-            "object_height / object_offset / slot_spacing, or train fewer robots")
+            "object_height / object_offset / slot_spacing / slot_pool, or train fewer robots")
 
     def _draw(self, base: Scenario, n: int, rng: np.random.Generator) -> Scenario:
         w, h = rng.uniform(*self.object_width), rng.uniform(*self.object_height)

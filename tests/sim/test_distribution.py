@@ -170,6 +170,8 @@ def test_slot_pool_reaches_the_outer_and_second_column_slots_and_is_refused_out_
         ScenarioDistribution(slot_pool=(3, 22))
     with pytest.raises(DistributionError, match=r"slot_pool must be a pair of integers"):
         ScenarioDistribution(slot_pool=(3, 7.5))
+    with pytest.raises(DistributionError, match=r"no layout of 3 robots .* slot_pool"):   # 3 columns beside 0.6 m
+        ScenarioDistribution(slot_pool=(21, 21), object_width=(0.6, 0.6)).layout(BASE, 3, np.random.default_rng(0))
 
 
 def test_a_single_value_other_than_the_presets_is_drawn_too():
