@@ -20,7 +20,10 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
   first stands on its targets (``arrival_scripted``/``arrival_policy``:
   :func:`arrival_summary`): what a filter that keeps robots safe by slowing them costs; and the
   episodes only one of the two won (``success_scripted_pairs``/``success_policy_pairs``:
-  :func:`success_pairs`, with the sign test of that split);
+  :func:`success_pairs`, with the sign test of that split); with a frozen robot, the same three
+  again judged on the robots that can still be commanded (``success_{scripted,policy}_commanded``,
+  ``..._commanded_bare``, ``..._commanded_pairs``: :func:`commanded_success`), beside the success
+  that also asks the frozen robot to have stopped within tolerance of its target;
 * the MEC's tracking error [mm]: the scripted commands (``|a| <= 0.6``, within a 0.7-gain
   robot's reach) recorded on the nominal model, replayed open loop through the condition's world
   with the MEC on and off (filter off), against the nominal trajectory under the same delay (the
@@ -42,6 +45,7 @@ from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
 from sim.fleet import FleetState
+from sim.metrics import distance_matrix, optimal_assignment
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
@@ -120,7 +124,22 @@ def task_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
         m = run_episode(world, ControlStack(sc, source, config), seed)
         out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
         out[f"arrival_{key}"] = m.arrival_step
+        if world.model_error.freeze is not None:
+            out[f"commanded_{key}"] = commanded_success(world, m.collided)
     return out
+
+
+def commanded_success(world: PymunkWorld, collided: bool) -> bool:
+    """Success judged on the robots a controller can still command: no contact, and every robot
+    but the frozen one within tolerance of its target under the episode's assignment (the frozen
+    robot, silent and deaf, stops wherever it was when it froze: where that is depends on how far
+    along it was, not on anything done after)."""
+    true = world.true_state()
+    dist = distance_matrix(torch.as_tensor(true.positions)[None], torch.as_tensor(true.targets)[None])[0]
+    assigned = dist.gather(-1, optimal_assignment(dist[None])[0][:, None])[:, 0].numpy()
+    keep = np.ones(len(assigned), dtype=bool)
+    keep[world.model_error.freeze[0]] = False
+    return bool(not collided and (assigned[keep] <= world.scenario.target_tolerance).all())
 
 
 def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
@@ -213,6 +232,11 @@ def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: i
             entry[f"collisions_{tag}_bare"] = sum(r["collided_off"] for r in rows)
             entry[f"arrival_{tag}"] = arrival_summary(rows)
             entry[f"success_{tag}_pairs"] = success_pairs(rows)
+            if rows and "commanded_on" in rows[0]:
+                entry[f"success_{tag}_commanded"] = float(np.mean([r["commanded_on"] for r in rows]))
+                entry[f"success_{tag}_commanded_bare"] = float(np.mean([r["commanded_off"] for r in rows]))
+                entry[f"success_{tag}_commanded_pairs"] = success_pairs(
+                    [{"success_on": r["commanded_on"], "success_off": r["commanded_off"]} for r in rows])
         entry["tracking_error_mm"] = tracking_error_mm(nm, mec_episodes, seed)
         doc[nm] = entry
     return doc

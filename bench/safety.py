@@ -397,6 +397,15 @@ def _print_tables(doc: dict) -> None:
                           *(_tick(c["arrival_policy"][k]) for k in ("mean_step", "mean_step_bare")),
                           c["arrival_policy"]["paired_episodes"]]
                          for name, c in doc["conditions"].items()])
+        commanded = [(name, tag, c) for name, c in doc["conditions"].items() for tag in ("scripted", "policy")
+                     if f"success_{tag}_commanded" in c]
+        if commanded:
+            print()
+            print_table(["condition (frozen robot left out)", "controller", "success, filter+MEC", "bare",
+                         "won by stack only", "bare only", "sign test p"],
+                        [[name, tag, f"{c[f'success_{tag}_commanded']:.3f}", f"{c[f'success_{tag}_commanded_bare']:.3f}",
+                          *(c[f"success_{tag}_commanded_pairs"][k] for k in ("stack_only", "bare_only", "sign_test_p"))]
+                         for name, tag, c in commanded])
         print()
     if "latency_ms" in doc:
         print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",

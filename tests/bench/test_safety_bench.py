@@ -42,6 +42,11 @@ def test_safety_bench_json_shape():
         pairs = entry["success_scripted_pairs"]
         gap = (entry["success_scripted"] - entry["success_scripted_bare"]) * entry["scripted_episodes"]
         assert round(gap) == pairs["stack_only"] - pairs["bare_only"]
+    frozen = cond["frozen_robot"]         # judged on the commanded robots too, only with a freeze
+    assert "success_scripted_commanded" not in cond["delay2"]
+    assert frozen["success_scripted_commanded"] >= frozen["success_scripted"]
+    assert frozen["success_scripted_commanded_bare"] >= frozen["success_scripted_bare"]
+    assert set(frozen["success_scripted_commanded_pairs"]) == {"stack_only", "bare_only", "sign_test_p"}
     assert doc["stack_config"]["latency"]["command_delay_s"] == 0.15    # what "filter + MEC" ran
     assert doc["stack_config"]["safety"] and doc["stack_config"]["mec"]
     assert len(doc["provenance"]["git"]["commit"]) == 40 and doc["provenance"]["packages"]["torch"]
@@ -96,3 +101,25 @@ def test_success_pairs_count_the_split_episodes_and_its_sign_test():
     assert success_pairs(rows(0, 5, 0))["sign_test_p"] == 0.0625          # 2 / 2^5
     assert success_pairs(rows(3, 3, 2))["sign_test_p"] == 1.0
     assert success_pairs(rows(0, 0, 4)) == {"stack_only": 0, "bare_only": 0, "sign_test_p": 1.0}
+
+
+def test_commanded_success_leaves_out_only_the_frozen_robot():
+    """Robot 0 of paper-3 freezes at tick 0 on its start slot, 0.34 m from any target: the episode
+    fails, but the two robots the scripted stack still commands end on their targets without
+    contact, which is what commanded_success judges; a third robot off its target fails it too."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from _safety_conditions import commanded_success
+
+    from controllers.scripted import ScriptedController
+    from sim.pymunk_world import ModelError, PymunkWorld
+    from sim.scenario import make_scenario
+    from stack.pipeline import ControlStack, run_episode
+
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(freeze=(0, 0)))
+    m = run_episode(world, ControlStack(sc, ScriptedController(sc)), 3)
+    assert not m.success and not m.collided
+    assert commanded_success(world, m.collided)
+    assert not commanded_success(world, True)                      # a contact fails it as before
+    world.model_error = ModelError(freeze=(1, 0))                     # judged as if robot 1 froze:
+    assert not commanded_success(world, m.collided)                 # robot 0, off its target, counts
