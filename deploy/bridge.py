@@ -15,7 +15,9 @@ Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic cloc
       stalled, and has sent nothing since). Passed as ``FleetState.silent`` (last position,
       velocity, age) so the safety layer keeps it as an obstacle; never commanded. A robot
       whose token is gone gets its last state discarded, so after a rejoin it is a row again
-      only with a new state (the controller keys its estimates by robot id and resets them);
+      only with a new state (the controller keys its estimates by robot id and resets them); a
+      state of a new link (another epoch) that arrives before the rejoining robot's token is
+      kept, an obstacle until the token comes and a row from then on;
     * **unknown**: live without a usable state: sent BRAKE (``state_seq`` 0) on each tick.
 
 Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
