@@ -45,7 +45,6 @@ from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
 from sim.fleet import FleetState
-from sim.metrics import distance_matrix, optimal_assignment
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
@@ -135,8 +134,8 @@ def commanded_success(world: PymunkWorld, collided: bool) -> bool:
     robot, silent and deaf, stops wherever it was when it froze: where that is depends on how far
     along it was, not on anything done after)."""
     true = world.true_state()
-    dist = distance_matrix(torch.as_tensor(true.positions)[None], torch.as_tensor(true.targets)[None])[0]
-    assigned = dist.gather(-1, optimal_assignment(dist[None])[0][:, None])[:, 0].numpy()
+    sigma = world.outcome().assignment[0].numpy()        # the assignment the episode was judged on
+    assigned = np.linalg.norm(true.positions - true.targets[sigma], axis=1)
     keep = np.ones(len(assigned), dtype=bool)
     keep[world.model_error.freeze[0]] = False
     return bool(not collided and (assigned[keep] <= world.scenario.target_tolerance).all())

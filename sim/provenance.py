@@ -8,8 +8,9 @@ change between, and torch picks its kernels by instruction set (``capability``: 
 ...): a timing, or a run that does not repeat, can be read against the processor it ran on.
 The variables that override those choices (:data:`KERNEL_ENV`) are recorded when set: seed 3 of
 the 3-5 generalist converges at 2304 episodes on this project's AVX-512 machine, at 2736 with
-MKL held to AVX2, 1248 to AVX, at 1728 with ATen held to AVX2 too, and not within 3200 with ATen alone held
-there (2026-12-05): a run repeats to the bit only on the same kernels.
+MKL held to AVX2, at 1248 with MKL held to AVX, at 1728 with MKL and ATen held to AVX2, and not
+within 3200 with ATen alone held to AVX2 (2026-12-05): a run repeats to the bit only on the
+same kernels.
 """
 
 from __future__ import annotations
