@@ -26,7 +26,7 @@ import torch
 from sim import observations
 from sim.actuator import BatchedActuators
 from sim.distribution import MAX_DELAY_TICKS, ScenarioDistribution
-from sim.geometry import Frame, Polygon
+from sim.geometry import DetourField, Frame, Polygon
 from sim.metrics import episode_outcome
 from sim.reward import RewardWeights
 from sim.scenario import Scenario
@@ -96,7 +96,7 @@ class BatchedFormationEnv:
     def __init__(self, scenario: Scenario, num_envs: int, *, seed: int | None = None,
                  device: str | torch.device = "cpu", obs: str = "tokens",
                  reward_weights: RewardWeights = RewardWeights(), dtype: torch.dtype = torch.float32,
-                 distribution: ScenarioDistribution | None = None):
+                 distribution: ScenarioDistribution | None = None, own_target: bool = False):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if obs not in ("tokens", "flat"):
@@ -108,6 +108,10 @@ class BatchedFormationEnv:
         self.device = torch.device(device)
         self.dtype = dtype
         self.obs_kind = obs
+        self.own_target = bool(own_target)
+        self._sigma: tuple[Frame, torch.Tensor] | None = None
+        if self.own_target and obs != "tokens":
+            raise ValueError("own_target marks entity tokens; it needs obs='tokens'")
         self.reward_weights = reward_weights
         dyn = scenario.dynamics
         self.dt, self.episode_steps = dyn.dt, dyn.episode_steps
@@ -151,6 +155,10 @@ class BatchedFormationEnv:
         scale = self.rewarder.penalty_scale if self.rewarder is not None else 1.0
         self.rewarder = StepReward(scenario, self.num_envs, self.reward_weights, self.polygon, self.device)
         self.rewarder.penalty_scale = scale
+        if self.own_target:     # the reward's tabulated detour when it measures the same one
+            same = self.reward_weights.detour_clearance == observations.OWN_TARGET_CLEARANCE
+            self._own_paths = self.rewarder.detour if same else DetourField(
+                observations.own_target_paths(self.polygon, self.targets[0], self.radius), self.arena)
 
     # the reward's remembered state and the curriculum's scale live in self.rewarder
     prev_near_contact = property(lambda self: self.rewarder.prev_near_contact)
@@ -207,7 +215,15 @@ class BatchedFormationEnv:
         if self.obs_kind == "flat":
             return observations.flat(self.pos, self.vel, self.targets), None
         frame = self._frame if self._frame is not None else Frame(self.pos, self.vel, self.targets, self.polygon)
-        return observations.frame_tokens(frame, self.arena, self.centroid)
+        toks, mask = observations.frame_tokens(frame, self.arena, self.centroid)
+        if self.own_target:
+            sigma = self._sigma if self._sigma is not None and self._sigma[0] is frame else None
+            toks = observations.mark_own_targets(toks, sigma[1] if sigma is not None else self._own_sigma(frame))
+        return toks, mask
+
+    def _own_sigma(self, frame: Frame) -> torch.Tensor:
+        """(E, N) the assignment the own-target marks and the reward's assigned terms follow."""
+        return observations.own_assignment(self._own_paths(frame.pos))
 
     def state(self) -> dict[str, torch.Tensor]:
         """Copies of the raw state: ``pos``, ``vel``, ``targets`` (E, N, 2) and ``t`` (E,)."""
@@ -254,7 +270,9 @@ class BatchedFormationEnv:
         self.prev_contact = contact
         self.counts += new_contact.sum(1)
         self.collided |= contact.any(-1).any(-1)
-        reward = self.rewarder(frame, touched, events, new_contact)   # sim.step_reward
+        sigma = self._own_sigma(frame) if self.own_target else None
+        self._sigma = (frame, sigma) if sigma is not None else None
+        reward = self.rewarder(frame, touched, events, new_contact, sigma)   # sim.step_reward
         self.ret += reward.mean(-1)
         self.t += 1
         self._t_max += 1

@@ -11,6 +11,14 @@ Robot i of N sees ``T = 2N + 1`` tokens of ``TOKEN_DIM = 4`` features each, in t
     2N       object           OBJECT (3)     [c - p, s - p]            c: object centroid,
                                                                        s: nearest point of its boundary
 
+Own target (an actor with ``own_target``): robot i's own target ``k = sigma_i``, where sigma is
+the team's one-to-one assignment of least total squared path length round the object
+(:func:`own_assignment` on :func:`own_target_paths`: Turpin et al.'s CAPT rule, whose straight
+paths do not cross, on the ways the robots can go), carries a mark in its spare features, ``[g_k - p, m]`` with ``m = (g_k - p) min(1, 0.1 m / |g_k - p|)``
+(:func:`mark_own_targets`). The reward's assigned terms then judge the robot by that same
+target. Without it a policy has to work out which target is its own from the whole scene, and
+two robots of a team larger than any it trained on were seen to claim one slot.
+
 ``token_types(N)`` gives the (T,) type of each token and ``tokens()`` returns
 ``(E, N, T, 4)`` features plus an ``(E, N, T)`` validity mask (all true in the simulator; the
 fleet bridge clears it for robots that dropped out). A policy built on tokens works for any N.
@@ -27,7 +35,8 @@ from functools import cache
 import numpy as np
 import torch
 
-from sim.geometry import Frame, Polygon, others_index
+from sim.geometry import DetourDistance, DetourField, Frame, Polygon, others_index
+from sim.metrics import optimal_assignment
 
 LAYOUT_VERSION = 1
 TOKEN_DIM = 4
@@ -89,6 +98,79 @@ def frame_tokens(frame: Frame, arena: tuple[float, float],
     toks = torch.cat((self_tok, tgt_tok, frame.others, obj_tok), 2)
     mask = _all_valid(e, n, frame.px.device)
     return toks, mask
+
+
+OWN_TARGET_REACH = 0.1       # [m] the own-target mark is the offset to it, clipped to this length
+OWN_TARGET_CLEARANCE = 0.03  # [m] beyond the robot radius: the detour the assignment measures
+
+
+def own_assignment(path: torch.Tensor) -> torch.Tensor:
+    """(E, N) long: the target each robot is told is its own, from (E, N, N) robot-target path
+    lengths [m] (:func:`own_target_paths`): the one-to-one assignment of least total squared
+    length (Turpin et al.'s CAPT rule, on the ways round the object; ties:
+    :func:`sim.metrics.optimal_assignment`'s)."""
+    return optimal_assignment(path.square())
+
+
+def own_target_paths(polygon: Polygon, targets: torch.Tensor, radius: float) -> DetourDistance:
+    """The path lengths :func:`own_assignment` is solved on, exactly: the detour round the object
+    inflated by ``radius + OWN_TARGET_CLEARANCE`` (:class:`sim.geometry.DetourDistance`; the
+    training reward's with its default clearance). The worlds tabulate it
+    (:class:`sim.geometry.DetourField`, within 3.5 mm), as the reward does."""
+    return DetourDistance(polygon, targets, radius + OWN_TARGET_CLEARANCE)
+
+
+class FleetOwnTargets:
+    """:func:`own_assignment` for one fleet in numpy, as the ControlStack needs it every tick:
+    ``(pos (N, 2), targets (N, 2)) -> (N,)`` int, read from the tabulated paths of the batched
+    world (built once per set of targets, ~0.3 s) and solved with scipy."""
+
+    def __init__(self, polygon: np.ndarray, radius: float, arena: tuple[float, float]):
+        self.polygon = Polygon(torch.as_tensor(np.asarray(polygon), dtype=torch.float64))
+        self.radius, self.arena = float(radius), arena
+        self._key: bytes | None = None
+        self._field: DetourField | None = None
+
+    def __call__(self, pos: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        from scipy.optimize import linear_sum_assignment
+
+        targets = np.ascontiguousarray(targets, dtype=np.float64)
+        if self._key != targets.tobytes():
+            paths = own_target_paths(self.polygon, torch.from_numpy(targets), self.radius)
+            self._field, self._key = DetourField(paths, self.arena), targets.tobytes()
+        path = self._field(torch.from_numpy(np.asarray(pos, dtype=np.float64))[None])[0].numpy()
+        rows, cols = linear_sum_assignment(path * path)
+        sigma = np.empty(len(rows), dtype=np.int64)
+        sigma[rows] = cols
+        return sigma
+
+
+def mark_own_targets(toks: torch.Tensor, sigma: torch.Tensor, reach: float = OWN_TARGET_REACH) -> torch.Tensor:
+    """Tokens (E, N, 2N+1, 4) with each robot's own target marked: robot i's token ``1 + sigma_i``
+    (features ``[d, 0, 0]``, ``d = g - p``) becomes ``[d, d * min(1, reach / |d|)]``.
+
+    ``sigma`` (E, N) long is the team's robot-to-target assignment (a permutation per row). The
+    mark is a vector in the arena frame like every feature pair, so quarter turns of the scene
+    turn it along (:func:`controllers.policy.layers.formation_turn`), and it needs no new
+    token feature, width or type: the same networks and exported graphs read it.
+    """
+    e, n = sigma.shape
+    if toks.shape[:3] != (e, n, 2 * n + 1) or sigma.dtype != torch.long:
+        raise ValueError(f"mark_own_targets needs tokens (E, N, 2N+1, 4) and a long assignment (E, N); "
+                         f"got {tuple(toks.shape)} and {tuple(sigma.shape)} {sigma.dtype}")
+    index = (1 + sigma).view(e, n, 1, 1).expand(e, n, 1, toks.shape[-1])
+    d = toks.gather(2, index)[..., 0:2]
+    mark = d * (reach / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(reach))
+    return toks.scatter(2, index, torch.cat((d, mark), -1))
+
+
+def mark_own_targets_np(toks: np.ndarray, sigma: np.ndarray, reach: float = OWN_TARGET_REACH) -> np.ndarray:
+    """:func:`mark_own_targets` of one fleet's tokens (N, 2N+1, 4) in place; returns them."""
+    rows = np.arange(len(sigma))
+    d = toks[rows, 1 + sigma, 0:2].astype(np.float64)
+    scale = reach / np.maximum(np.sqrt(np.einsum("id,id->i", d, d)), reach)
+    toks[rows, 1 + sigma, 2:4] = d * scale[:, None]
+    return toks
 
 
 def _all_valid(e: int, n: int, device) -> torch.Tensor:

@@ -55,9 +55,12 @@ class StepReward:
         self.assignment[ids] = -1
 
     def __call__(self, frame: Frame, touched: tuple[torch.Tensor, torch.Tensor],
-                 events: CollisionEvents, onsets: torch.Tensor) -> torch.Tensor:
+                 events: CollisionEvents, onsets: torch.Tensor, sigma: torch.Tensor | None = None) -> torch.Tensor:
         """``events`` of the robots' discs and their (E, N, 3) ``onsets`` this step; with a
-        contact margin the reward judges discs grown by it instead (its own onsets)."""
+        contact margin the reward judges discs grown by it instead (its own onsets). ``sigma``
+        (E, N) long, when given, is the assignment of the ``assigned`` and ``own_arrive`` terms
+        (the one the robots are told: :func:`sim.observations.own_assignment`); else the reward's
+        own (sticky with ``assignment_hysteresis``)."""
         w = self.weights
         if w.contact_margin > 0:
             events, near = frame_contacts(frame, self.radius + w.contact_margin, self.arena, touched)
@@ -67,6 +70,7 @@ class StepReward:
         return reward_from_distances(
             frame.d_rg, events, self.scenario.target_tolerance, w, d_detour, onsets.any(-1),
             proximity_ramp(frame, self.radius, self.arena, w.near_margin) if w.w_near else None,
+            sigma if sigma is not None else
             self._sticky_assignment(d_detour) if w.assignment_hysteresis and (w.w_assigned or w.w_own_arrive) else None,
             self.penalty_scale)
 

@@ -246,12 +246,14 @@ class Trajectories:
     seed: int = 0
 
 
-def _rollout_env(scenario, episodes: int, seed: int, steps: int, obs_kind: str):
-    """A batched world of ``episodes`` envs whose episodes outlast ``steps`` (no auto-reset)."""
+def _rollout_env(scenario, episodes: int, seed: int, steps: int, actor):
+    """A batched world of ``episodes`` envs whose episodes outlast ``steps`` (no auto-reset),
+    giving ``actor`` the observations it reads."""
     from sim.batched_env import BatchedFormationEnv
 
     long = dataclasses.replace(scenario, dynamics=dataclasses.replace(scenario.dynamics, episode_steps=steps + 1))
-    return BatchedFormationEnv(long, episodes, seed=seed, obs=obs_kind)
+    return BatchedFormationEnv(long, episodes, seed=seed, obs=getattr(actor, "obs_kind", "tokens"),
+                               own_target=bool(getattr(actor, "own_target", False)))
 
 
 def record_trajectories(actor, scenario, *, episodes: int = 4, seed: int = 0,
@@ -273,7 +275,7 @@ def record_trajectories(actor, scenario, *, episodes: int = 4, seed: int = 0,
     steps = scenario.dynamics.episode_steps if steps is None else int(steps)
     if steps < 1:
         raise PlotError(f"steps must be a positive integer, got {steps}")
-    env = _rollout_env(scenario, episodes, seed, steps, getattr(actor, "obs_kind", "tokens"))
+    env = _rollout_env(scenario, episodes, seed, steps, actor)
     positions = torch.empty(steps + 1, episodes, scenario.num_robots, 2)
     contacts = torch.empty(steps, episodes, scenario.num_robots, 3, dtype=torch.bool)
     with torch.inference_mode():
@@ -443,7 +445,7 @@ def attention_snapshot(actor, scenario, *, seed: int = 0, step: int = 0) -> tupl
 
     if step < 0:
         raise PlotError(f"step must be >= 0, got {step}")
-    env = _rollout_env(scenario, 1, seed, max(step, 1), "tokens")
+    env = _rollout_env(scenario, 1, seed, max(step, 1), actor)
     with torch.inference_mode():
         obs, mask = env.reset()
         for _ in range(step):

@@ -83,7 +83,8 @@ def evaluate(actor: nn.Module, scenario: Scenario, *, episodes: int = 100, seed:
         while done_episodes < episodes:
             e = min(batch_size, episodes - done_episodes)
             env = BatchedFormationEnv(scenario, e, seed=seed + 7919 * chunk, device=device, obs=obs_kind,
-                                      reward_weights=reward_weights)
+                                      reward_weights=reward_weights,
+                                      own_target=bool(getattr(actor, "own_target", False)))
             obs, mask = env.reset()
             for _ in range(env.episode_steps):
                 result = env.step(actor(obs, mask))

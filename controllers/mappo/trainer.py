@@ -147,7 +147,8 @@ class MAPPOTrainer:
         self.groups = [TeamGroup.start(BatchedFormationEnv(sc, cfg.num_envs, seed=cfg.seed + 7919 * k,
                                                            device=self.device, obs=cfg.obs_kind,
                                                            reward_weights=self.reward_weights,
-                                                           distribution=distribution))
+                                                           distribution=distribution,
+                                                           own_target=cfg.actor.own_target))
                        for k, sc in enumerate(self.scenarios)]
         self.arrival_rate = 0.0     # running fraction of training episodes ending on target
         self.iteration = self.episodes = self.env_steps = self.eval_count = self.last_eval_episodes = 0

@@ -72,6 +72,7 @@ class TypedSDPAActor(nn.Module):
         self.input_scale = float(config.input_scale)
         self.velocity_damping = float(config.velocity_damping)
         self.turning = config.frame == "formation"
+        self.own_target = bool(config.own_target)
         self.embedding = TypedEmbedding(TOKEN_DIM, config.embed_dim, config.embed_hidden)
         self.mixers = nn.ModuleList(TokenMixer(config.embed_dim, config.num_heads)
                                     for _ in range(config.token_layers))

@@ -90,6 +90,10 @@ class ActorConfig:
             One pooling weighs each token by its pair with the robot alone, so it cannot tell
             whether a target is nearer another robot than itself; a block lets every token
             attend to the others first (:class:`controllers.policy.layers.TokenMixer`).
+        own_target: the actor reads tokens with each robot's own target marked
+            (:func:`sim.observations.mark_own_targets`: the assignment the reward judges the
+            robot by), so it need not work out from its view which target is its own (typed
+            actor only). The worlds and the ControlStack mark the tokens they give it.
     """
 
     variant: str = "typed"
@@ -102,6 +106,7 @@ class ActorConfig:
     velocity_damping: float = 0.0
     frame: str | None = None
     token_layers: int = 0
+    own_target: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "hidden_sizes", _check_hidden("actor", self.hidden_sizes))
@@ -133,6 +138,11 @@ class ActorConfig:
         _check_frame("actor", self.frame, self.variant, "typed")
         if not isinstance(self.token_layers, int) or isinstance(self.token_layers, bool) or not 0 <= self.token_layers <= 4:
             raise PolicyConfigError(f"actor.token_layers must be an integer in [0, 4], got {self.token_layers!r}")
+        if not isinstance(self.own_target, bool):
+            raise PolicyConfigError(f"actor.own_target must be true or false, got {self.own_target!r}")
+        if self.own_target and self.variant != "typed":
+            raise PolicyConfigError(f"actor.own_target applies to the typed actor only; set it to false for "
+                                    f"variant {self.variant!r}")
         if self.token_layers and self.variant != "typed":
             raise PolicyConfigError(f"actor.token_layers applies to the typed actor only; set it to 0 for "
                                     f"variant {self.variant!r}")

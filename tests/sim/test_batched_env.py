@@ -247,3 +247,45 @@ def test_sticky_assignment_changes_the_reward_of_a_flipping_optimum():
         out[h] = reward
     assert out[0.0].tolist() == pytest.approx([0.0, -0.055, -0.055], abs=1e-6)
     assert out[0.05].tolist() == pytest.approx([0.0, -0.07, -0.07], abs=1e-6)
+
+
+def test_own_target_tokens_and_the_reward_name_the_same_target():
+    """With ``own_target`` each robot's token of the target :func:`own_assignment` gives it is
+    marked, and the reward's assigned term judges it by that target. The state is one where the
+    reward's own choice differs (least *linear* detour sum, ``assignment_power`` 1): robots 0 and
+    2 are told targets 0 and 1 (least squared detour sum) but would be charged for 2 and 0."""
+    from sim.observations import mark_own_targets, own_assignment
+    from sim.reward import RewardWeights
+
+    weights = RewardWeights(w_dist=0.0, w_arrive=0.0, w_robot=0.0, w_object=0.0, w_wall=0.0,
+                            w_assigned=1.0, assignment_power=1.0, detour_clearance=0.03)
+    pos = [[0.67, 0.41], [0.17, 0.19], [0.61, 0.26]]
+    rewards, tokens = {}, {}
+    for own in (False, True):
+        env = _env(reward_weights=weights, own_target=own)
+        _place(env, pos)
+        result = env.step(torch.zeros(1, 3, 2))
+        rewards[own], tokens[own] = result.reward[0], result.obs
+    detour = env.rewarder.detour(torch.tensor([pos], dtype=torch.float64))
+    told = own_assignment(detour)
+    assert told[0].tolist() == [0, 2, 1]
+    assert torch.allclose(rewards[True], -detour[0, torch.arange(3), told[0]])
+    assert not torch.allclose(rewards[False], rewards[True])          # the reward's own choice differs
+    assert torch.equal(tokens[True], mark_own_targets(tokens[False], told))
+    with pytest.raises(ValueError, match="needs obs='tokens'"):
+        BatchedFormationEnv(SC, 1, obs="flat", own_target=True)
+
+
+def test_own_target_paths_measure_the_contracts_detour_whatever_the_rewards():
+    """The marks follow the detour round the object grown by r + OWN_TARGET_CLEARANCE, also in a
+    world whose reward measures another (evaluation's default clearance)."""
+    from sim.geometry import DetourDistance
+    from sim.observations import OWN_TARGET_CLEARANCE
+    from sim.reward import RewardWeights
+
+    pos = torch.rand(1, 3, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.8 + 0.1
+    for clearance in (0.01, OWN_TARGET_CLEARANCE):
+        env = _env(reward_weights=RewardWeights(detour_clearance=clearance), own_target=True)
+        exact = DetourDistance(env.polygon, env.targets[0], SC.robot_radius + OWN_TARGET_CLEARANCE)(pos)
+        assert (env._own_paths(pos) - exact).abs().max() <= 0.005 / 2 ** 0.5 + 1e-9
+        assert (env._own_paths is env.rewarder.detour) == (clearance == OWN_TARGET_CLEARANCE)

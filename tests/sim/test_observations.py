@@ -83,3 +83,36 @@ def test_shape_errors_name_the_argument():
         obs.tokens(pos, torch.zeros(2, 4, 2), pos, POLY, (1.0, 1.0))
     with pytest.raises(ValueError, match=r"pos must have shape \(num_envs, num_robots, 2\)"):
         obs.flat(torch.zeros(3, 2), torch.zeros(3, 2), torch.zeros(3, 2))
+
+
+def test_own_target_mark_by_hand():
+    """Robot 0 of two is told target 1 (offset (0.3, 0.4), 0.5 m: the mark is clipped to 0.1 m),
+    robot 1 target 0 (offset (0.03, -0.04), 5 cm: the mark is the offset itself)."""
+    pos = torch.tensor([[[0.2, 0.1], [0.57, 0.54]]], dtype=torch.float64)
+    targets = torch.tensor([[[0.6, 0.5], [0.5, 0.5]]], dtype=torch.float64)
+    toks, _ = obs.tokens(pos, torch.zeros_like(pos), targets, POLY, (1.0, 1.0))
+    marked = obs.mark_own_targets(toks, torch.tensor([[1, 0]]))
+    assert torch.allclose(marked[0, 0, 2], torch.tensor([0.3, 0.4, 0.06, 0.08], dtype=torch.float64))
+    assert torch.allclose(marked[0, 1, 1], torch.tensor([0.03, -0.04, 0.03, -0.04], dtype=torch.float64))
+    unmarked = torch.ones_like(toks[..., 0], dtype=torch.bool)
+    unmarked[0, 0, 2] = unmarked[0, 1, 1] = False
+    assert torch.equal(marked[unmarked], toks[unmarked])          # nothing else changes
+    with pytest.raises(ValueError, match="long assignment"):
+        obs.mark_own_targets(toks, torch.tensor([[1.0, 0.0]]))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 6), st.integers(0, 2**31 - 1))
+def test_own_assignment_is_the_least_total_squared_path(n, seed):
+    """Against every permutation (CAPT's rule on the given path lengths); one-to-one per row."""
+    import itertools
+
+    path = torch.rand(3, n, n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    sigma = obs.own_assignment(path)
+    for row, told in zip(path, sigma, strict=True):
+        assert sorted(told.tolist()) == list(range(n))
+
+        def cost(perm, row=row):
+            return sum(float(row[i, k] ** 2) for i, k in enumerate(perm))
+
+        assert cost(told.tolist()) <= min(cost(p) for p in itertools.permutations(range(n))) + 1e-12
