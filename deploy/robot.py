@@ -19,6 +19,11 @@ features (metres, m/s; arena (W, H) centred at (W/2, H/2))::
     other robot j   [q_j - p, u_j - v]           j != i, ascending robot order
     object          [c - p, s - p]               c: polygon centroid, s: nearest boundary point
 
+A file whose ``meta["own_target"]`` is true reads robot i's own target marked: target
+``k = sigma_i`` of the team's one-to-one assignment of least total squared path length round
+the object (:func:`own_targets`, with ``meta["own_target_margin"]``) has features ``[d, d min(1, 0.1 m / |d|)]``, ``d = g_k - p``;
+``act`` works the assignment out from the positions it is given, or takes ``own_target``.
+
 The action is the policy's mean acceleration (2,) [m/s^2], bounded in norm by the file's
 ``accel_limit``; with any input non-finite it is (0, 0) and ``valid`` is False: brake.
 """
@@ -35,6 +40,7 @@ import numpy as np
 LAYOUT_VERSION = 1
 TOKEN_DIM = 4
 TOLERANCE = 1e-5
+OWN_TARGET_REACH = 0.1               # [m] the own-target mark's length (sim/observations.py)
 EXPORT_FORMAT = "formation-stack/policy"
 EXPORT_FORMAT_VERSION = 2
 META_KEY = "formation.meta"          # ONNX metadata_props key holding the metadata JSON
@@ -92,11 +98,105 @@ def nearest_boundary_point(point: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return candidates[np.argmin(((candidates - point) ** 2).sum(1))]
 
 
+def detour_distances(points, targets, polygon, margin: float) -> np.ndarray:
+    """(P, K) shortest distances [m] from (P, 2) points to (K, 2) targets around a convex
+    counter-clockwise polygon (M, 2) inflated by ``margin`` (the taut string; the project's
+    ``sim.geometry.DetourDistance``): straight where the segment misses the inflated polygon,
+    else point -> visible corner -> along the perimeter -> corner -> target; a point inside is
+    first moved to the nearest boundary point. A non-convex polygon gives straight distances."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    g = np.asarray(targets, dtype=np.float64).reshape(-1, 2)
+    v = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    straight = np.linalg.norm(p[:, None] - g[None], axis=-1)
+    e = np.roll(v, -1, axis=0) - v
+    if not (e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1) > 0).all():
+        return straight
+    normal = np.stack((e[:, 1], -e[:, 0]), -1) / np.linalg.norm(e, axis=1)[:, None]   # outward
+    bis = normal + np.roll(normal, 1, axis=0)
+    corners = v + bis / 2 * (margin / ((bis * bis).sum(1) / 4))[:, None]
+    offset = (v * normal).sum(1) + margin - 1e-6
+
+    def visible(a, b):                       # segments a -> b (broadcast (..., 2)) miss the polygon
+        a, b = np.broadcast_arrays(a, b)
+        num = offset - a @ normal.T
+        den = (b - a) @ normal.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = num / np.where(den == 0, 1.0, den)
+        t_enter = np.maximum(np.where(den < 0, ratio, -np.inf).max(-1), 0.0)
+        t_exit = np.minimum(np.where(den > 0, ratio, np.inf).min(-1), 1.0)
+        return ((den == 0) & (num < 0)).any(-1) | (t_enter >= t_exit)
+
+    side = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
+    cum = np.concatenate(([0.0], np.cumsum(side)))
+    fwd = (cum[None, :-1] - cum[:-1, None]) % cum[-1]
+    perimeter = np.minimum(fwd, cum[-1] - fwd)                                      # (M, M)
+    d_cg = np.where(visible(corners[:, None], g[None]), np.linalg.norm(corners[:, None] - g[None], axis=-1), np.inf)
+    h = (perimeter[:, :, None] + d_cg[None]).min(1)                                 # (M, K)
+    ce = np.roll(corners, -1, axis=0) - corners                                     # inflated edges
+    r = p[:, None] - corners[None]
+    t = np.clip((r * ce).sum(-1) / (ce * ce).sum(1), 0.0, 1.0)
+    gap = r - t[..., None] * ce
+    nearest = np.argmin((gap * gap).sum(-1), axis=1)
+    rows = np.arange(len(p))
+    inside = ((ce[None, :, 0] * r[..., 1] - ce[None, :, 1] * r[..., 0]) > 0).all(1)
+    q = np.where(inside[:, None], corners[nearest] + t[rows, nearest, None] * ce[nearest], p)
+    lead_in = np.where(inside, np.linalg.norm(gap[rows, nearest], axis=-1), 0.0)
+    direct = visible(q[:, None], g[None])
+    d_pc = np.where(visible(q[:, None], corners[None]), np.linalg.norm(q[:, None] - corners[None], axis=-1), np.inf)
+    around = (d_pc[:, :, None] + h[None]).min(1)
+    out = np.where(direct, np.linalg.norm(q[:, None] - g[None], axis=-1), around)
+    return np.where(np.isinf(out), straight, out + lead_in[:, None])
+
+
+def least_squares_assignment(path) -> np.ndarray:
+    """(N,) int: the column of each row of an (N, N) matrix of path lengths under the one-to-one
+    assignment of least total squared length; the Hungarian method, O(N^3), numpy only."""
+    cost = np.square(np.asarray(path, dtype=np.float64))
+    n = len(cost)
+    u, v = np.zeros(n + 1), np.zeros(n + 1)
+    owner = np.zeros(n + 1, dtype=np.int64)            # owner[j]: row (1-based) holding column j
+    way = np.zeros(n + 1, dtype=np.int64)
+    for i in range(1, n + 1):
+        owner[0], j0 = i, 0
+        minv = np.full(n + 1, np.inf)
+        used = np.zeros(n + 1, dtype=bool)
+        while owner[j0] != 0:
+            used[j0] = True
+            i0 = owner[j0]
+            free = ~used[1:]
+            cur = cost[i0 - 1] - u[i0] - v[1:]
+            better = free & (cur < minv[1:])
+            minv[1:][better] = cur[better]
+            way[1:][better] = j0
+            j1 = 1 + int(np.argmin(np.where(free, minv[1:], np.inf)))
+            delta = minv[j1]
+            u[owner[used]] += delta
+            v[used] -= delta
+            minv[~used] -= delta
+            j0 = j1
+        while j0:
+            j1 = way[j0]
+            owner[j0] = owner[j1]
+            j0 = j1
+    sigma = np.empty(n, dtype=np.int64)
+    sigma[owner[1:] - 1] = np.arange(n)
+    return sigma
+
+
+def own_targets(pos, targets, polygon, margin: float) -> np.ndarray:
+    """(N,) int: each robot's own target for an ``own_target`` policy (the project's
+    ``sim.observations.own_assignment``): the assignment of least total squared detour length
+    round the polygon inflated by ``margin`` (``meta["own_target_margin"]``), for (N, 2)
+    positions and targets."""
+    return least_squares_assignment(detour_distances(pos, targets, polygon, margin))
+
+
 def robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon,
-                 arena) -> np.ndarray:
+                 arena, own_target: int | None = None) -> np.ndarray:
     """One robot's (2N+1, 4) float64 tokens; shapes (2,), (2,), (N, 2), (N-1, 2), (N-1, 2),
     (M, 2), (2,) in metres and m/s (see the module docstring). Non-finite inputs pass through
-    (the exported module answers them with braking)."""
+    (the exported module answers them with braking). ``own_target`` k: the robot's own target
+    (an ``own_target`` policy), whose token gets the mark ``[d, d min(1, 0.1 m / |d|)]``."""
     p = np.asarray(own_pos, dtype=np.float64).reshape(2)
     v = np.asarray(own_vel, dtype=np.float64).reshape(2)
     g = np.asarray(targets, dtype=np.float64).reshape(-1, 2)
@@ -116,6 +216,9 @@ def robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon,
     with np.errstate(invalid="ignore", divide="ignore"):
         out[2 * n, :2] = polygon_centroid(poly) - p
         out[2 * n, 2:] = nearest_boundary_point(p, poly) - p if np.isfinite(p).all() else np.nan
+        if own_target is not None:
+            d = out[1 + int(own_target), :2]
+            out[1 + int(own_target), 2:] = d * (OWN_TARGET_REACH / max(float(np.hypot(*d)), OWN_TARGET_REACH))
     return out
 
 
@@ -196,6 +299,8 @@ class RobotPolicy:
                                    f"with {self.meta.get('token_dim')} features, but this runtime builds "
                                    f"layout {LAYOUT_VERSION} with {TOKEN_DIM}; update robot.py or re-export")
         self.accel_limit = float(self.meta["accel_limit"])
+        self.own_target = bool(self.meta.get("own_target", False))
+        self.own_target_margin = float(self.meta.get("own_target_margin", 0.0))
         self.golden_diff = self._check_golden()
         for _ in range(warmup):
             self._forward(np.zeros((1, 2 * 5 + 1, TOKEN_DIM)))
@@ -212,10 +317,15 @@ class RobotPolicy:
             poly, arena = data["polygon"], data["arena"]
             for n in data["counts"]:
                 pos, vel, tgt = (data[f"n{n}_{k}"][0] for k in ("pos", "vel", "targets"))
+                own = own_targets(pos, tgt, poly, self.own_target_margin) if self.own_target else [None] * n
+                if self.own_target and not np.array_equal(own, data[f"n{n}_own"][0]):
+                    raise RobotPolicyError(f"the own-target assignment of {n} robots differs from the "
+                                           "golden file's: this runtime would mark other targets")
                 rows = []
                 for i in range(n):
                     others = [j for j in range(n) if j != i]
-                    rows.append(robot_tokens(pos[i], vel[i], tgt, pos[others], vel[others], poly, arena))
+                    rows.append(robot_tokens(pos[i], vel[i], tgt, pos[others], vel[others], poly, arena,
+                                             own[i]))
                 toks = np.stack(rows)
                 token_diff = np.abs(toks - data[f"n{n}_tokens"][0]).max()
                 if not token_diff <= 1e-9:
@@ -241,12 +351,23 @@ class RobotPolicy:
             accel, valid = self.session.run(None, {"tokens": x, "mask": mask})
         return accel.astype(np.float64), valid
 
-    def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena) -> Action:
+    def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena,
+            own_target: int | None = None) -> Action:
         """The robot's mean acceleration [m/s^2] and whether it is valid (arguments as
-        :func:`robot_tokens`); never NaN."""
-        toks = robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena)
+        :func:`robot_tokens`); never NaN. A policy that reads its own target marked
+        (``meta["own_target"]``) gets target ``own_target`` marked, or when None the robot's
+        target under :func:`own_targets` of the team it sees (itself and others)."""
+        if own_target is not None and not self.own_target:
+            raise ValueError(f"{self.path} does not read an own target (its metadata's own_target is "
+                             "false); call act without own_target")
+        if self.own_target and own_target is None:
+            team = np.vstack((np.asarray(own_pos, dtype=np.float64).reshape(1, 2),
+                              np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)))
+            own_target = (int(own_targets(team, targets, polygon, self.own_target_margin)[0])
+                          if np.isfinite(team).all() else None)
+        toks = robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena, own_target)
         accel, valid = self._forward(toks[None])
         return Action(accel[0], bool(valid[0]))
 
 
-__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "onnx_content_ok", "onnx_session", "open_onnx", "robot_tokens"]
+__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "least_squares_assignment", "own_targets", "detour_distances", "onnx_content_ok", "onnx_session", "open_onnx", "robot_tokens"]

@@ -97,7 +97,13 @@ from controllers.safety.latency import LatencyConfig, LatencyPredictor, Predicti
 from controllers.safety.recheck import recheck
 from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
-from sim.observations import flat, fleet_tokens_np, object_token_constants
+from sim.observations import (
+    FleetOwnTargets,
+    flat,
+    fleet_tokens_np,
+    mark_own_targets_np,
+    object_token_constants,
+)
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
@@ -255,6 +261,11 @@ class ControlStack:
         else:
             raise StackError(f"policy must be an nn.Module, a TorchScript/checkpoint path or a "
                              f"callable FleetState -> (N, 2); got {type(policy).__name__}")
+        own = self._exported.meta.get("own_target", False) if self._exported is not None else (
+            getattr(self.network, "own_target", False) if self.network is not None else False)
+        self.own_target = bool(own)     # the policy reads its own target marked (sim.observations)
+        self._own_targets = (FleetOwnTargets(scenario.polygon, scenario.robot_radius, scenario.arena)
+                             if self.own_target else None)
         self._polygon = scenario.polygon
         self._token_constants = (*object_token_constants(np.asarray(self._polygon)),
                                  float(scenario.arena[0] / 2), float(scenario.arena[1] / 2))
@@ -309,6 +320,8 @@ class ControlStack:
         n = state.num_robots
         out = fleet_tokens_np(state.positions, state.velocities, state.targets, self._polygon,
                               self.scenario.arena, np.empty((n, 2 * n + 1, 4), dtype=np.float32))
+        if self.own_target:
+            mark_own_targets_np(out, self._own_targets(state.positions, state.targets))
         return torch.from_numpy(out).unsqueeze(0), torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
 
     @staticmethod
@@ -331,6 +344,8 @@ class ControlStack:
         array, tensor, mask = buffers
         fleet_tokens(*(np.ascontiguousarray(x) for x in (state.positions, state.velocities, state.targets)),
                      *self._token_constants, array)
+        if self.own_target:
+            mark_own_targets_np(array, self._own_targets(state.positions, state.targets))
         return tensor, mask
 
     def brake(self, vel: np.ndarray) -> np.ndarray:

@@ -16,6 +16,8 @@ NaN and bound rules are in :mod:`deploy.export.contract`) and its metadata::
     robot_counts               N the file runs: [1..21] (typed actor) or [N] (slot actor)
     variant, config            the actor class and the training config
     torch_version, source      torch at export, the checkpoint exported
+    own_target, ..._margin     the policy reads its own target marked (target tokens below),
+                               assigned on detours round the object inflated by the margin [m]
     golden_file, golden_sha256 the golden file beside it and its checksum
     content_sha256             digest of weights and metadata (checked on every load)
 
@@ -23,7 +25,8 @@ The golden file (``policy.golden.npz``, :func:`golden_path`, shared by the forma
 export): for a few N, raw robot states (``n{N}_pos``, ``n{N}_vel``, ``n{N}_targets`` (1, N, 2))
 on the training scenario's ``polygon`` (M, 2) and ``arena`` (2,), the tokens ``n{N}_tokens``
 (1, N, 2N+1, 4) of :func:`sim.observations.tokens` and the eager contract's actions
-``n{N}_actions`` (1, N, 2). The robot runtime (:mod:`deploy.robot`) replays it at start-up.
+``n{N}_actions`` (1, N, 2); for an ``own_target`` policy the tokens carry the mark of
+:func:`sim.observations.mark_own_targets` and ``n{N}_own`` (1, N) is the assignment it marks. The robot runtime (:mod:`deploy.robot`) replays it at start-up.
 
 The export verifies itself before anything is published: each file is reloaded (digest
 checked) and compared with the eager contract for N = 1..21 (every team a scenario can
@@ -65,7 +68,16 @@ from deploy.export.formats import (
     sniff_format,
 )
 from sim.files import atomic_path, sha256_file
-from sim.observations import LAYOUT_VERSION, TOKEN_DIM, tokens
+from sim.geometry import Polygon
+from sim.observations import (
+    LAYOUT_VERSION,
+    OWN_TARGET_CLEARANCE,
+    TOKEN_DIM,
+    mark_own_targets,
+    own_assignment,
+    own_target_paths,
+    tokens,
+)
 from sim.scenario import Scenario, make_scenario
 
 TOLERANCE = 1e-5
@@ -103,6 +115,7 @@ class ExportedPolicy:
         self.robot_counts = frozenset(int(c) for c in counts)
         self.robot_counts_text = (f"{min(counts)}..{max(counts)}" if len(counts) > 1
                                   and len(counts) == max(counts) - min(counts) + 1 else str(counts))
+        self.own_target = bool(meta.get("own_target", False))
         self.num_robots = counts[0] if len(counts) == 1 and meta["variant"] != "TypedSDPAActor" else -1
 
     def eval(self) -> ExportedPolicy:
@@ -175,8 +188,9 @@ def compare(runner: Runner, contract: PolicyContract, counts: Iterable[int], sce
 
 @torch.no_grad()
 def golden_cases(contract: PolicyContract, counts: Iterable[int], scenario: Scenario,
-                 seed: int = 0) -> dict[str, np.ndarray]:
-    """Raw states, tokens and eager contract actions for each N (module docstring)."""
+                 seed: int = 0, own_target: bool = False) -> dict[str, np.ndarray]:
+    """Raw states, tokens and eager contract actions for each N (module docstring); with
+    ``own_target`` the tokens carry the own-target mark and ``n{N}_own`` (1, N) the assignment."""
     polygon = torch.as_tensor(scenario.polygon, dtype=torch.float64)
     arena = scenario.arena
     rng = np.random.default_rng(seed)
@@ -188,6 +202,10 @@ def golden_cases(contract: PolicyContract, counts: Iterable[int], scenario: Scen
         vel = torch.as_tensor(rng.uniform(-0.4, 0.4, (1, n, 2)))
         targets = torch.as_tensor(rng.uniform(lo, hi, (1, n, 2)))
         toks, mask = tokens(pos, vel, targets, polygon, arena)
+        if own_target:
+            sigma = own_assignment(own_target_paths(Polygon(polygon), targets[0], scenario.robot_radius)(pos))
+            toks = mark_own_targets(toks, sigma)
+            data[f"n{n}_own"] = sigma.numpy()
         actions, valid = contract(toks.float().reshape(n, 2 * n + 1, TOKEN_DIM), mask.reshape(n, -1))
         if not bool(valid.all()):
             raise ExportError(f"the actor gives non-finite actions for {n} robots on finite states "
@@ -240,7 +258,9 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     counts = VERIFY_COUNTS if fixed_n < 0 else (fixed_n,)
     golden = golden_path(stem.with_suffix(".pt"))
     buffer = io.BytesIO()
-    np.savez(buffer, **golden_cases(contract, GOLDEN_COUNTS if fixed_n < 0 else counts, scenario, seed))
+    own_target = bool(getattr(actor, "own_target", False))
+    np.savez(buffer, **golden_cases(contract, GOLDEN_COUNTS if fixed_n < 0 else counts, scenario, seed,
+                                    own_target))
     base = {
         "format": EXPORT_FORMAT, "format_version": EXPORT_FORMAT_VERSION,
         "layout_version": LAYOUT_VERSION, "token_dim": TOKEN_DIM, "token_features": TOKEN_FEATURES,
@@ -248,7 +268,8 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
         "trained_robots": int(trained_robots), "scenario": scenario.to_dict(),
         "robot_counts": list(counts), "variant": type(actor).__name__, "config": config or {},
         "torch_version": torch.__version__, "source": source, "created_unix": time.time(),
-        "golden_file": golden.name,
+        "golden_file": golden.name, "own_target": own_target,
+        "own_target_margin": scenario.robot_radius + OWN_TARGET_CLEARANCE,
     }
     reports: list[ExportReport] = []
     with contextlib.ExitStack() as publish:    # every file verified, or none published

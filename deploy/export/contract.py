@@ -51,7 +51,11 @@ TOKEN_FEATURES: dict[str, Any] = {
     "kinds": [
         {"token": "0", "kind": "self", "features": ["p_x - W/2 [m]", "p_y - H/2 [m]", "v_x [m/s]", "v_y [m/s]"]},
         {"token": "1..N", "kind": "target k", "features": ["g_kx - p_x [m]", "g_ky - p_y [m]", "0", "0"],
-         "order": "the fleet's target order"},
+         "order": "the fleet's target order",
+         "own_target": "when the metadata's own_target is true, robot i's own target k = sigma_i "
+                       "(sigma: the team's one-to-one assignment of least total squared path "
+                       "length round the object inflated by own_target_margin) has features "
+                       "[d_x, d_y, m_x, m_y], d = g_k - p, m = d * min(1, 0.1 m / |d|)"},
         {"token": "N+1..2N-1", "kind": "other robot j", "features": [
             "q_jx - p_x [m]", "q_jy - p_y [m]", "u_jx - v_x [m/s]", "u_jy - v_y [m/s]"],
          "order": "ascending robot index, j != i"},
