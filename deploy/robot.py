@@ -21,8 +21,9 @@ features (metres, m/s; arena (W, H) centred at (W/2, H/2))::
 
 A file whose ``meta["own_target"]`` is true reads robot i's own target marked: target
 ``k = sigma_i`` of the team's one-to-one assignment of least total squared path length round
-the object (:func:`own_targets`, with ``meta["own_target_margin"]``) has features ``[d, d min(1, 0.1 m / |d|)]``, ``d = g_k - p``;
-``act`` works the assignment out from the positions it is given, or takes ``own_target``.
+the object (:func:`own_targets`, with ``meta["own_target_margin"]``) has features
+``[d, d min(1, 0.1 m / |d|)]``, ``d = g_k - p``; ``act`` works the assignment out from the
+positions it is given, or takes ``own_target``.
 
 The action is the policy's mean acceleration (2,) [m/s^2], bounded in norm by the file's
 ``accel_limit``; with any input non-finite it is (0, 0) and ``valid`` is False: brake.
@@ -360,6 +361,9 @@ class RobotPolicy:
         if own_target is not None and not self.own_target:
             raise ValueError(f"{self.path} does not read an own target (its metadata's own_target is "
                              "false); call act without own_target")
+        if own_target is not None and not 0 <= int(own_target) < len(np.asarray(targets).reshape(-1, 2)):
+            raise ValueError(f"own_target must index one of the {len(np.asarray(targets).reshape(-1, 2))} "
+                             f"targets, got {own_target}")
         if self.own_target and own_target is None:
             team = np.vstack((np.asarray(own_pos, dtype=np.float64).reshape(1, 2),
                               np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)))
@@ -370,4 +374,6 @@ class RobotPolicy:
         return Action(accel[0], bool(valid[0]))
 
 
-__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "hash_needle", "least_squares_assignment", "own_targets", "detour_distances", "onnx_content_ok", "onnx_session", "open_onnx", "robot_tokens"]
+__all__ = ["Action", "RobotPolicy", "RobotPolicyError", "detour_distances", "hash_needle",
+           "least_squares_assignment", "onnx_content_ok", "onnx_session", "open_onnx", "own_targets",
+           "robot_tokens"]

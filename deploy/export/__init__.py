@@ -26,7 +26,8 @@ export): for a few N, raw robot states (``n{N}_pos``, ``n{N}_vel``, ``n{N}_targe
 on the training scenario's ``polygon`` (M, 2) and ``arena`` (2,), the tokens ``n{N}_tokens``
 (1, N, 2N+1, 4) of :func:`sim.observations.tokens` and the eager contract's actions
 ``n{N}_actions`` (1, N, 2); for an ``own_target`` policy the tokens carry the mark of
-:func:`sim.observations.mark_own_targets` and ``n{N}_own`` (1, N) is the assignment it marks. The robot runtime (:mod:`deploy.robot`) replays it at start-up.
+:func:`sim.observations.mark_own_targets` and ``n{N}_own`` (1, N) is the assignment it marks
+(on the exact detour). The robot runtime (:mod:`deploy.robot`) replays it at start-up.
 
 The export verifies itself before anything is published: each file is reloaded (digest
 checked) and compared with the eager contract for N = 1..21 (every team a scenario can

@@ -122,13 +122,17 @@ def test_the_robot_runtime_marks_the_target_its_team_gives_it(exported, name):
         assert np.abs(np.array(unmarked) - want).max() > 1e-4      # 10x the tolerance: the mark counts
 
 
-def test_a_policy_without_the_mark_refuses_an_own_target(tmp_path):
+def test_a_policy_without_the_mark_refuses_an_own_target_and_a_bad_one_is_refused(exported, tmp_path):
     export_policy(own_actor(own=False), tmp_path / "plain", dt=0.05, trained_robots=5, formats=("onnx",))
     policy = RobotPolicy(tmp_path / "plain.onnx")
     assert policy.own_target is False
     with pytest.raises(ValueError, match="does not read an own target"):
         policy.act([0.2, 0.2], [0, 0], [[0.5, 0.5]], np.zeros((0, 2)), np.zeros((0, 2)),
                    SCENARIO.polygon, SCENARIO.arena, own_target=0)
+    with pytest.raises(ValueError, match="must index one of the 1 targets"):
+        RobotPolicy(next(iter(exported.values()))).act([0.2, 0.2], [0, 0], [[0.5, 0.5]], np.zeros((0, 2)),
+                                                       np.zeros((0, 2)), SCENARIO.polygon, SCENARIO.arena,
+                                                       own_target=3)
 
 
 @pytest.mark.parametrize("source", ["network", "onnx"])
