@@ -26,7 +26,7 @@ import torch
 from sim import observations
 from sim.actuator import BatchedActuators
 from sim.distribution import MAX_DELAY_TICKS, ScenarioDistribution
-from sim.geometry import DetourField, Frame, Polygon
+from sim.geometry import Frame, Polygon
 from sim.metrics import episode_outcome
 from sim.reward import RewardWeights
 from sim.scenario import Scenario
@@ -155,10 +155,8 @@ class BatchedFormationEnv:
         scale = self.rewarder.penalty_scale if self.rewarder is not None else 1.0
         self.rewarder = StepReward(scenario, self.num_envs, self.reward_weights, self.polygon, self.device)
         self.rewarder.penalty_scale = scale
-        if self.own_target:     # the reward's tabulated detour when it measures the same one
-            same = self.reward_weights.detour_clearance == observations.OWN_TARGET_CLEARANCE
-            self._own_paths = self.rewarder.detour if same else DetourField(
-                observations.own_target_paths(self.polygon, self.targets[0], self.radius), self.arena)
+        if self.own_target:
+            self._own_paths = self.rewarder.own_target_paths()
 
     # the reward's remembered state and the curriculum's scale live in self.rewarder
     prev_near_contact = property(lambda self: self.rewarder.prev_near_contact)

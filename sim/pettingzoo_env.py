@@ -48,6 +48,10 @@ class FormationParallelEnv(ParallelEnv):
         scenario: a :class:`Scenario` or a preset name for :func:`sim.scenario.make_scenario`.
         model_error: the robots' model error (default ``ModelError()``: none).
         reward_weights: see :mod:`sim.reward`.
+        own_target: mark each robot's own target in its tokens (an actor with
+            ``ActorConfig.own_target``; :func:`sim.observations.mark_own_targets`), assigned on
+            the measured state, and reward the assigned terms by that assignment, as the
+            batched world does.
         render_mode: only ``None`` (no rendering).
         **world_options: passed to :class:`PymunkWorld` (``substeps``, ``contact_friction``, ...).
     """
@@ -55,8 +59,8 @@ class FormationParallelEnv(ParallelEnv):
     metadata = {"name": "formation_v0", "render_modes": [], "is_parallelizable": True}
 
     def __init__(self, scenario: Scenario | str = "paper-3", model_error: ModelError | None = None, *,
-                 reward_weights: RewardWeights = RewardWeights(), render_mode: str | None = None,
-                 **world_options: Any):
+                 reward_weights: RewardWeights = RewardWeights(), own_target: bool = False,
+                 render_mode: str | None = None, **world_options: Any):
         if render_mode is not None:
             raise ValueError(f"render_mode must be None (this env does not render), got {render_mode!r}")
         self.render_mode = None
@@ -75,6 +79,7 @@ class FormationParallelEnv(ParallelEnv):
         self._polygon = Polygon(torch.as_tensor(sc.polygon, dtype=torch.float64))
         self._targets = torch.as_tensor(sc.targets).unsqueeze(0)
         self.rewarder = StepReward(sc, 1, reward_weights, self._polygon)
+        self._own_paths = self.rewarder.own_target_paths() if own_target else None
         self._prev_contact = torch.zeros(1, n, 3, dtype=torch.bool)
 
     def observation_space(self, agent: str) -> spaces.Box:
@@ -91,7 +96,7 @@ class FormationParallelEnv(ParallelEnv):
         self._prev_contact.zero_()
         self.agents = list(self.possible_agents)
         infos = self._infos(last=False)
-        return self._observations(), infos
+        return self._observations(self._own_sigma()), infos
 
     def step(self, actions: dict[str, np.ndarray]):
         """Apply one (2,) acceleration per live agent [m/s^2] and advance one control tick."""
@@ -111,9 +116,10 @@ class FormationParallelEnv(ParallelEnv):
         self.world.send_accelerations(command)
         state = self.world.step()
 
-        reward = self._reward()
+        sigma = self._own_sigma()
+        reward = self._reward(sigma)
         last = state.step >= self.scenario.dynamics.episode_steps
-        obs = self._observations()
+        obs = self._observations(sigma)
         rewards = {a: float(reward[i]) for i, a in enumerate(self.possible_agents)}
         terminations = dict.fromkeys(self.possible_agents, False)
         truncations = dict.fromkeys(self.possible_agents, last)
@@ -130,8 +136,15 @@ class FormationParallelEnv(ParallelEnv):
         pass
 
     # ---------------------------------------------------------------- helpers
-    def _reward(self) -> torch.Tensor:
-        """(N,) reward of the step just taken, on the true state (module docstring)."""
+    def _own_sigma(self) -> torch.Tensor | None:
+        """(1, N) own-target assignment of the measured state, or None without ``own_target``."""
+        if self._own_paths is None:
+            return None
+        return observations.own_assignment(self._own_paths(torch.from_numpy(self.world.read_state().positions)[None]))
+
+    def _reward(self, sigma: torch.Tensor | None) -> torch.Tensor:
+        """(N,) reward of the step just taken, on the true state (module docstring); ``sigma``
+        the assignment of the assigned terms (None: the reward's own)."""
         true, c = self.world.true_state(), self.world.contacts
         frame = Frame(torch.from_numpy(true.positions).unsqueeze(0), torch.from_numpy(true.velocities).unsqueeze(0),
                       self._targets, self._polygon)
@@ -140,13 +153,15 @@ class FormationParallelEnv(ParallelEnv):
         events.robot = events.robot | torch.from_numpy(c.robot).unsqueeze(0)
         contact[..., 0] = events.robot
         onsets, self._prev_contact = contact & ~self._prev_contact, contact
-        return self.rewarder(frame, touched, events, onsets)[0]
+        return self.rewarder(frame, touched, events, onsets, sigma)[0]
 
-    def _observations(self) -> dict[str, np.ndarray]:
+    def _observations(self, sigma: torch.Tensor | None) -> dict[str, np.ndarray]:
         s = self.world.read_state()
         toks, _ = observations.tokens(torch.from_numpy(s.positions).unsqueeze(0),
                                       torch.from_numpy(s.velocities).unsqueeze(0), self._targets,
                                       self._polygon, self.scenario.arena)
+        if sigma is not None:
+            toks = observations.mark_own_targets(toks, sigma)
         flat = toks[0].reshape(self.scenario.num_robots, -1).numpy().astype(np.float32)
         return {a: flat[i] for i, a in enumerate(self.possible_agents)}
 

@@ -15,6 +15,7 @@ import torch
 
 from sim.geometry import DetourDistance, DetourField, Frame, Polygon
 from sim.metrics import CollisionEvents, frame_collisions, optimal_assignment
+from sim.observations import OWN_TARGET_CLEARANCE, own_target_paths
 from sim.reward import RewardWeights, assignment_cost, proximity_ramp, reward_from_distances
 from sim.scenario import Scenario
 
@@ -44,6 +45,7 @@ class StepReward:
         self.scenario, self.weights = scenario, weights
         self.radius, self.arena = scenario.robot_radius, scenario.arena
         targets = polygon.vertices.new_tensor(scenario.targets)
+        self.polygon, self.targets = polygon, targets
         self.detour = DetourField(DetourDistance(polygon, targets, self.radius + weights.detour_clearance), self.arena)
         n = scenario.num_robots
         self.prev_near_contact = torch.zeros(num_envs, n, 3, dtype=torch.bool, device=device)
@@ -73,6 +75,13 @@ class StepReward:
             sigma if sigma is not None else
             self._sticky_assignment(d_detour) if w.assignment_hysteresis and (w.w_assigned or w.w_own_arrive) else None,
             self.penalty_scale)
+
+    def own_target_paths(self) -> DetourField:
+        """The tabulated path lengths of :func:`sim.observations.own_target_paths` for this
+        scenario: this reward's own when it measures the same detour, else a field of its own."""
+        if self.weights.detour_clearance == OWN_TARGET_CLEARANCE:
+            return self.detour
+        return DetourField(own_target_paths(self.polygon, self.targets, self.radius), self.arena)
 
     def _sticky_assignment(self, path: torch.Tensor) -> torch.Tensor:
         """(E, N) assignment kept from the last step unless the optimal one for the (E, N, N)

@@ -107,3 +107,30 @@ def test_bad_actions_raise_naming_the_agent():
         env.step(ok | {"robot_0": np.array([np.nan, 0.0])})
     with pytest.raises(ValueError, match="render_mode"):
         FormationParallelEnv(SHORT, render_mode="human")
+
+
+def test_own_target_observations_and_rewards_equal_the_batched_worlds():
+    """With ``own_target`` both worlds mark the same targets and reward by the same assignment on
+    shared states (the free approach, before the object): observations to 1e-6, rewards to 1e-6.
+    Without the mark the PettingZoo observation would differ from the batched world's."""
+    weights = RewardWeights(**TRAINING_REWARD)
+    env = FormationParallelEnv(SHORT, reward_weights=weights, own_target=True)
+    plain = FormationParallelEnv(SHORT, reward_weights=weights)
+    obs, _ = env.reset(seed=0)
+    plain_obs, _ = plain.reset(seed=0)
+    batched = BatchedFormationEnv(SHORT, 1, reward_weights=weights, dtype=torch.float64, own_target=True)
+    start = env.world.true_state()
+    batched.set_state(torch.from_numpy(start.positions)[None], torch.from_numpy(start.velocities)[None])
+    want, _ = batched.observe()
+    for i, agent in enumerate(env.possible_agents):
+        assert np.allclose(obs[agent], want[0, i].reshape(-1).numpy(), atol=1e-6)
+    assert not all(np.allclose(plain_obs[a], obs[a], atol=1e-6) for a in env.possible_agents)
+    for _ in range(4):
+        pos = env.world.true_state().positions
+        toward = np.clip(3.0 * (SHORT.targets - pos), -1, 1)
+        obs, rew, *_ = env.step({a: toward[i].astype(np.float32) for i, a in enumerate(env.agents)})
+        step = batched.step(torch.from_numpy(toward.astype(np.float32)).double()[None])
+        assert np.abs(batched.pos[0].numpy() - env.world.true_state().positions).max() < 1e-9
+        np.testing.assert_allclose([rew[a] for a in env.possible_agents], step.reward[0].numpy(), atol=1e-6)
+        for i, agent in enumerate(env.possible_agents):
+            assert np.allclose(obs[agent], step.obs[0, i].reshape(-1).numpy(), atol=1e-6)
