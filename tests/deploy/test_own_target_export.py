@@ -12,25 +12,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controllers.docking import DockingConfig
-from controllers.policy import ActorConfig, build_actor
+from controllers.policy import ActorConfig
 from deploy.export import check_export, export_policy, load_exported
 from deploy.robot import RobotPolicy, detour_distances, least_squares_assignment, robot_tokens
 from sim.fleet import FleetState
 from sim.geometry import DetourDistance, Polygon
 from sim.observations import mark_own_targets, own_assignment, own_target_paths, tokens
 from sim.scenario import make_scenario
+from tests.deploy.test_npz_policy import scaled_actor
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*torch.jit.*:DeprecationWarning")
 SCENARIO = make_scenario("paper-5")
 
 
 def own_actor(own: bool = True):
-    torch.manual_seed(5)
-    actor = build_actor(ActorConfig(embed_dim=32, velocity_damping=2.0, own_target=own), 5)
-    with torch.no_grad():
-        for p in actor.parameters():
-            p.mul_(1.5)
-    return actor.eval()
+    return scaled_actor(ActorConfig(embed_dim=32, velocity_damping=2.0, own_target=own), seed=5)
 
 
 @pytest.fixture(scope="module")
