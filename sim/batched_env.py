@@ -91,6 +91,9 @@ class BatchedFormationEnv:
             at every episode's end unless some were reset alone); the actuator is drawn per
             environment at each of its resets (:mod:`sim.actuator`). ``scenario`` gives the
             arena, radius, tolerance, dynamics and N.
+        own_target: mark each robot's own target in its tokens
+            (:func:`sim.observations.mark_own_targets`, for an actor with
+            ``ActorConfig.own_target``) and reward the assigned terms by that same assignment.
     """
 
     def __init__(self, scenario: Scenario, num_envs: int, *, seed: int | None = None,
