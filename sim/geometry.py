@@ -281,6 +281,7 @@ class DetourField:
         ys = torch.arange(self.ny, dtype=t.dtype, device=t.device) * resolution
         grid = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1], -1).reshape(-1, 2)
         self.table = detour(grid).contiguous()                      # (ny * nx, K), row = iy * nx + ix
+        self._table_np: np.ndarray | None = None
 
     def __call__(self, pos: torch.Tensor) -> torch.Tensor:
         """(E, N, 2) centres -> (E, N, K) detour distances to the K targets [m]."""
@@ -289,3 +290,12 @@ class DetourField:
         iy = (pos[..., 1] / self.res).round().clamp(0, self.ny - 1)
         node = (iy * self.nx + ix).long().reshape(-1)
         return self.table.index_select(0, node).view(e, n, -1)
+
+    def lookup_np(self, pos: np.ndarray) -> np.ndarray:
+        """:meth:`__call__` for one fleet in numpy, (N, 2) -> (N, K): one gather, no torch call
+        (the control tick's own-target assignment reads it)."""
+        if self._table_np is None:
+            self._table_np = self.table.numpy()
+        ix = np.clip(np.rint(pos[:, 0] / self.res), 0, self.nx - 1)
+        iy = np.clip(np.rint(pos[:, 1] / self.res), 0, self.ny - 1)
+        return self._table_np[(iy * self.nx + ix).astype(np.int64)]

@@ -123,23 +123,32 @@ def own_target_paths(polygon: Polygon, targets: torch.Tensor, radius: float) -> 
 class FleetOwnTargets:
     """:func:`own_assignment` for one fleet in numpy, as the ControlStack needs it every tick:
     ``(pos (N, 2), targets (N, 2)) -> (N,)`` int, read from the tabulated paths of the batched
-    world (built once per set of targets, ~0.3 s) and solved with scipy."""
+    world (:meth:`sim.geometry.DetourField.lookup_np`) and solved with scipy. The table of a set
+    of targets takes ~0.3-0.5 s to build: ``targets`` given here (the scenario's) are tabulated
+    now, not at the first tick; other targets are tabulated when first seen."""
 
-    def __init__(self, polygon: np.ndarray, radius: float, arena: tuple[float, float]):
+    def __init__(self, polygon: np.ndarray, radius: float, arena: tuple[float, float],
+                 targets: np.ndarray | None = None):
+        from scipy.optimize import linear_sum_assignment
+
+        self._solve = linear_sum_assignment
         self.polygon = Polygon(torch.as_tensor(np.asarray(polygon), dtype=torch.float64))
         self.radius, self.arena = float(radius), arena
         self._key: bytes | None = None
         self._field: DetourField | None = None
+        if targets is not None:
+            self._tabulate(np.ascontiguousarray(targets, dtype=np.float64))
+
+    def _tabulate(self, targets: np.ndarray) -> None:
+        paths = own_target_paths(self.polygon, torch.from_numpy(targets), self.radius)
+        self._field, self._key = DetourField(paths, self.arena), targets.tobytes()
 
     def __call__(self, pos: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        from scipy.optimize import linear_sum_assignment
-
         targets = np.ascontiguousarray(targets, dtype=np.float64)
         if self._key != targets.tobytes():
-            paths = own_target_paths(self.polygon, torch.from_numpy(targets), self.radius)
-            self._field, self._key = DetourField(paths, self.arena), targets.tobytes()
-        path = self._field(torch.from_numpy(np.asarray(pos, dtype=np.float64))[None])[0].numpy()
-        rows, cols = linear_sum_assignment(path * path)
+            self._tabulate(targets)
+        path = self._field.lookup_np(np.asarray(pos, dtype=np.float64))
+        rows, cols = self._solve(path * path)
         sigma = np.empty(len(rows), dtype=np.int64)
         sigma[rows] = cols
         return sigma

@@ -264,8 +264,8 @@ class ControlStack:
         own = self._exported.meta.get("own_target", False) if self._exported is not None else (
             getattr(self.network, "own_target", False) if self.network is not None else False)
         self.own_target = bool(own)     # the policy reads its own target marked (sim.observations)
-        self._own_targets = (FleetOwnTargets(scenario.polygon, scenario.robot_radius, scenario.arena)
-                             if self.own_target else None)
+        self._own_targets = (FleetOwnTargets(scenario.polygon, scenario.robot_radius, scenario.arena,
+                                             scenario.targets) if self.own_target else None)
         self._polygon = scenario.polygon
         self._token_constants = (*object_token_constants(np.asarray(self._polygon)),
                                  float(scenario.arena[0] / 2), float(scenario.arena[1] / 2))

@@ -142,6 +142,17 @@ def _field():
     return DetourField(_detour(), (1.0, 1.0), resolution=0.005)
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 8), st.integers(0, 2**31 - 1))
+def test_the_fields_numpy_lookup_reads_the_same_nodes(n, seed):
+    """:meth:`DetourField.lookup_np` (the control tick's) against the torch lookup, points off
+    the arena included (clamped to its edge nodes) and points half a node apart (rounding)."""
+    rng = np.random.default_rng(seed)
+    pos = np.concatenate((rng.uniform(-0.1, 1.1, (n, 2)), (rng.integers(0, 200, (n, 2)) + 0.5) * 0.005))
+    want = _field()(torch.from_numpy(pos)[None])[0].numpy()
+    assert np.array_equal(_field().lookup_np(pos), want)
+
+
 def test_detour_falls_back_to_straight_for_non_convex_objects():
     from sim.geometry import DetourDistance
 

@@ -116,3 +116,23 @@ def test_own_assignment_is_the_least_total_squared_path(n, seed):
             return sum(float(row[i, k] ** 2) for i, k in enumerate(perm))
 
         assert cost(told.tolist()) <= min(cost(p) for p in itertools.permutations(range(n))) + 1e-12
+
+
+def test_the_fleets_own_targets_are_tabulated_before_the_first_tick_and_match_the_worlds():
+    """:class:`FleetOwnTargets` builds its table for the targets it is given up front (~0.3 s,
+    not at the first tick), keeps it while the targets stay, and assigns as the batched world."""
+    from sim.batched_env import BatchedFormationEnv
+
+    sc = make_scenario("paper-5")
+    fleet = obs.FleetOwnTargets(sc.polygon, sc.robot_radius, sc.arena, sc.targets)
+    table = fleet._field
+    assert table is not None
+    env = BatchedFormationEnv(sc, 1, dtype=torch.float64, own_target=True)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        pos = rng.uniform(0.05, 0.95, (5, 2))
+        want = obs.own_assignment(env._own_paths(torch.from_numpy(pos)[None]))[0].numpy()
+        assert np.array_equal(fleet(pos, sc.targets), want)
+    assert fleet._field is table
+    fleet(pos, np.asarray(sc.targets)[::-1])
+    assert fleet._field is not table
