@@ -327,6 +327,12 @@ class BatchedFormationEnv:
         return stats
 
 
+def reads(actor) -> dict:
+    """The observation keywords of :class:`BatchedFormationEnv` that give ``actor`` what it reads:
+    its ``obs_kind`` (tokens unless it says otherwise) and the own-target marks it was trained on."""
+    return {"obs": getattr(actor, "obs_kind", "tokens"), "own_target": bool(getattr(actor, "own_target", False))}
+
+
 def _clip_norm(x: torch.Tensor, limit: float) -> torch.Tensor:
     """Scale each (..., 2) vector down to norm <= limit (direction kept)."""
     norm = (x * x).sum(-1, keepdim=True).sqrt()

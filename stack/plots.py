@@ -249,11 +249,10 @@ class Trajectories:
 def _rollout_env(scenario, episodes: int, seed: int, steps: int, actor):
     """A batched world of ``episodes`` envs whose episodes outlast ``steps`` (no auto-reset),
     giving ``actor`` the observations it reads."""
-    from sim.batched_env import BatchedFormationEnv
+    from sim.batched_env import BatchedFormationEnv, reads
 
     long = dataclasses.replace(scenario, dynamics=dataclasses.replace(scenario.dynamics, episode_steps=steps + 1))
-    return BatchedFormationEnv(long, episodes, seed=seed, obs=getattr(actor, "obs_kind", "tokens"),
-                               own_target=bool(getattr(actor, "own_target", False)))
+    return BatchedFormationEnv(long, episodes, seed=seed, **reads(actor))
 
 
 def record_trajectories(actor, scenario, *, episodes: int = 4, seed: int = 0,

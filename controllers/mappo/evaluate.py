@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sim.batched_env import BatchedFormationEnv
+from sim.batched_env import BatchedFormationEnv, reads
 from sim.files import atomic_write_text
 from sim.reward import RewardWeights
 from sim.scenario import Scenario
@@ -72,7 +72,6 @@ def evaluate(actor: nn.Module, scenario: Scenario, *, episodes: int = 100, seed:
     """
     if not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
-    obs_kind = getattr(actor, "obs_kind", "tokens")
     was_training = actor.training
     actor.eval()
     totals: dict[str, float] = {k: 0.0 for k in ("success", "final_distance", "episode_return",
@@ -82,9 +81,8 @@ def evaluate(actor: nn.Module, scenario: Scenario, *, episodes: int = 100, seed:
     try:
         while done_episodes < episodes:
             e = min(batch_size, episodes - done_episodes)
-            env = BatchedFormationEnv(scenario, e, seed=seed + 7919 * chunk, device=device, obs=obs_kind,
-                                      reward_weights=reward_weights,
-                                      own_target=bool(getattr(actor, "own_target", False)))
+            env = BatchedFormationEnv(scenario, e, seed=seed + 7919 * chunk, device=device,
+                                      reward_weights=reward_weights, **reads(actor))
             obs, mask = env.reset()
             for _ in range(env.episode_steps):
                 result = env.step(actor(obs, mask))

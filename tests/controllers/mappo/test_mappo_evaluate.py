@@ -80,3 +80,28 @@ def test_evaluate_is_deterministic_and_writes_json(tmp_path):
     assert json.loads((tmp_path / "eval.json").read_text())["episodes"] == 12
     with pytest.raises(ValueError, match="episodes"):
         evaluate(actor, sc, episodes=0)
+
+
+class CountsMarks(StandStill):
+    """Stands still and counts, per robot and step, the target tokens that carry a mark."""
+
+    def __init__(self, own_target: bool):
+        super().__init__()
+        self.own_target, self.marks = own_target, []
+
+    def forward(self, obs, mask=None):
+        n = obs.shape[1]
+        self.marks.append((obs[:, :, 1:n + 1, 2:4].abs().sum(-1) > 0).sum(-1))
+        return super().forward(obs, mask)
+
+
+def test_evaluation_gives_an_own_target_actor_marked_tokens():
+    """Every robot of an actor that reads own-target marks sees exactly one marked target at
+    every step of evaluation; an actor that does not read them sees none."""
+    scenario = make_scenario("paper-3")
+    for own in (True, False):
+        actor = CountsMarks(own)
+        evaluate(actor, scenario, episodes=4)
+        marks = torch.stack(actor.marks)
+        assert marks.shape == (scenario.dynamics.episode_steps, 4, 3)
+        assert bool((marks == int(own)).all())
