@@ -6,9 +6,10 @@ Every run writes, in its folder: ``config.json`` (the resolved configuration, it
 ``checkpoint.pt`` (atomic, resumable) and ``result.json``. Ctrl-C keeps the last checkpoint;
 ``--resume`` continues the same curve.
 
-The configuration is :class:`controllers.mappo.MAPPOConfig`: its defaults, then ``--config``
-(a .json or .toml file of any of its fields, nested ``actor``/``critic``/``reward_weights``
-tables included, or inline JSON), then the flags given on the command line. Unknown fields are
+The configuration is :class:`controllers.mappo.MAPPOConfig`: its defaults (with ``--resume``:
+the run's own ``config.json``), then ``--config`` (a .json or .toml file of any of its fields,
+nested ``actor``/``critic``/``reward_weights`` tables included, or inline JSON), then the flags
+given on the command line. Unknown fields are
 refused with their name; ``reward_weights`` given change the training reward's
 (``TRAINING_REWARD``) weights they name and keep the others. ``--print-config`` prints the
 resolved configuration and exits.
@@ -35,6 +36,7 @@ import time
 from pathlib import Path
 
 from controllers.mappo import MAPPOConfig, TrainConfigError, train
+from controllers.mappo.checkpoint import CheckpointError
 from controllers.mappo.config import user_fields
 from controllers.policy import PolicyConfigError
 from sim.files import ConfigFileError, read_config
@@ -72,9 +74,17 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def given_fields(args) -> dict:
+    """The fields of ``--config`` over, with ``--resume``, those of the run's ``config.json``."""
+    saved = args.out / "config.json" if args.resume and args.out is not None else None
+    fields = read_config(saved, "the run's config.json") if saved is not None and saved.is_file() else {}
+    return fields | (read_config(args.config, "--config") if args.config else {})
+
+
 def resolve_config(args) -> MAPPOConfig:
-    """Defaults < ``--config`` < flags given (module docstring); raises ValueError-like errors."""
-    fields = read_config(args.config, "--config") if args.config else {}
+    """Defaults < the run's config (``--resume``) < ``--config`` < flags given (module
+    docstring); raises ValueError-like errors."""
+    fields = given_fields(args)
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed,
              "init_from": args.init_from, "team_sizes": args.team_sizes, "distribution": args.distribution}
     fields |= {k: v for k, v in flags.items() if v is not None}
@@ -99,7 +109,7 @@ def resolve_baseline_config(args):
     unused = [name for name in MAPPO_ONLY if getattr(args, name) not in (None, False)]
     if unused:
         raise ValueError(f"--algo {chosen_algo(args)} does not take --{unused[0].replace('_', '-')} (MAPPO only)")
-    fields = read_config(args.config, "--config") if args.config else {}
+    fields = given_fields(args)
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed}
     fields |= {k: v for k, v in flags.items() if v is not None}
     if args.no_stop:
@@ -139,7 +149,6 @@ def chosen_algo(args) -> str:
 
 def run_baseline(args) -> int:
     from controllers.baselines import BASELINES, BaselineConfigError
-    from controllers.mappo.checkpoint import CheckpointError
 
     try:
         import torchrl  # noqa: F401
@@ -180,5 +189,9 @@ def run(args) -> int:
         print(json.dumps(config.to_dict(), indent=2))
         return 0
     out = args.out or Path("runs") / time.strftime(f"train-{config.scenario_name}-%Y%m%d-%H%M%S")
-    result = train(config, out, resume=args.resume)
+    try:
+        result = train(config, out, resume=args.resume)
+    except (TrainConfigError, CheckpointError) as exc:     # a resume the run's checkpoint refuses
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return summary(out, result)

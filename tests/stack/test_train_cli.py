@@ -21,6 +21,25 @@ def test_train_writes_a_resumable_run(tmp_path):
     assert json.loads((out / "result.json").read_text())["episodes"] >= 16 > first
 
 
+def test_resume_takes_the_runs_own_config_and_refuses_a_changed_one_by_name(tmp_path, capsys):
+    """``--resume --out RUN`` alone continues the run as it was configured (its seed, scenario
+    and nested actor fields: not the defaults); a change outside the resumable fields is an
+    error naming the field, not a traceback."""
+    out = tmp_path / "run"
+    tiny = json.loads(TINY) | {"seed": 5, "actor": {"embed_dim": 16}}
+    assert main(["train", "--scenario", "line-1", "--episodes", "8", "--out", str(out),
+                 "--config", json.dumps(tiny)]) == 0
+    assert main(["train", "--resume", "--out", str(out), "--episodes", "16", "--no-stop"]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert (config["seed"], config["scenario"], config["actor"]["embed_dim"]) == (5, "line-1", 16)
+    assert config["stop_at_convergence"] is False
+    assert json.loads((out / "result.json").read_text())["episodes"] >= 16
+    capsys.readouterr()
+    assert main(["train", "--resume", "--out", str(out), "--config", '{"lr": 1e-3}']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot resume: config field 'lr'") and "Traceback" not in err
+
+
 def test_train_rejects_unknown_fields_and_resume_without_out(tmp_path, capsys):
     assert main(["train", "--config", '{"lrr": 1}', "--out", str(tmp_path / "x")]) == 2
     assert "unknown config field(s) ['lrr']" in capsys.readouterr().err
