@@ -14,7 +14,8 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
   starts inside ``h >= 0``), once with the stack (filter + MEC: ``StackConfig()``, or its latency
   bound narrowed by ``--command-delay-ms`` as a user who knows their link would) and once bare
   (filter off, MEC off): episodes with a contact onset, ``collisions_filter_on`` /
-  ``collisions_filter_off``;
+  ``collisions_filter_off``; docking is off in both (near a free target it would take the robot
+  over from the adversary, whose commands are the point);
 * ``scripted`` episodes of the scripted controller on paper-3/4/5 (and of ``--policy``, if
   given): success and contact episodes with the default stack and bare, and how soon the team
   first stands on its targets (``arrival_scripted``/``arrival_policy``:
@@ -98,6 +99,7 @@ def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
     torch.set_num_threads(1)
     out = {"condition": name, "seed": seed}
     for key, config in (("on", stack_config), ("off", BARE)):
+        config = dataclasses.replace(config, docking=DockingConfig(enabled=False))
         rng = np.random.default_rng(seed)
         n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
         sc = transport_scenario(n)

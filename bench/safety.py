@@ -10,8 +10,9 @@
     mode: full thrust at its nearest neighbour, at the object, at the nearest wall, along a fixed
     random direction, along a fresh random direction every tick, the scripted controller, or
     (with ``--policy``) a trained policy. The ControlStack runs with the MEC on, once with the
-    safety filter and once without, on the same seed; an episode counts when the pymunk world
-    records at least one contact onset (robot, object or wall).
+    safety filter and once without, on the same seed, docking off (it would take a robot near a
+    free target over from the adversary); an episode counts when the pymunk world records at
+    least one contact onset (robot, object or wall).
 (b) MEC: the scripted controller's commands, recorded on the nominal model (sim dynamics, no
     error) from each episode's start, replayed open loop through pymunk with gain 0.7, lag
     0.05 s and floor friction 0.1 m/s^2, with and without the MEC (filter off). Tracking error =
@@ -78,6 +79,7 @@ from _safety_conditions import CONDITIONS, OPEN_LOOP, run_conditions  # noqa: E4
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from controllers.docking import DockingConfig  # noqa: E402
 from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
@@ -115,7 +117,8 @@ def invariance_episode(task: tuple[int, int, str | None, str]) -> dict:
                         disturbance_std=0.02)
         world = PymunkWorld(sc, me)
         stack = ControlStack(sc, AdversarialPolicy(sc, rng, network),
-                             StackConfig(safety=filt, mec=True, safety_config=SafetyConfig(geometry=geometry)))
+                             StackConfig(safety=filt, mec=True, safety_config=SafetyConfig(geometry=geometry),
+                                         docking=DockingConfig(enabled=False)))   # the adversary's commands, unreplaced
         barrier = SafetyFilter(sc, stack.config.safety_config)
         m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
         key = "on" if filt else "off"
