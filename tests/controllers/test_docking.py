@@ -48,11 +48,33 @@ def test_docking_holds_between_capture_and_release_radius_per_robot_id():
         pos, targets = (np.array([rows[rid](x)[k] for rid in ids]) for k in (0, 1))
         return dock(ids, pos, np.zeros((2, 2)), targets, np.zeros((2, 2)))[1][list(ids).index("a")]
 
-    assert not step(IDS, 0.27)            # 7 cm: beyond capture (6 cm)
-    assert step(IDS, 0.25)                # 5 cm: captured
-    assert step(("b", "a"), 0.27)         # 7 cm, rows reordered: still docking (release at 8 cm)
-    assert not step(IDS, 0.29)            # 9 cm: released
-    assert not step(IDS, 0.27)
+    assert not step(IDS, 0.33)            # 13 cm: beyond capture (12 cm)
+    assert step(IDS, 0.31)                # 11 cm: captured
+    assert step(("b", "a"), 0.33)         # 13 cm, rows reordered: still docking (release at 14 cm)
+    assert not step(IDS, 0.35)            # 15 cm: released
+    assert not step(IDS, 0.33)
+
+
+def test_a_robot_jammed_in_a_packed_column_9_cm_from_its_free_target_is_taken_home():
+    """transport-8 as an own-target generalist left it through the stack (pymunk, one tick of
+    delay; module docstring, "How near"): seven robots packed into the column x = 0.33, robot 5
+    9.4 cm from the free slot behind it, every robot at rest. The default capture radius takes
+    robot 5 over with the PD law onto that slot; the radius of before (6 cm) leaves it to a
+    policy that pushed it sideways into its neighbour for the last 60 ticks."""
+    targets = np.array([[0.33, 0.125], [0.33, 0.25], [0.33, 0.375], [0.33, 0.5], [0.33, 0.625],
+                        [0.33, 0.75], [0.33, 0.875], [0.205, 0.5]])
+    pos = np.array([[0.33, 0.25], [0.282, 0.352], [0.33, 0.125], [0.33, 0.75], [0.312, 0.638],
+                    [0.292, 0.543], [0.306, 0.447], [0.33, 0.875]])
+    ids = tuple(f"r{i}" for i in range(8))
+    a_nom = np.array([[0.0, 0.0], [-0.03, -0.02], [0.0, 0.0], [0.0, 0.0], [-0.15, -0.42],
+                      [0.18, -0.35], [-0.03, 0.53], [0.0, 0.0]])
+    out, docking = Docking(R, LIMIT)(ids, pos, np.zeros((8, 2)), targets, a_nom)
+    assert docking[5]
+    np.testing.assert_allclose(out[5], 6.0 * (targets[7] - pos[5]))      # (-0.522, -0.258): home
+    before = Docking(R, LIMIT, DockingConfig(capture_radius=0.06, release_radius=0.08))
+    out, docking = before(ids, pos, np.zeros((8, 2)), targets, a_nom)
+    assert not docking[5]
+    np.testing.assert_array_equal(out[5], a_nom[5])
 
 
 def test_a_robot_passing_its_matched_target_is_not_captured_until_it_slows():
