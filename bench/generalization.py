@@ -27,12 +27,22 @@ at episode 0) and the episodes to convergence (the budget where it does not conv
 
 ``--json``: ``{"train": {"generalist": {"episodes": ..., "env_steps": ..., "wall_s": ...,
 "converged_seeds": ...}, "specialist": {...}}, "grid": [{"policy", "seed", "scenario", "robots",
-"world", "success", "collisions", "final_distance_mm"}, ...], "finetune": {"layout": ...,
+"world", "success", "collisions", "final_distance_mm"}, ...],  (pymunk rows also
+``capture_radius`` and ``arrival_tick``, the mean first tick the team stood on its targets) "finetune": {"layout": ...,
 "robots": ..., "budget": ..., "runs": [{"seed", "zero_shot_success", "episodes", "converged",
 "wall_s"}], "median_episodes": ...}}``.
 
     python bench/generalization.py --seeds 3                      # the full grid
     python bench/generalization.py --seeds 1 --robots 3,6 --episodes 20 --json
+
+``--policies RUN/checkpoint.pt,...`` judges those policies on the grid instead of training (no
+``train`` or ``finetune`` then; each row's ``policy`` is the file). ``--capture-radius
+0.12,0.06`` runs the pymunk cells once per docking capture radius (:mod:`controllers.docking`,
+release 2 cm further), each row saying its ``capture_radius``: the stack's default beside the
+radius of before, in one run:
+
+    python bench/generalization.py --policies a/checkpoint.pt,b/checkpoint.pt --layouts transport \
+        --robots 3,4,5,6,7,8,9,10 --episodes 50 --pymunk-episodes 10 --capture-radius 0.12,0.06 --json
 """
 
 from __future__ import annotations
@@ -106,9 +116,10 @@ def judge(checkpoint: str, args) -> list[dict]:
     """The grid rows of one policy (module docstring)."""
     import torch
 
+    from controllers.docking import DockingConfig
     from controllers.mappo import evaluate, load_actor
     from sim.pymunk_world import ModelError, PymunkWorld
-    from stack.pipeline import ControlStack, run_episode
+    from stack.pipeline import ControlStack, StackConfig, run_episode
 
     torch.set_num_threads(1)
     actor = load_actor(checkpoint)
@@ -120,15 +131,31 @@ def judge(checkpoint: str, args) -> list[dict]:
             rows.append({"scenario": sc.name, "layout": name, "robots": n, "world": "batched",
                          "success": r.success_rate, "collisions": r.collision_rate,
                          "final_distance_mm": 1000 * r.final_distance})
-            if args.pymunk_episodes:
-                runs = [run_episode(PymunkWorld(sc, ModelError(**PYMUNK_ERROR)), ControlStack(sc, actor), 10_000 + k)
-                        for k in range(args.pymunk_episodes)]
+            for radius in args.capture_radius if args.pymunk_episodes else ():
+                docking = DockingConfig() if radius is None else DockingConfig(capture_radius=radius,
+                                                                                release_radius=radius + 0.02)
+                config = StackConfig(docking=docking)
+                runs = [run_episode(PymunkWorld(sc, ModelError(**PYMUNK_ERROR)), ControlStack(sc, actor, config),
+                                    10_000 + k) for k in range(args.pymunk_episodes)]
                 ok = [m.final_distance for m in runs if m.success]
+                arrived = [m.arrival_step for m in runs if m.arrival_step is not None]
                 rows.append({"scenario": sc.name, "layout": name, "robots": n, "world": "pymunk",
                              "success": sum(m.success for m in runs) / len(runs),
                              "collisions": sum(m.collided for m in runs) / len(runs),
-                             "final_distance_mm": 1000 * statistics.mean(ok) if ok else None})
+                             "final_distance_mm": 1000 * statistics.mean(ok) if ok else None,
+                             "capture_radius": docking.capture_radius,
+                             "arrival_tick": statistics.mean(arrived) if arrived else None})
     return rows
+
+
+def judge_given(args) -> list[dict]:
+    """The grid rows of ``--policies``, ``--cpus`` policies at a time."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(min(args.cpus, len(args.policies))) as pool:
+        rows = pool.map(judge, args.policies, [args] * len(args.policies))
+        return [{"policy": path, "seed": None, **row} for path, policy_rows in zip(args.policies, rows, strict=True)
+                for row in policy_rows]
 
 
 def finetune(args, specs: list[TrialSpec], out: Path) -> dict:
@@ -179,6 +206,10 @@ def main(argv=None) -> int:
                    help="fine-tuning episodes on the held-out layout per generalist seed (default 400; 0: skip)")
     p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")
     p.add_argument("--out", type=Path, default=Path("runs/generalization"), help="run folders (default runs/generalization)")
+    p.add_argument("--policies", type=lambda s: s.split(","), default=None, metavar="CKPT,...",
+                   help="judge these checkpoints or exported files on the grid instead of training")
+    p.add_argument("--capture-radius", type=radius_list, default=[None], metavar="R,...",
+                   help="docking capture radii [m] of the pymunk cells (default: the stack's, 0.12)")
     add_output_args(p)
     args = p.parse_args(argv)
     if not args.penalty_curriculum >= 0:
@@ -186,6 +217,11 @@ def main(argv=None) -> int:
     bad = sorted(set(args.layouts) - set(LAYOUTS))
     if bad:
         p.error(f"--layouts: unknown {bad}; choose from {','.join(LAYOUTS)}")
+    missing = [path for path in args.policies or () if not Path(path).is_file()]
+    if missing:
+        p.error(f"--policies: no such file {missing[0]}")
+    if args.policies:
+        return report({"train": {}, "grid": judge_given(args), "finetune": None}, args)
     specs = trials(args, args.out)
     progress(f"training {len(specs)} runs on {args.cpus} CPUs under {args.out}")
     run_trials(specs, args.out, cpus=args.cpus, experiment="generalization", restore=False, verbose=0)
@@ -201,18 +237,37 @@ def main(argv=None) -> int:
         grid += [{"policy": s.group, "seed": s.seed, **row} for row in judge(str(Path(s.folder) / "checkpoint.pt"), args)]
     doc = {"train": train, "grid": grid,
            "finetune": finetune(args, specs, args.out) if args.finetune_budget > 0 else None}
+    return report(doc, args)
+
+
+def radius_list(text: str) -> list[float]:
+    """``0.12,0.06`` -> radii in metres, each > 0."""
+    try:
+        radii = [float(x) for x in text.split(",")]
+    except ValueError:
+        radii = []
+    if not radii or not all(0 < r < 1 for r in radii):
+        raise argparse.ArgumentTypeError(f"expected radii in metres between 0 and 1, e.g. 0.12,0.06; got {text!r}")
+    return radii
+
+
+def report(doc: dict, args) -> int:
+    """Print ``doc`` as JSON (``--json``) or as tables: success per policy, world, layout and N."""
     if args.json:
         print_json(doc)
         return 0
-    print_table(["policy", "train episodes (median)", "converged", "wall s"],
-                [[k, v["episodes"], f"{v['converged_seeds']}/{v['seeds']}", v["wall_s"]] for k, v in train.items()])
-    cells = {}
-    for row in grid:
-        cells.setdefault((row["policy"], row["world"], row["layout"], row["robots"]), []).append(row["success"])
+    train = doc["train"]
+    if train:
+        print_table(["policy", "train episodes (median)", "converged", "wall s"],
+                    [[k, v["episodes"], f"{v['converged_seeds']}/{v['seeds']}", v["wall_s"]] for k, v in train.items()])
+    cells: dict[tuple, list[float]] = {}
+    for row in doc["grid"]:
+        world = row["world"] + (f" (capture {row['capture_radius']:g} m)" if len(args.capture_radius) > 1
+                                and row["world"] == "pymunk" else "")
+        cells.setdefault((row["policy"], world, row["layout"], row["robots"]), []).append(row["success"])
     print_table(["policy", "world", "layout", *[f"N={n}" for n in args.robots]],
                 [[pol, world, lay, *[f"{statistics.mean(cells[(pol, world, lay, n)]):.2f}" for n in args.robots]]
-                 for pol in train for world in ("batched", "pymunk") for lay in args.layouts
-                 if (pol, world, lay, args.robots[0]) in cells])
+                 for pol, world, lay in sorted({k[:3] for k in cells}, key=lambda k: (k[0], k[1], args.layouts.index(k[2])))])
     if doc["finetune"]:
         ft = doc["finetune"]
         print_table([f"fine-tune on {ft['layout']}: seed", "zero-shot success", "episodes to converge", "wall s"],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import types
@@ -68,13 +69,36 @@ def test_a_policy_is_judged_on_every_cell_of_the_grid_in_both_worlds(tmp_path):
     small = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
     run = train(MAPPOConfig(num_envs=2, total_episodes=2, eval_episodes=2, progress=False,
                             actor=dict(small), critic=dict(small)), tmp_path / "run")
-    args = types.SimpleNamespace(layouts=list(LAYOUTS), robots=[1, 3], episodes=2, pymunk_episodes=1)
+    args = types.SimpleNamespace(layouts=list(LAYOUTS), robots=[1, 3], episodes=2, pymunk_episodes=1,
+                                 capture_radius=[None, 0.06])
     rows = judge(run.checkpoint, args)
-    cells = {(r["layout"], r["robots"], r["world"]) for r in rows}
-    assert cells == {(lay, n, w) for lay in LAYOUTS for n in (1, 3) for w in ("batched", "pymunk")}
+    cells = {(r["layout"], r["robots"], r["world"], r.get("capture_radius")) for r in rows}
+    assert cells == {(lay, n, w, c) for lay in LAYOUTS for n in (1, 3)
+                     for w, c in (("batched", None), ("pymunk", 0.12), ("pymunk", 0.06))}
     for r in rows:
         assert r["success"] in (0.0, 0.5, 1.0) and r["collisions"] in (0.0, 0.5, 1.0)
         assert r["final_distance_mm"] is None or r["final_distance_mm"] > 0
+
+
+def test_given_policies_are_judged_without_training_and_bad_ones_exit_2(tmp_path):
+    from controllers.mappo import MAPPOConfig, train
+
+    small = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
+    run = train(MAPPOConfig(num_envs=2, total_episodes=2, eval_episodes=2, progress=False,
+                            actor=dict(small), critic=dict(small)), tmp_path / "run")
+    bench = [sys.executable, str(ROOT / "bench" / "generalization.py")]
+    proc = subprocess.run([*bench, "--policies", run.checkpoint, "--layouts", "transport", "--robots", "2",
+                           "--episodes", "1", "--pymunk-episodes", "1", "--json", "--out", str(tmp_path / "none")],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(proc.stdout)
+    assert doc["train"] == {} and doc["finetune"] is None and not (tmp_path / "none").exists()
+    assert [(r["policy"], r["world"], r.get("capture_radius")) for r in doc["grid"]] == [
+        (run.checkpoint, "batched", None), (run.checkpoint, "pymunk", 0.12)]
+    proc = subprocess.run([*bench, "--policies", str(tmp_path / "missing.pt")], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and "missing.pt" in proc.stderr
+    proc = subprocess.run([*bench, "--capture-radius", "0.12,-1"], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and "--capture-radius" in proc.stderr
 
 
 def test_the_held_out_layout_is_non_convex_and_no_distribution_draws_one():
