@@ -27,10 +27,10 @@ at episode 0) and the episodes to convergence (the budget where it does not conv
 
 ``--json``: ``{"train": {"generalist": {"episodes": ..., "env_steps": ..., "wall_s": ...,
 "converged_seeds": ...}, "specialist": {...}}, "grid": [{"policy", "seed", "scenario", "robots",
-"world", "success", "collisions", "final_distance_mm"}, ...],  (pymunk rows also
-``capture_radius`` and ``arrival_tick``, the mean first tick the team stood on its targets) "finetune": {"layout": ...,
+"world", "success", "collisions", "final_distance_mm"}, ...], "finetune": {"layout": ...,
 "robots": ..., "budget": ..., "runs": [{"seed", "zero_shot_success", "episodes", "converged",
-"wall_s"}], "median_episodes": ...}}``.
+"wall_s"}], "median_episodes": ...}}``; pymunk rows also hold ``capture_radius`` and
+``arrival_tick`` (the mean first tick the team stood on its targets, over the episodes it did).
 
     python bench/generalization.py --seeds 3                      # the full grid
     python bench/generalization.py --seeds 1 --robots 3,6 --episodes 20 --json
@@ -207,7 +207,7 @@ def main(argv=None) -> int:
     p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")
     p.add_argument("--out", type=Path, default=Path("runs/generalization"), help="run folders (default runs/generalization)")
     p.add_argument("--policies", type=lambda s: s.split(","), default=None, metavar="CKPT,...",
-                   help="judge these checkpoints or exported files on the grid instead of training")
+                   help="judge these training checkpoints on the grid instead of training")
     p.add_argument("--capture-radius", type=radius_list, default=[None], metavar="R,...",
                    help="docking capture radii [m] of the pymunk cells (default: the stack's, 0.12)")
     add_output_args(p)

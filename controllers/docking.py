@@ -25,18 +25,20 @@ a docking robot: docking never bypasses it).
 
 **How near.** A capture radius just beyond the 5 cm tolerance (6 cm, before) brings home the
 robots a policy leaves a few centimetres off. In a crowd it is not enough: a team larger than
-any the policy trained on packs its column, and a robot held off by one neighbour's disc stops
-8-10 cm from its free target while the policy, out of its depth, pushes it sideways into the
-next robot (transport-8, an own-target generalist trained on 3-5 robots, through the default
-stack in pymunk with gain 0.85 and one tick of delay: the robot bound for the slot behind the
-column ends 9.4 cm from it, and the three robots beside it 2-6 cm from theirs, every episode).
-``capture_radius`` 0.12 m (three robot radii: a robot's diameter of displacement plus the
-tolerance) takes such a robot over. Measured 2026-12-05 (10 episodes a cell, five own-target
-generalists, ``docs/results/docking_radius_2026-12-05.json``): 8 robots 0.00 -> 0.90-1.00 in
-four of five (9: 0.80-1.00, 10: 0.00-1.00), 9 cm left them jammed, 15 and 18 cm did as well as 12;
-3-7 robots 1.00 either way, with the team on its targets as early or earlier, and no contact in
-any episode. A larger radius needs no new gate: the speed gate keeps moving robots to the
-policy, and a target reached by docking counts for success whichever robot the matching sent.
+any the policy trained on packs its column, and a robot held off its free slot by its
+neighbours' discs stops short while the policy, out of its depth, pushes it sideways into the
+next robot. Traced on transport-8 (an own-target generalist trained on 3-5 robots, through the
+default stack in pymunk, gain 0.85 and one tick of delay): the robot bound for the slot behind
+the column ended 9.4 cm from it, the three robots beside it 2-6 cm from theirs. ``capture_radius``
+0.12 m (three robot radii: a robot's diameter of displacement plus the tolerance) takes such a
+robot over. ``bench/generalization.py --capture-radius 0.12,0.06`` (2026-12-05, 10 pymunk
+episodes a cell with model error, ``docs/results/docking_radius_2026-12-05.json``): with 12 cm
+four of five own-target generalists bring 8 robots home in every episode (6 cm: none), 9 robots
+in 0.80-1.00 and 10 in 0.00-1.00; two generalists without the mark gain 8 and 9 robots in one
+of them (0.30, 0.60); on 3-7 robots no cell moves by more than one episode of ten (two
+7-robot cells lose one, a 6-robot cell gains one); no contact in any of 1120 episodes. In scratch sweeps 9 cm left the jam, and 15
+or 18 cm did as well as 12. The speed gate keeps moving robots to the policy, and a target
+reached by docking counts for success whichever robot the matching sent there.
 
 **Law** (per docking robot, m/s^2; ``p``, ``v`` its position and velocity)::
 
