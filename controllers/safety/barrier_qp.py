@@ -29,8 +29,11 @@ Solve path, every outcome an explicit :class:`SafetyStatus`:
    path) solved and its answer satisfies
    every row within 1e-6.
 3. ``SLACK``: OSQP failed or was infeasible: the QP with one slack ``sigma_k >= 0`` per barrier row
-   (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ slack_weight * |sigma|^2``, the
-   actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers; rows with a
+   (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ sum_k w_k sigma_k^2``, the
+   actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers. ``w_k`` is
+   ``slack_weight`` for a pair row and ``static_slack_factor`` times that for an object or wall
+   row: a pair row can be met by either robot's command, a static one by one robot's alone, so
+   a robot squeezed between another robot and the object holds off the object; rows with a
    fixed robot of a latency prediction (not listening: a grown disc, not a wall) weigh
    ``FIXED_SLACK_DISCOUNT`` times less, so a robot caught inside such a disc gets out of it
    without giving way on walls, the object or listening robots.
@@ -363,6 +366,7 @@ class SafetyFilter:
         n, k = prob.n, prob.num_barrier
         a_rows = terms.dense(n)
         weight = np.full(k, self.config.slack_weight)
+        weight[len(terms.pair_i):] *= self.config.static_slack_factor      # object and wall rows
         if fixed is not None and fixed.any():
             # a robot inside a silent robot's grown disc gets out of it as fast as the other rows
             # allow: those rows give way first (the disc is a bound, the wall is a wall)

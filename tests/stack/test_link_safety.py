@@ -235,3 +235,15 @@ def test_robots_whose_delay_jitters_brake_earlier_and_touch_without_it():
     assert not crowd_collided(184, StackConfig(safety_config=SafetyConfig(static_braking_share=0.5), latency=before), then)
     raised = SafetyConfig(gamma_unsure=6.0, static_braking_share=0.5)
     assert crowd_collided(184, StackConfig(safety_config=raised, latency=before), then)
+
+
+def test_a_robot_squeezed_against_the_object_by_another_holds_off_the_object():
+    """``bench/safety.py`` ``delay_jitter`` seed 122 (15 robots, docking off): robot 6 thrusts at
+    the object with robot 1 pressing behind it, and the rows cannot all hold. With one slack
+    weight for every row, the slack QP met the pair row by driving robot 6 towards the object
+    (0.92 m/s^2) and it touched 0.2 mm deep at tick 39; with the object and wall rows weighing
+    ``static_slack_factor`` (100) times more, the pair gives way and nothing touches."""
+    from controllers.safety import SafetyConfig
+
+    assert not crowd_collided(122, StackConfig())
+    assert crowd_collided(122, StackConfig(safety_config=SafetyConfig(static_slack_factor=1.0)))
