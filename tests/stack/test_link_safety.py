@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from controllers.docking import DockingConfig
-from controllers.safety import SafetyFilter, analytic_distances
+from controllers.safety import SafetyConfig, SafetyFilter, analytic_distances
 from controllers.safety.latency import LatencyConfig
 from sim.fleet import FleetState
 from sim.pymunk_world import ModelError, PymunkWorld
@@ -145,7 +145,11 @@ def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_th
     assert on == [], f"seeds {on} collided with the default stack"
     no_allowance = LatencyConfig(measured_velocity_sigmas=0.0)
     assert collided(19, noisy, StackConfig(latency=no_allowance)), "no teeth: the velocity allowance"
-    raw = [s for s in touched_bare if collided(s, noisy, StackConfig(estimated_position=False, latency=no_allowance))]
+    # as the filter was when these seeds were found: one slack weight for every row (seed 26's
+    # robot is squeezed into the object, which the static rows' weight now prevents on its own)
+    bare_filter = SafetyConfig(static_slack_factor=1.0)
+    raw = [s for s in touched_bare if collided(s, noisy, StackConfig(estimated_position=False, latency=no_allowance,
+                                                                    safety_config=bare_filter))]
     assert raw == list(touched_bare), "no teeth: the filter on raw noisy positions did not collide"
 
 
@@ -223,17 +227,18 @@ def test_robots_whose_delay_jitters_brake_earlier_and_touch_without_it():
     touches the object (0.2 mm deep) with the raised gain on every row, not with the default. With
     the static rows at ``a_box / sqrt(2)`` and the measured velocity noise in the approach
     allowance, the raised gain touched in none of seeds 0-149 (measured), so its teeth are shown
-    where the rule was made: static rows at ``a_box / 2``, no velocity allowance, and the episode
-    as the bench ran it then, docking on at its capture radius of the time (6 cm). With docking
-    off, the raised gain touches in none of seeds 0-399 even there (measured 2026-12-05)."""
-    from controllers.safety import SafetyConfig
+    where the rule was made: static rows at ``a_box / 2`` and one slack weight for every row, no
+    velocity allowance, and the episode as the bench ran it then, docking on at its capture
+    radius of the time (6 cm). With docking off, the raised gain touches in none of seeds 0-399
+    even there (measured 2026-12-05)."""
 
     then = DockingConfig(capture_radius=0.06, release_radius=0.08)
     before = LatencyConfig(measured_velocity_sigmas=0.0)
     assert not crowd_collided(184, StackConfig(), then)
     assert not crowd_collided(184, StackConfig(), DockingConfig())
-    assert not crowd_collided(184, StackConfig(safety_config=SafetyConfig(static_braking_share=0.5), latency=before), then)
-    raised = SafetyConfig(gamma_unsure=6.0, static_braking_share=0.5)
+    old_filter = SafetyConfig(static_braking_share=0.5, static_slack_factor=1.0)
+    assert not crowd_collided(184, StackConfig(safety_config=old_filter, latency=before), then)
+    raised = SafetyConfig(gamma_unsure=6.0, static_braking_share=0.5, static_slack_factor=1.0)
     assert crowd_collided(184, StackConfig(safety_config=raised, latency=before), then)
 
 
@@ -243,7 +248,6 @@ def test_a_robot_squeezed_against_the_object_by_another_holds_off_the_object():
     weight for every row, the slack QP met the pair row by driving robot 6 towards the object
     (0.92 m/s^2) and it touched 0.2 mm deep at tick 39; with the object and wall rows weighing
     ``static_slack_factor`` (100) times more, the pair gives way and nothing touches."""
-    from controllers.safety import SafetyConfig
 
     assert not crowd_collided(122, StackConfig())
     assert crowd_collided(122, StackConfig(safety_config=SafetyConfig(static_slack_factor=1.0)))
