@@ -36,9 +36,10 @@ episodes a cell with model error, ``docs/results/docking_radius_2026-12-05.json`
 four of five own-target generalists bring 8 robots home in every episode (6 cm: none), 9 robots
 in 0.80-1.00 and 10 in 0.00-1.00; two generalists without the mark gain 8 and 9 robots in one
 of them (0.30, 0.60); on 3-7 robots no cell moves by more than one episode of ten (two
-7-robot cells lose one, a 6-robot cell gains one); no contact in any of 1120 episodes. In scratch sweeps 9 cm left the jam, and 15
-or 18 cm did as well as 12. The speed gate keeps moving robots to the policy, and a target
-reached by docking counts for success whichever robot the matching sent there.
+7-robot cells lose one, a 6-robot cell gains one); no contact in any of 1120 episodes. In
+scratch sweeps 9 cm left the jam, and 15 or 18 cm did as well as 12. The speed gate keeps moving
+robots to the policy, and a target reached by docking counts for success whichever robot the
+matching sent there.
 
 **Law** (per docking robot, m/s^2; ``p``, ``v`` its position and velocity)::
 

@@ -145,8 +145,8 @@ def test_two_centimetres_of_position_noise_are_filtered_out_and_touch_without_th
     assert on == [], f"seeds {on} collided with the default stack"
     no_allowance = LatencyConfig(measured_velocity_sigmas=0.0)
     assert collided(19, noisy, StackConfig(latency=no_allowance)), "no teeth: the velocity allowance"
-    # as the filter was when these seeds were found: one slack weight for every row (seed 26's
-    # robot is squeezed into the object, which the static rows' weight now prevents on its own)
+    # as the filter was when these seeds were found: one slack weight for every row (with the
+    # static rows' weight alone, seed 26 stays clear)
     bare_filter = SafetyConfig(static_slack_factor=1.0)
     raw = [s for s in touched_bare if collided(s, noisy, StackConfig(estimated_position=False, latency=no_allowance,
                                                                     safety_config=bare_filter))]
