@@ -37,12 +37,12 @@ at episode 0) and the episodes to convergence (the budget where it does not conv
 
 ``--policies RUN/checkpoint.pt,...`` judges those policies on the grid instead of training (no
 ``train`` or ``finetune`` then; each row's ``policy`` is the file). ``--capture-radius
-0.12,0.06`` runs the pymunk cells once per docking capture radius (:mod:`controllers.docking`,
-release 2 cm further), each row saying its ``capture_radius``: the stack's default beside the
-radius of before, in one run:
+default,0.12,0.06`` runs the pymunk cells once per docking setting (:mod:`controllers.docking`):
+``default`` the stack's own (two tiers), a number R one tier capturing within R (release 2 cm
+further), each row saying its ``capture_radius`` and ``stall_radius`` (0: one tier), in one run:
 
     python bench/generalization.py --policies a/checkpoint.pt,b/checkpoint.pt --layouts transport \
-        --robots 3,4,5,6,7,8,9,10 --episodes 50 --pymunk-episodes 10 --capture-radius 0.12,0.06 --json
+        --robots 3,4,5,6,7,8,9,10 --episodes 50 --pymunk-episodes 10 --capture-radius default,0.06 --json
 """
 
 from __future__ import annotations
@@ -132,8 +132,8 @@ def judge(checkpoint: str, args) -> list[dict]:
                          "success": r.success_rate, "collisions": r.collision_rate,
                          "final_distance_mm": 1000 * r.final_distance})
             for radius in args.capture_radius if args.pymunk_episodes else ():
-                docking = DockingConfig() if radius is None else DockingConfig(capture_radius=radius,
-                                                                                release_radius=radius + 0.02)
+                docking = DockingConfig() if radius is None else DockingConfig(
+                    capture_radius=radius, release_radius=radius + 0.02, stall_radius=0.0)
                 config = StackConfig(docking=docking)
                 runs = [run_episode(PymunkWorld(sc, ModelError(**PYMUNK_ERROR)), ControlStack(sc, actor, config),
                                     10_000 + k) for k in range(args.pymunk_episodes)]
@@ -143,7 +143,7 @@ def judge(checkpoint: str, args) -> list[dict]:
                              "success": sum(m.success for m in runs) / len(runs),
                              "collisions": sum(m.collided for m in runs) / len(runs),
                              "final_distance_mm": 1000 * statistics.mean(ok) if ok else None,
-                             "capture_radius": docking.capture_radius,
+                             "capture_radius": docking.capture_radius, "stall_radius": docking.stall_radius,
                              "arrival_tick": statistics.mean(arrived) if arrived else None})
     return rows
 
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     p.add_argument("--policies", type=lambda s: s.split(","), default=None, metavar="CKPT,...",
                    help="judge these training checkpoints on the grid instead of training")
     p.add_argument("--capture-radius", type=radius_list, default=[None], metavar="R,...",
-                   help="docking capture radii [m] of the pymunk cells (default: the stack's, 0.12)")
+                   help="docking of the pymunk cells: 'default' (the stack's) or one-tier capture radii [m]")
     add_output_args(p)
     args = p.parse_args(argv)
     if not args.penalty_curriculum >= 0:
@@ -240,14 +240,15 @@ def main(argv=None) -> int:
     return report(doc, args)
 
 
-def radius_list(text: str) -> list[float]:
-    """``0.12,0.06`` -> radii in metres, each > 0."""
+def radius_list(text: str) -> list[float | None]:
+    """``default,0.06`` -> ``[None, 0.06]``: the stack's docking (None) or one-tier radii in metres."""
     try:
-        radii = [float(x) for x in text.split(",")]
+        radii = [None if x.strip() == "default" else float(x) for x in text.split(",")]
     except ValueError:
         radii = []
-    if not radii or not all(0 < r < 1 for r in radii):
-        raise argparse.ArgumentTypeError(f"expected radii in metres between 0 and 1, e.g. 0.12,0.06; got {text!r}")
+    if not radii or not all(r is None or 0 < r < 1 for r in radii):
+        raise argparse.ArgumentTypeError(f"expected 'default' or radii in metres between 0 and 1, e.g. "
+                                         f"default,0.06; got {text!r}")
     return radii
 
 
@@ -262,8 +263,9 @@ def report(doc: dict, args) -> int:
                     [[k, v["episodes"], f"{v['converged_seeds']}/{v['seeds']}", v["wall_s"]] for k, v in train.items()])
     cells: dict[tuple, list[float]] = {}
     for row in doc["grid"]:
-        world = row["world"] + (f" (capture {row['capture_radius']:g} m)" if len(args.capture_radius) > 1
-                                and row["world"] == "pymunk" else "")
+        docking = "default" if row.get("stall_radius") else f"one tier, {row.get('capture_radius', 0):g} m"
+        world = row["world"] + (f" (docking {docking})" if len(args.capture_radius) > 1 and row["world"] == "pymunk"
+                                else "")
         cells.setdefault((row["policy"], world, row["layout"], row["robots"]), []).append(row["success"])
     print_table(["policy", "world", "layout", *[f"N={n}" for n in args.robots]],
                 [[pol, world, lay, *[f"{statistics.mean(cells[(pol, world, lay, n)]):.2f}" for n in args.robots]]

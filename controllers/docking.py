@@ -74,29 +74,36 @@ class DockingConfig:
 
     Attributes:
         enabled: dock (False: the policy's command stands).
-        capture_radius: a robot this close to its free matched target starts docking [m]
-            (module docstring, "How near": 0.12, three robot radii).
+        capture_radius: a robot this close to its free matched target, slower than
+            ``capture_speed``, starts docking [m].
         release_radius: a docking robot farther than this from it stops docking [m].
         free_margin: a target is taken when another robot's centre is within ``2 r`` plus this [m].
         kp: position gain [1/s^2].
         kd: velocity gain [1/s].
         capture_speed: a robot starts docking only below this speed [m/s] (module docstring).
+        stall_radius: a robot this close to its free matched target that has all but stopped
+            (slower than ``stall_speed``) starts docking too [m] (module docstring, "How near";
+            0 turns this tier off).
+        stall_speed: see ``stall_radius`` [m/s].
     """
 
     enabled: bool = True
-    capture_radius: float = 0.12
+    capture_radius: float = 0.06
     release_radius: float = 0.14
     free_margin: float = 0.01
     kp: float = 6.0
     kd: float = 4.0
     capture_speed: float = 0.2
+    stall_radius: float = 0.12
+    stall_speed: float = 0.1
 
     def __post_init__(self) -> None:
-        check_numbers(self, ("capture_radius", "release_radius", "free_margin", "kp", "kd", "capture_speed"),
-                      "docking", DockingConfigError)
-        if self.release_radius < self.capture_radius:
-            raise DockingConfigError(f"docking.release_radius ({self.release_radius}) must be >= "
-                                     f"capture_radius ({self.capture_radius})")
+        check_numbers(self, ("capture_radius", "release_radius", "free_margin", "kp", "kd", "capture_speed",
+                             "stall_radius", "stall_speed"), "docking", DockingConfigError)
+        for name in ("capture_radius", "stall_radius"):
+            if self.release_radius < getattr(self, name):
+                raise DockingConfigError(f"docking.release_radius ({self.release_radius}) must be >= "
+                                         f"{name} ({getattr(self, name)})")
 
 
 class Docking:
@@ -108,6 +115,7 @@ class Docking:
         cfg = self.config
         self._consts = tuple(float(x) for x in (cfg.capture_radius, cfg.release_radius,
                                                  2 * self.radius + cfg.free_margin, cfg.capture_speed,
+                                                 cfg.stall_radius, cfg.stall_speed,
                                                  cfg.kp, cfg.kd, self.accel_limit))
         self.reset()
 

@@ -49,7 +49,7 @@ def strict_nearest_matching(dist, match):
 
 @kernel
 def dock(pos, vel, targets, dist, match, was, movable, capture_radius, release_radius, taken_within,
-         capture_speed, kp, kd, accel_limit, a_nom, out, docking):
+         capture_speed, stall_radius, stall_speed, kp, kd, accel_limit, a_nom, out, docking):
     """The docking rule and law for every robot (controllers.docking): ``out`` (N, 2) is
     ``a_nom`` with the docking rows replaced, ``docking`` (N,) bool written; returns whether any
     robot docks. ``taken_within``: ``2 r + free_margin`` [m]."""
@@ -60,9 +60,13 @@ def dock(pos, vel, targets, dist, match, was, movable, capture_radius, release_r
         taken = False
         for k in range(n):
             taken = taken or (k != i and dist[k, target] < taken_within)
-        settling = was[i] or math.hypot(vel[i, 0], vel[i, 1]) < capture_speed
-        radius = release_radius if was[i] else capture_radius
-        docking[i] = dist[i, target] < radius and not taken and settling and movable[i]
+        gap = dist[i, target]
+        speed = math.hypot(vel[i, 0], vel[i, 1])
+        if was[i]:
+            near = gap < release_radius
+        else:
+            near = (gap < capture_radius and speed < capture_speed) or (gap < stall_radius and speed < stall_speed)
+        docking[i] = near and not taken and movable[i]
         out[i, 0], out[i, 1] = a_nom[i, 0], a_nom[i, 1]
         if docking[i]:
             anyone = True
@@ -80,8 +84,8 @@ def _warm_up() -> None:
     dist, match, ones = np.empty((n, n)), np.empty(n, dtype=np.int64), np.ones(n, dtype=bool)
     target_distances(pos, pos, dist)
     strict_nearest_matching(dist, match)
-    dock(pos, z2, pos, dist, match, ones, ones, 0.06, 0.08, 0.09, 0.2, 6.0, 4.0, 1.0, z2, np.empty((n, 2)),
-         np.empty(n, dtype=bool))
+    dock(pos, z2, pos, dist, match, ones, ones, 0.06, 0.14, 0.09, 0.2, 0.12, 0.1, 6.0, 4.0, 1.0, z2,
+         np.empty((n, 2)), np.empty(n, dtype=bool))
 
 
 __all__ = ["dock", "strict_nearest_matching", "target_distances"]

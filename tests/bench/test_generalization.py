@@ -72,9 +72,9 @@ def test_a_policy_is_judged_on_every_cell_of_the_grid_in_both_worlds(tmp_path):
     args = types.SimpleNamespace(layouts=list(LAYOUTS), robots=[1, 3], episodes=2, pymunk_episodes=1,
                                  capture_radius=[None, 0.06])
     rows = judge(run.checkpoint, args)
-    cells = {(r["layout"], r["robots"], r["world"], r.get("capture_radius")) for r in rows}
-    assert cells == {(lay, n, w, c) for lay in LAYOUTS for n in (1, 3)
-                     for w, c in (("batched", None), ("pymunk", 0.12), ("pymunk", 0.06))}
+    cells = {(r["layout"], r["robots"], r["world"], r.get("capture_radius"), r.get("stall_radius")) for r in rows}
+    assert cells == {(lay, n, w, c, st) for lay in LAYOUTS for n in (1, 3)
+                     for w, c, st in (("batched", None, None), ("pymunk", 0.06, 0.12), ("pymunk", 0.06, 0.0))}
     for r in rows:
         assert r["success"] in (0.0, 0.5, 1.0) and r["collisions"] in (0.0, 0.5, 1.0)
         assert r["final_distance_mm"] is None or r["final_distance_mm"] > 0
@@ -93,7 +93,7 @@ def test_given_policies_are_judged_without_training_and_bad_ones_exit_2(tmp_path
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["train"] == {} and doc["finetune"] is None and not (tmp_path / "none").exists()
-    assert [(r["policy"], r["world"], r.get("capture_radius")) for r in doc["grid"]] == [
+    assert [(r["policy"], r["world"], r.get("stall_radius")) for r in doc["grid"]] == [
         (run.checkpoint, "batched", None), (run.checkpoint, "pymunk", 0.12)]
     proc = subprocess.run([*bench, "--policies", str(tmp_path / "missing.pt")], capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 2 and "missing.pt" in proc.stderr

@@ -31,9 +31,10 @@ class NumpyDocking(Docking):
         taken = near.any(axis=1)
         matched = targets[match]
         was = np.array([rid in self._docking for rid in ids], dtype=bool)
-        radius = np.where(was, cfg.release_radius, cfg.capture_radius)
-        settling = was | (np.hypot(vel[:, 0], vel[:, 1]) < cfg.capture_speed)
-        docking = (gap < radius) & ~taken & settling
+        speed = np.hypot(vel[:, 0], vel[:, 1])
+        capture = ((gap < cfg.capture_radius) & (speed < cfg.capture_speed)) | (
+            (gap < cfg.stall_radius) & (speed < cfg.stall_speed))
+        docking = np.where(was, gap < cfg.release_radius, capture) & ~taken
         if movable is not None:
             docking &= np.asarray(movable, dtype=bool)
         self._docking = {rid for rid, d in zip(ids, docking, strict=True) if d}

@@ -232,7 +232,7 @@ def test_robots_whose_delay_jitters_brake_earlier_and_touch_without_it():
     radius of the time (6 cm). With docking off, the raised gain touches in none of seeds 0-399
     even there (measured 2026-12-05)."""
 
-    then = DockingConfig(capture_radius=0.06, release_radius=0.08)
+    then = DockingConfig(release_radius=0.08, stall_radius=0.0)
     before = LatencyConfig(measured_velocity_sigmas=0.0)
     assert not crowd_collided(184, StackConfig(), then)
     assert not crowd_collided(184, StackConfig(), DockingConfig())
