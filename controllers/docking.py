@@ -23,23 +23,26 @@ a docking robot: docking never bypasses it).
   were never captured (the policy succeeded in 25 of 30 episodes with the stack, 30 of 30
   without the gate); at 0.2 m/s, 30 of 30 there and under the jittering and gain-0.7 links.
 
-**How near.** A capture radius just beyond the 5 cm tolerance (6 cm, before) brings home the
-robots a policy leaves a few centimetres off. In a crowd it is not enough: a team larger than
-any the policy trained on packs its column, and a robot held off its free slot by its
-neighbours' discs stops short while the policy, out of its depth, pushes it sideways into the
-next robot. Traced on transport-8 (an own-target generalist trained on 3-5 robots, through the
-default stack in pymunk, gain 0.85 and one tick of delay): the robot bound for the slot behind
-the column ended 9.4 cm from it, the three robots beside it 2-6 cm from theirs. ``capture_radius``
-0.12 m (three robot radii: a robot's diameter of displacement plus the tolerance) takes such a
-robot over. ``bench/generalization.py --capture-radius 0.12,0.06`` (2026-12-05, 10 pymunk
-episodes a cell with model error, ``docs/results/docking_radius_2026-12-05.json``): with 12 cm
-four of five own-target generalists bring 8 robots home in every episode (6 cm: none), 9 robots
-in 0.80-1.00 and 10 in 0.00-1.00; two generalists without the mark gain 8 and 9 robots in one
-of them (0.30, 0.60); on 3-7 robots no cell moves by more than one episode of ten (two
-7-robot cells lose one, a 6-robot cell gains one); no contact in any of 1120 episodes. In
-scratch sweeps 9 cm left the jam, and 15 or 18 cm did as well as 12. The speed gate keeps moving
-robots to the policy, and a target reached by docking counts for success whichever robot the
-matching sent there.
+**How near: two tiers.** A robot is captured within ``capture_radius`` (6 cm, just beyond the
+5 cm tolerance) once slower than ``capture_speed``, or within ``stall_radius`` (12 cm, three
+robot radii: a robot's diameter of displacement plus the tolerance) once it has all but stopped
+(``stall_speed``, 0.1 m/s). The first tier brings home the robots a policy leaves a few
+centimetres off. The second is for a crowd: a team larger than any the policy trained on packs
+its column, and a robot held off its free slot by its neighbours stops short while the policy,
+out of its depth, pushes it sideways into the next robot. Traced on transport-8 (an own-target
+generalist trained on 3-5 robots, through the default stack in pymunk, gain 0.85 and one tick
+of delay): the robot bound for the slot behind the column ended 9.4 cm from it, the three
+robots beside it 2-6 cm from theirs. One 12 cm tier for every robot below 0.2 m/s brought those
+teams home too, but it took over robots still on their way, by the matching of the moment: the
+demo's unmarked generalist on 6 robots under the demo's model error succeeded in 0.60 of 20
+episodes (6 cm: 0.70; two tiers: 1.00, 3.9 mm). Measured with ``bench/generalization.py``
+(2026-12-05, 10 pymunk episodes a cell with gain 0.85 +- 0.15, 30 ms lag and one tick of delay;
+``docs/results/docking_two_tier_2026-12-05.json``, one tier of 12 and of 6 cm in
+``docking_radius_2026-12-05.json``): with two tiers four of five own-target generalists bring 8
+robots home in every episode (6 cm: none), 9 robots in 0.60-1.00 and 10 in 0.60-1.00; on 3-7
+robots no cell of the seven policies moves by more than one episode of ten from 6 cm; no contact
+in any episode. A target reached by docking counts for success whichever robot the matching
+sent there.
 
 **Law** (per docking robot, m/s^2; ``p``, ``v`` its position and velocity)::
 
