@@ -7,8 +7,11 @@ every tick, the scripted controller, or (with a network) a trained policy.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
+from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter, analytic_distances
 from controllers.scripted import ScriptedController
 from sim.fleet import FleetState
@@ -51,6 +54,12 @@ class AdversarialPolicy:
         if self.network is not None and (self.modes == 6).any():
             out[self.modes == 6] = self.network.tick(state).a_nom[self.modes == 6]
         return out
+
+
+def without_docking(config: StackConfig) -> StackConfig:
+    """``config`` with docking off: near a free target docking would take a robot over from the
+    adversary, whose commands are the point of an adversarial episode."""
+    return dataclasses.replace(config, docking=DockingConfig(enabled=False))
 
 
 def in_delayed_safe_set(barrier: SafetyFilter, pos: np.ndarray, vel: np.ndarray, coast_ticks: int) -> bool:

@@ -39,7 +39,7 @@ import math
 
 import numpy as np
 import torch
-from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start
+from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start, without_docking
 from _common import map_episodes
 
 from controllers.docking import DockingConfig
@@ -99,7 +99,7 @@ def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
     torch.set_num_threads(1)
     out = {"condition": name, "seed": seed}
     for key, config in (("on", stack_config), ("off", BARE)):
-        config = dataclasses.replace(config, docking=DockingConfig(enabled=False))
+        config = without_docking(config)
         rng = np.random.default_rng(seed)
         n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
         sc = transport_scenario(n)

@@ -64,7 +64,7 @@ for _path in (_BENCH_DIR, _BENCH_DIR.parent):
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start  # noqa: E402
+from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start, without_docking  # noqa: E402
 from _common import (  # noqa: E402
     add_output_args,
     map_episodes,
@@ -79,7 +79,6 @@ from _safety_conditions import CONDITIONS, OPEN_LOOP, run_conditions  # noqa: E4
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from controllers.docking import DockingConfig  # noqa: E402
 from controllers.safety import SafetyConfig, SafetyFilter  # noqa: E402
 from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
@@ -117,8 +116,8 @@ def invariance_episode(task: tuple[int, int, str | None, str]) -> dict:
                         disturbance_std=0.02)
         world = PymunkWorld(sc, me)
         stack = ControlStack(sc, AdversarialPolicy(sc, rng, network),
-                             StackConfig(safety=filt, mec=True, safety_config=SafetyConfig(geometry=geometry),
-                                         docking=DockingConfig(enabled=False)))   # the adversary's commands, unreplaced
+                             without_docking(StackConfig(safety=filt, mec=True,
+                                                         safety_config=SafetyConfig(geometry=geometry))))
         barrier = SafetyFilter(sc, stack.config.safety_config)
         m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
         key = "on" if filt else "off"
