@@ -17,6 +17,10 @@ every per-robot estimate is keyed by robot id)::
                    velocity, that measures its own noise (exact measurements pass unchanged);
                    its estimate replaces the measured position for policy and filter, and its
                    standard deviation grows the robot's disc in the filter
+      -> stale seen: a stale row is shown to the policy and docking where it must be now,
+                   the centre of its branches' disc (LatencyPredictor.dead_reckoned, from the
+                   commands it was sent), not where it last reported itself; the filter keeps
+                   the whole disc
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
@@ -369,6 +373,9 @@ class ControlStack:
         if self.predictor is not None and state.commands_pending is not None:
             stale |= self.predictor.late(ages, state.commands_pending, state.command_delay_s)
         pos, vel, position_std = self._estimate(ids, pos, vel, state.time - ages, stale, news)
+        seen_pos, seen_vel = pos, vel           # what the policy and docking see of the fleet
+        if self.predictor is not None and np.count_nonzero(stale):
+            seen_pos, seen_vel = self.predictor.dead_reckoned(ids, pos, vel, ages, stale, state.time)
         policy_status, brake_reason = PolicyStatus.OK, ""
         docked = np.zeros(n, dtype=bool)
         if any_unknown and unplaced.any():      # nowhere to put a robot: nobody may move
@@ -377,15 +384,15 @@ class ControlStack:
             brake_reason = "non-finite fleet state: policy skipped, braking"
             t_obs = t_pol = time.perf_counter_ns()
         else:
-            if any_unknown or vel is not state.velocities or pos is not state.positions:
-                state = state.replaced(positions=pos, velocities=vel, state_age_s=ages)
+            if any_unknown or seen_vel is not state.velocities or seen_pos is not state.positions:
+                state = state.replaced(positions=seen_pos, velocities=seen_vel, state_age_s=ages)
             a_nom, t_obs, t_pol = self._policy(state, t0)
             if not all_finite(f64(a_nom)):
                 a_nom = self.brake(vel)
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
             elif self.docking is not None:
-                a_nom, docked = self.docking(ids, pos, vel, state.targets, a_nom, movable=~stale)
+                a_nom, docked = self.docking(ids, seen_pos, seen_vel, state.targets, a_nom, movable=~stale)
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
             safe = self._safety(state, pos, vel, ages, unknown, a_nom, position_std)

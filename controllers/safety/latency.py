@@ -442,6 +442,25 @@ class LatencyPredictor:
                                         cfg.accel_uncertainty, measured_at, dyn)
         return self._paths[rid]
 
+    def dead_reckoned(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
+                      stale: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
+        """Where the stale robots are now, for the policy and docking (not for the filter, which
+        keeps the whole disc): (N, 2) positions [m] and velocities [m/s], each stale row whose
+        branches a :meth:`predict` has computed from this same last state (measured at
+        ``now - ages``) replaced by their disc's centre and its velocity ``ages`` after it
+        (:meth:`SilentPaths.disc`); every other row as given. A robot silent for good is then
+        seen where it must have stopped (0.2-15 mm from its true centre, module docstring of
+        :mod:`controllers.safety.silent_reach`), not where it last reported itself on the way."""
+        pos_out, vel_out = pos, vel
+        for i in np.flatnonzero(stale):
+            paths = self._paths.get(ids[i])
+            if paths is None or abs(paths.measured_at - (now - ages[i])) >= 1e-9:
+                continue
+            if pos_out is pos:
+                pos_out, vel_out = pos.copy(), vel.copy()
+            pos_out[i], vel_out[i], _, _ = paths.disc(float(ages[i]))
+        return pos_out, vel_out
+
     def record(self, ids: tuple[str, ...], accel: np.ndarray, braking: np.ndarray | None = None) -> None:
         """The (N, 2) accelerations [m/s^2] asked of robots ``ids`` this tick (newest last),
         clipped to the actuator limit; ``braking`` (N,) bool: the rows sent BRAKE (the robot

@@ -389,3 +389,33 @@ def test_fleet_tokens_np_into_a_float32_buffer_for_a_rotated_object():
         torch.testing.assert_close(torch.from_numpy(buf)[None], want, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="out must have shape"):
         fleet_tokens_np(pos, vel, targets, polygon, sc.arena, out=np.zeros((4, 8, 4)))
+
+
+def test_the_policy_sees_a_frozen_robot_where_it_stopped_not_where_it_last_reported():
+    """A pymunk robot pushed away from the object at full thrust freezes at the 0.4 m/s speed
+    limit (silent and deaf, its watchdog braking it two ticks later) and stops 12 cm past its
+    last report. Once it counts as stale, the policy (and docking) are shown the centre of its
+    branches' disc, where it must have stopped: 11.6 mm from its true centre. Shown the last
+    report instead, a neighbour judged its target taken by a robot no longer there, and the
+    policy steered round a ghost (the frozen-robot condition of bench/safety.py)."""
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(freeze=(0, 10)))
+    state, seen = world.reset(seed=0), []
+    push = np.zeros((3, 2))
+    push[0] = (state.positions[0] - state.object_pose[:2]) / np.linalg.norm(state.positions[0] - state.object_pose[:2])
+
+    def policy(s):
+        seen.append(s.positions.copy())
+        return push
+
+    stack, stale_ticks = ControlStack(sc, policy), []
+    for k in range(40):
+        result = stack.tick(state)
+        if result.stale[0]:
+            stale_ticks.append(k)
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+    rest = world.true_state().positions[0]
+    assert stale_ticks[0] == 12 and stale_ticks[-1] == 39
+    assert np.linalg.norm(state.positions[0] - rest) > 0.1          # the last report
+    assert np.linalg.norm(seen[-1][0] - rest) < 0.02
