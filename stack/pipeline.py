@@ -219,7 +219,9 @@ class StackConfig:
 
 @dataclass
 class SafeStage:
-    """The safety stage of one tick: the filter's result over M >= N robots (silent ones last)."""
+    """The safety stage of one tick: the filter's result over M >= N robots (silent ones after
+    the N commanded, then the extra discs of silent robots at rest, :meth:`Prediction.with_covers`);
+    ``ids`` names the robots, the N commanded and the silent ones."""
 
     result: SafetyResult
     prediction: Prediction | None
@@ -227,7 +229,7 @@ class SafeStage:
     ids: tuple[str, ...]
 
     def full(self, rows: np.ndarray) -> np.ndarray:
-        """(M, 2): the N commanded rows, then the silent robots' (the filter's answer, 0)."""
+        """(M, 2): the N commanded rows, then the rest of the filter's (its answer, 0)."""
         if len(rows) == self.size:
             return rows
         return np.vstack([rows, self.result.a_safe[len(rows):]])
@@ -417,8 +419,9 @@ class ControlStack:
             a_cmd = self.brake(vel)
             brake_reason = (brake_reason + "; " if brake_reason else "") + "final command not finite: braking"
         if self.predictor is not None:         # the silent robots' rows too (asked nothing)
-            braking = stale if safe.size == n else np.concatenate([stale, np.ones(safe.size - n, dtype=bool)])
-            self.predictor.record(safe.ids, safe.full(achieved), braking)
+            named = len(safe.ids)
+            braking = stale if named == n else np.concatenate([stale, np.ones(named - n, dtype=bool)])
+            self.predictor.record(safe.ids, safe.full(achieved)[:named], braking)
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
@@ -505,6 +508,11 @@ class ControlStack:
             prediction = self.predictor.predict(ids, pos, vel, ages, nominal, state.command_delay_s,
                                                 fixed=unknown, pending=pending, position_noise=position_std,
                                                 velocity_noise=velocity_std, now=state.time)
+            if prediction.covers:
+                prediction = prediction.with_covers()
+                extra = prediction.pos[len(pos):]
+                pos, vel = np.vstack([pos, extra]), np.vstack([vel, np.zeros_like(extra)])
+                a_nom = np.vstack([a_nom, np.zeros_like(extra)])
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None

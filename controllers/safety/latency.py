@@ -114,7 +114,7 @@ robot :meth:`late` (its state is fresh: the ball from it is small).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -150,6 +150,9 @@ class LatencyConfig:
         measured_velocity_sigmas: how many standard deviations of each robot's measured velocity
             noise (the caller's ``velocity_noise``, the compensator's) count as approach speed,
             besides ``velocity_noise`` (0 on an exact link, where nothing is measured).
+        cover_merge: a silent robot at rest is bounded by discs round groups of its branches'
+            rest points, each group within this of its centre [m] (:meth:`SilentPaths.cover`).
+        cover_discs: at most this many discs per silent robot (1: the one disc of its branches).
     """
 
     enabled: bool = True
@@ -163,12 +166,18 @@ class LatencyConfig:
     jitter_spread_weight: float = 0.5
     jitter_brake_measured: bool = True
     measured_velocity_sigmas: float = 2.0
+    cover_merge: float = 0.01
+    cover_discs: int = 6
 
     def __post_init__(self) -> None:
         check_numbers(self, ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
                              "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight",
                              "measured_velocity_sigmas"),
                       "latency", LatencyConfigError)
+        check_numbers(self, ("cover_merge",), "latency", LatencyConfigError, positive=True)
+        if isinstance(self.cover_discs, bool) or not isinstance(self.cover_discs, int | np.integer) \
+                or self.cover_discs < 1:
+            raise LatencyConfigError(f"latency.cover_discs must be a whole number >= 1, got {self.cover_discs!r}")
         if not isinstance(self.jitter_brake_measured, bool | np.bool_):
             raise LatencyConfigError("latency.jitter_brake_measured must be true or false, "
                                      f"got {self.jitter_brake_measured!r}")
@@ -247,6 +256,10 @@ class Prediction:
         unsure: (N,) bool, robots whose command delay may change under the prediction (it
             changed lately, or their pending count is unknown): their rows take the filter's
             ``gamma_unsure`` (:class:`controllers.safety.barrier.SafetyConfig`). None: none.
+        covers: fixed rows bounded more tightly by several discs than by one, once silent
+            robots have come to rest (:meth:`SilentPaths.cover`): ``(row, centres (C, 2),
+            radii (C,))`` each, the radii grown like ``grow``; :meth:`with_covers` turns them
+            into rows for the filter.
     """
 
     pos: np.ndarray
@@ -258,6 +271,36 @@ class Prediction:
     brake_vel: np.ndarray | None = None
     velocity_error: np.ndarray | None = None
     unsure: np.ndarray | None = None
+    covers: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
+
+    def with_covers(self) -> Prediction:
+        """The prediction over ``N + V`` rows for the filter: each covered row takes its first
+        cover disc, the other ``V`` discs follow the N rows as fixed obstacles at rest (their
+        ``closing`` that of their row: the velocity noise allowance). Without covers, itself."""
+        if not self.covers:
+            return self
+        pos, grow, closing = self.pos.copy(), self.grow.copy(), self.closing.copy()
+        extra_pos, extra_grow, extra_closing = [], [], []
+        for row, centres, radii in self.covers:
+            pos[row], grow[row] = centres[0], radii[0]
+            extra_pos.extend(centres[1:])
+            extra_grow.extend(radii[1:])
+            extra_closing.extend([closing[row]] * (len(radii) - 1))
+        v = len(extra_grow)
+        if v == 0:
+            return replace(self, pos=pos, grow=grow, covers=())
+
+        def more(x: np.ndarray | None, fill) -> np.ndarray | None:
+            return None if x is None else np.concatenate([x, np.full((v, *x.shape[1:]), fill, dtype=x.dtype)])
+
+        extra_closing = np.array(extra_closing)
+        return Prediction(
+            pos=np.vstack([pos, np.array(extra_pos)]), vel=more(self.vel, 0.0),
+            grow=np.concatenate([grow, np.array(extra_grow)]), closing=np.concatenate([closing, extra_closing]),
+            fixed=more(self.fixed, True), horizon=more(self.horizon, 0), brake_vel=more(self.brake_vel, 0.0),
+            velocity_error=(None if self.velocity_error is None
+                            else np.concatenate([self.velocity_error, extra_closing])),
+            unsure=more(self.unsure, False))
 
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
@@ -368,6 +411,7 @@ class LatencyPredictor:
         p, v, grow, closing, fixed, h, jittering = self._listening(pos, vel, ages, a_nom, pending, given_fixed,
                                                                    sigma_p, delay)
         unsure = jittering | (pending < 0)                    # the delay may change under it
+        covers: list[tuple[int, np.ndarray, np.ndarray]] = []
         if np.count_nonzero(fixed):
             sigma = np.broadcast_to(sigma_p, (len(p),))
             by_ball = fixed.copy()
@@ -382,6 +426,9 @@ class LatencyPredictor:
                     p[i], v[i], radius, rate = paths.disc(ages[i] + delay)
                     grow[i], closing[i] = radius + sigma[i], rate + cfg.velocity_noise
                     by_ball[i] = False
+                    cover = paths.cover(ages[i] + delay, cfg.cover_merge, cfg.cover_discs)
+                    if cover is not None and cfg.cover_discs > 1:
+                        covers.append((int(i), cover[0], cover[1] + sigma[i]))
             if by_ball.any():
                 brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
                 centre, centre_vel, radius, rate = reach(pos[by_ball], vel[by_ball], ages[by_ball] + delay,
@@ -399,7 +446,7 @@ class LatencyPredictor:
             closing = closing + cfg.measured_velocity_sigmas * sigma_v
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
                           brake_vel=brake_vel, velocity_error=velocity_error,
-                          unsure=unsure)
+                          unsure=unsure, covers=tuple(covers))
 
     def _listening(self, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray, a_nom: np.ndarray,
                    pending: np.ndarray, given_fixed: np.ndarray, sigma_p: np.ndarray,

@@ -46,6 +46,17 @@ Between ticks a centre moves along a straight segment.
 the robot's centre; its velocity is ``(c(t + dt) - c(t)) / dt`` and its growth rate
 ``max(R(t + dt) - R(t), 0) / dt``, so the disc one tick on lies inside the disc moved by them.
 After ``T`` ticks the disc is fixed: a robot silent for good is an obstacle where it stopped.
+(``e(n)`` itself stops growing only after ``K + S`` ticks, which may come later: the disc takes
+``e`` of the tick it is asked for, not of ``T``.)
+
+**The cover.** The branches differ mostly in how long the robot went on before it braked, so
+their rest points lie along its heading, and one disc round them has a radius of half that
+line however thin it is. Once every branch is at rest and ``e(n)`` final (:attr:`settled_s`),
+the robot lies within ``e`` of the rest point of the branch it took, so a few discs round groups
+of rest points hold it as surely as the one disc (:meth:`SilentPaths.cover`); the filter takes
+them as fixed obstacles (:meth:`controllers.safety.latency.Prediction.with_covers`). Traced on
+the frozen-robot condition: rest points 86 mm along the heading and 5 mm across, a 56 mm disc
+round a robot 7 mm from its centre, which held a neighbour off the way to its own target.
 
 Measured on the frozen-robot condition (a robot that goes silent and deaf mid-episode, its
 watchdog braking it two ticks later), 80 episodes of a 3-5 robot policy: the ball's radius at
@@ -126,12 +137,56 @@ class SilentPaths:
 
     def _disc(self, t: float) -> tuple[np.ndarray, float]:
         last = self.points.shape[1] - 1
-        lo = min(int(np.floor(t / self.dt + 1e-9)), last)
+        tick = int(np.floor(t / self.dt + 1e-9))
+        lo = min(tick, last)
         hi = min(lo + 1, last)
         pts = self.points[:, lo:hi + 1].reshape(-1, 2)
         centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
         spread = float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max())
-        return centre, spread + self.error(hi)
+        return centre, spread + self.error(tick + 1)     # e(n) grows past T while braking absorbs e_v
+
+    @property
+    def settled_s(self) -> float:
+        """[s] after the last state from which the robot is at rest whatever its branch: every
+        branch stopped (``T`` ticks) and ``e(n)`` at its final value (``K + S`` ticks)."""
+        return max(self.points.shape[1] - 1, self.acting_ticks + self.stop_ticks) * self.dt
+
+    def cover(self, t: float, merge: float, most: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Discs whose union holds the robot ``t`` seconds after the last state, once it is
+        :attr:`settled_s` (None before): ``(centres (C, 2) [m], radii (C,) [m])``, ``C <= most``.
+
+        The robot's centre lies within ``e`` of the rest point of the branch it took (module
+        docstring), so the union of the discs of radius ``e`` round the ``B`` rest points holds
+        it. Rest points that lie along the robot's heading (the branches differ in how long it
+        went on) make a line that the one disc of :meth:`disc` covers with a radius of half its
+        length (traced: 86 mm of rest points, a 56 mm disc round a robot 7 mm from its centre).
+        Here the rest points, in order along their widest axis, are grouped greedily while a
+        group's bounding-box centre lies within ``merge`` of each of its points (``merge``
+        doubled until at most ``most`` groups), each group a disc of radius ``e`` plus its spread.
+        """
+        if t + 1e-9 < self.settled_s:
+            return None
+        rest = self.points[:, -1]
+        error = self.error(int(np.floor(t / self.dt + 1e-9)) + 1)
+        lo, hi = rest.min(axis=0), rest.max(axis=0)
+        merge = max(float(merge), 1e-6)
+        order = np.argsort(rest[:, int(np.argmax(hi - lo))], kind="stable")
+        while True:
+            groups, start = [], 0
+            for k in range(1, len(order) + 1):
+                if k < len(order):
+                    pts = rest[order[start:k + 1]]
+                    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+                    if np.sqrt(((pts - centre) ** 2).sum(axis=1)).max() <= merge:
+                        continue
+                groups.append(rest[order[start:k]])
+                start = k
+            if len(groups) <= most:
+                break
+            merge *= 2.0
+        centres = np.array([0.5 * (g.min(axis=0) + g.max(axis=0)) for g in groups])
+        radii = np.array([np.sqrt(((g - c) ** 2).sum(axis=1)).max() for g, c in zip(groups, centres, strict=True)])
+        return centres, radii + error
 
     def disc(self, t: float) -> tuple[np.ndarray, np.ndarray, float, float]:
         """``(centre (2,), centre velocity (2,), radius, growth rate)`` at ``t`` seconds after

@@ -157,6 +157,35 @@ def test_bad_latency_settings_name_the_field():
         LatencyConfig(stale_after_s=0.0)
     with pytest.raises(LatencyConfigError, match="latency.measured_velocity_sigmas"):
         LatencyConfig(measured_velocity_sigmas=-1.0)
+    with pytest.raises(LatencyConfigError, match="latency.cover_merge must be a positive"):
+        LatencyConfig(cover_merge=0.0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(LatencyConfigError, match="latency.cover_discs must be a whole number >= 1"):
+            LatencyConfig(cover_discs=bad)
+
+
+def test_covers_become_fixed_rows_after_the_commanded_ones():
+    """Row 1 (fixed, at rest) covered by three discs: it takes the first, the other two follow
+    the three rows as fixed obstacles at rest with their row's approach allowance."""
+    pred = Prediction(pos=np.zeros((3, 2)), vel=np.ones((3, 2)), grow=np.array([0.001, 0.05, 0.002]),
+                      closing=np.array([0.01, 0.02, 0.03]), fixed=np.array([False, True, False]),
+                      horizon=np.array([3, 0, 3]), brake_vel=np.ones((3, 2)), velocity_error=np.array([0.1, 0.2, 0.3]),
+                      unsure=np.array([True, False, False]),
+                      covers=((1, np.array([[0.1, 0.2], [0.15, 0.2], [0.2, 0.2]]), np.array([0.011, 0.012, 0.013])),))
+    out = pred.with_covers()
+    np.testing.assert_array_equal(out.pos, [[0, 0], [0.1, 0.2], [0, 0], [0.15, 0.2], [0.2, 0.2]])
+    np.testing.assert_array_equal(out.grow, [0.001, 0.011, 0.002, 0.012, 0.013])
+    np.testing.assert_array_equal(out.closing, [0.01, 0.02, 0.03, 0.02, 0.02])
+    np.testing.assert_array_equal(out.velocity_error, [0.1, 0.2, 0.3, 0.02, 0.02])
+    np.testing.assert_array_equal(out.fixed, [False, True, False, True, True])
+    np.testing.assert_array_equal(out.unsure, [True, False, False, False, False])
+    np.testing.assert_array_equal(out.horizon, [3, 0, 3, 0, 0])
+    np.testing.assert_array_equal(out.vel[3:], 0.0)
+    np.testing.assert_array_equal(out.brake_vel[3:], 0.0)
+    assert out.covers == () and pred.with_covers() is not pred
+    plain = Prediction(pos=pred.pos, vel=pred.vel, grow=pred.grow, closing=pred.closing, fixed=pred.fixed,
+                       horizon=pred.horizon)
+    assert plain.with_covers() is plain
 
 
 @pytest.mark.parametrize("delay", [0, 1, 2, 3])

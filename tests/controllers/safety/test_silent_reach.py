@@ -11,7 +11,7 @@ from controllers.safety.latency import LatencyConfig, LatencyPredictor
 from controllers.safety.silent_reach import branch_paths, silent_paths
 from controllers.scripted import ScriptedController
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import Dynamics, clip_norm, make_scenario
+from sim.scenario import Dynamics, clip_norm, make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig
 
 DYN = Dynamics()
@@ -63,7 +63,7 @@ def test_the_disc_holds_a_robot_on_any_branch_with_any_acceleration_error(case):
     brake_error = 0.05
     paths = silent_paths(np.zeros(2), vel0, [(commands, braking)], hold, accel_error, brake_error, 0.0, DYN)
     p, v = np.zeros((1, 2)), vel0[None].copy()
-    for n in range(1, paths.points.shape[1] + 6):
+    for n in range(1, int(round(paths.settled_s / DYN.dt)) + 6):
         acting = n <= s + w
         index = n if n <= s else s
         brakes = not acting or braking[index]
@@ -74,6 +74,33 @@ def test_the_disc_holds_a_robot_on_any_branch_with_any_acceleration_error(case):
         p, v = DYN.step_np(p, v, asked + error)
         centre, _, radius, _ = paths.disc(n * DYN.dt)
         assert np.linalg.norm(p[0] - centre) <= radius + 1e-9, (n, s, w)
+        cover = paths.cover(n * DYN.dt, 0.01, 4)
+        if cover is not None:
+            assert len(cover[1]) <= 4
+            assert (np.linalg.norm(p[0] - cover[0], axis=1) - cover[1]).min() <= 1e-9, (n, s, w)
+
+
+def test_a_robot_that_went_on_along_its_heading_is_covered_by_narrow_discs_along_it():
+    """At 0.3 m/s along x, asked nothing, three commands pending and two ticks of hold: its
+    twelve branches come to rest on the x axis between 33 mm (braking at once) and 95 mm
+    (coasting five ticks first, slowed by the damping), 61.5 mm apart (the disc of them all:
+    half that and more). Once every branch has stopped, the cover is
+    discs centred on the axis, each holding its rest points within ``e + merge``, all of them
+    held, none wider than half the one disc."""
+    commands, braking = np.zeros((4, 2)), np.zeros(4, dtype=bool)
+    paths = silent_paths(np.zeros(2), np.array([0.3, 0.0]), [(commands, braking)], 2, 0.05, 0.05, 0.0, DYN)
+    rest = paths.points[:, -1]
+    assert np.ptp(rest[:, 1]) == 0.0 and 0.061 < np.ptp(rest[:, 0]) < 0.062
+    assert paths.cover(paths.settled_s - DYN.dt, 0.01, 6) is None
+    t = paths.settled_s + 0.5
+    centres, radii = paths.cover(t, 0.01, 6)
+    _, _, radius, _ = paths.disc(t)
+    error = paths.error(int(round(t / DYN.dt)) + 1)
+    assert radius > 0.5 * np.ptp(rest[:, 0])
+    assert np.abs(centres[:, 1]).max() == 0.0 and len(radii) <= 6
+    assert radii.max() <= error + 0.01 + 1e-12 and radii.max() < 0.5 * radius
+    assert ((np.abs(rest[:, None, 0] - centres[None, :, 0]) <= radii - error + 1e-12).any(axis=1)).all()
+    assert len(paths.cover(t, 0.01, 2)[1]) <= 2 and paths.cover(t, 0.01, 2)[1].max() > radii.max()
 
 
 def test_a_robot_at_rest_asked_alternating_pushes_is_a_small_disc_not_a_ball():
@@ -158,3 +185,37 @@ def test_without_the_hold_branches_a_deaf_robot_holding_its_push_is_missed():
         missed = [n for n, x in enumerate(truth, 1)
                   if np.linalg.norm(x - paths.disc(n * DYN.dt)[0]) > paths.disc(n * DYN.dt)[2]]
         assert bool(missed) == bool(expected), (hold, missed)
+
+
+def _beside_a_frozen_robot(discs: int) -> tuple[float, float]:
+    """Robot 0 thrusts along +x and freezes at tick 8 (0.35 m/s); robot 1 is driven by a PD
+    law to a goal 103 mm from where robot 0 comes to rest, off its heading. Returns robot 1's
+    final distance to the goal and the smallest gap between the two discs [m]."""
+    sc = transport_scenario(2)
+    world = PymunkWorld(sc, ModelError(freeze=(0, 8)))
+    world.reset(seed=0)
+    world.set_state(np.array([[0.1, 0.85], [0.35, 0.7]]), np.zeros((2, 2)))
+    state, goal = world.read_state(), np.array([0.36, 0.78])
+
+    def policy(s):
+        return np.array([[1.0, 0.0], 4.0 * (goal - s.positions[1]) - 3.0 * s.velocities[1]])
+
+    stack, gap = ControlStack(sc, policy, StackConfig(latency=LatencyConfig(cover_discs=discs))), np.inf
+    for _ in range(80):
+        result = stack.tick(state)
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+        true = world.true_state().positions
+        gap = min(gap, float(np.linalg.norm(true[0] - true[1])) - 2 * sc.robot_radius)
+    return float(np.linalg.norm(world.true_state().positions[1] - goal)), gap
+
+
+def test_a_neighbour_comes_closer_beside_a_frozen_robot_under_its_cover_than_its_one_disc():
+    """The frozen robot's branches come to rest along its heading (rest points spread 119 mm
+    along it, 10 mm across): the one disc round them all (radius 75 mm) keeps robot 1 45 mm off
+    its goal; the cover (six discs of 15-17 mm along the heading) lets it to 18 mm; neither
+    lets it touch (smallest gaps 68 and 40 mm)."""
+    near, gap = _beside_a_frozen_robot(6)
+    far, gap_one = _beside_a_frozen_robot(1)
+    assert near < 0.025 and far > 0.04
+    assert gap > 0.03 and gap_one > 0.03
