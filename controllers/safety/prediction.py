@@ -1,0 +1,85 @@
+"""What the safety filter judges: every robot where the new command will act.
+
+:class:`Prediction` is made by :class:`controllers.safety.latency.LatencyPredictor` (its module
+docstring gives the maths) and read by the barrier, the QP and the post-check.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass
+class Prediction:
+    """The filter's picture of N robots at the moment the new command acts.
+
+    Attributes:
+        pos, vel: (N, 2) predicted centres [m] and velocities [m/s] (fixed robots: last
+            position, zero velocity).
+        grow: (N,) disc growth ``e_p`` (or the reachable radius) [m].
+        closing: (N,) approach-speed allowance ``e_v`` (or the reach speed bound) [m/s].
+        fixed: (N,) bool, robots that are obstacles, not decision variables.
+        horizon: (N,) ticks predicted.
+        brake_vel: (N, 2) the velocity a braking command aims to stop [m/s]: ``vel``, or the
+            measured velocity of a robot whose delay jitters (module docstring, Braking);
+            None: ``vel``.
+        velocity_error: (N,) bound on the error of ``vel`` [m/s]: ``closing`` plus
+            ``VELOCITY_NOISE_BOUND`` times the velocity noise the caller measured; read by the
+            post-check's rule that excuses commands no worse than braking. None: 0.
+        unsure: (N,) bool, robots whose command delay may change under the prediction (it
+            changed lately, or their pending count is unknown): their rows take the filter's
+            ``gamma_unsure`` (:class:`controllers.safety.barrier.SafetyConfig`). None: none.
+        covers: fixed rows bounded more tightly by several discs than by one, once silent
+            robots have come to rest (:meth:`SilentPaths.cover`): ``(row, centres (C, 2),
+            radii (C,))`` each, the radii grown like ``grow``; :meth:`with_covers` turns them
+            into rows for the filter.
+    """
+
+    pos: np.ndarray
+    vel: np.ndarray
+    grow: np.ndarray
+    closing: np.ndarray
+    fixed: np.ndarray
+    horizon: np.ndarray
+    brake_vel: np.ndarray | None = None
+    velocity_error: np.ndarray | None = None
+    unsure: np.ndarray | None = None
+    covers: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
+
+    def with_covers(self) -> Prediction:
+        """The prediction over ``N + V`` rows for the filter: each covered row takes its first
+        cover disc, the other ``V`` discs follow the N rows as fixed obstacles at rest (their
+        ``closing`` that of their row: the velocity noise allowance). Without covers, itself."""
+        if not self.covers:
+            return self
+        pos, grow, closing = self.pos.copy(), self.grow.copy(), self.closing.copy()
+        extra_pos, extra_grow, extra_closing = [], [], []
+        for row, centres, radii in self.covers:
+            pos[row], grow[row] = centres[0], radii[0]
+            extra_pos.extend(centres[1:])
+            extra_grow.extend(radii[1:])
+            extra_closing.extend([closing[row]] * (len(radii) - 1))
+        v = len(extra_grow)
+        if v == 0:
+            return replace(self, pos=pos, grow=grow, covers=())
+
+        def more(x: np.ndarray | None, fill) -> np.ndarray | None:
+            return None if x is None else np.concatenate([x, np.full((v, *x.shape[1:]), fill, dtype=x.dtype)])
+
+        extra_closing = np.array(extra_closing)
+        return Prediction(
+            pos=np.vstack([pos, np.array(extra_pos)]), vel=more(self.vel, 0.0),
+            grow=np.concatenate([grow, np.array(extra_grow)]), closing=np.concatenate([closing, extra_closing]),
+            fixed=more(self.fixed, True), horizon=more(self.horizon, 0), brake_vel=more(self.brake_vel, 0.0),
+            velocity_error=(None if self.velocity_error is None
+                            else np.concatenate([self.velocity_error, extra_closing])),
+            unsure=more(self.unsure, False))
+
+    def braking_velocity(self) -> np.ndarray:
+        """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
+        return self.vel if self.brake_vel is None else self.brake_vel
+
+
+__all__ = ["Prediction"]
