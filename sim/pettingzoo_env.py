@@ -30,6 +30,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from sim import observations
+from sim.fleet import FleetState
 from sim.geometry import Frame, Polygon
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.reward import RewardWeights
@@ -91,12 +92,12 @@ class FormationParallelEnv(ParallelEnv):
     # ---------------------------------------------------------------- episode
     def reset(self, seed: int | None = None, options: dict | None = None):
         """Start an episode; ``seed`` seeds the world (start jitter, gains, noise). ``options`` unused."""
-        self.world.reset(seed=seed)
+        state = self.world.reset(seed=seed)
         self.rewarder.reset()
         self._prev_contact.zero_()
         self.agents = list(self.possible_agents)
         infos = self._infos(last=False)
-        return self._observations(self._own_sigma()), infos
+        return self._observations(state, self._own_sigma(state)), infos
 
     def step(self, actions: dict[str, np.ndarray]):
         """Apply one (2,) acceleration per live agent [m/s^2] and advance one control tick."""
@@ -116,10 +117,10 @@ class FormationParallelEnv(ParallelEnv):
         self.world.send_accelerations(command)
         state = self.world.step()
 
-        sigma = self._own_sigma()
+        sigma = self._own_sigma(state)
         reward = self._reward(sigma)
         last = state.step >= self.scenario.dynamics.episode_steps
-        obs = self._observations(sigma)
+        obs = self._observations(state, sigma)
         rewards = {a: float(reward[i]) for i, a in enumerate(self.possible_agents)}
         terminations = dict.fromkeys(self.possible_agents, False)
         truncations = dict.fromkeys(self.possible_agents, last)
@@ -136,11 +137,11 @@ class FormationParallelEnv(ParallelEnv):
         pass
 
     # ---------------------------------------------------------------- helpers
-    def _own_sigma(self) -> torch.Tensor | None:
-        """(1, N) own-target assignment of the measured state, or None without ``own_target``."""
+    def _own_sigma(self, state: FleetState) -> torch.Tensor | None:
+        """(1, N) own-target assignment of the measured ``state``, or None without ``own_target``."""
         if self._own_paths is None:
             return None
-        return observations.own_assignment(self._own_paths(torch.from_numpy(self.world.read_state().positions)[None]))
+        return observations.own_assignment(self._own_paths(torch.from_numpy(state.positions)[None]))
 
     def _reward(self, sigma: torch.Tensor | None) -> torch.Tensor:
         """(N,) reward of the step just taken, on the true state (module docstring); ``sigma``
@@ -155,8 +156,8 @@ class FormationParallelEnv(ParallelEnv):
         onsets, self._prev_contact = contact & ~self._prev_contact, contact
         return self.rewarder(frame, touched, events, onsets, sigma)[0]
 
-    def _observations(self, sigma: torch.Tensor | None) -> dict[str, np.ndarray]:
-        s = self.world.read_state()
+    def _observations(self, s: FleetState, sigma: torch.Tensor | None) -> dict[str, np.ndarray]:
+        """Each agent's flat tokens of the measured state ``s`` (the one the step returned)."""
         toks, _ = observations.tokens(torch.from_numpy(s.positions).unsqueeze(0),
                                       torch.from_numpy(s.velocities).unsqueeze(0), self._targets,
                                       self._polygon, self.scenario.arena)
