@@ -18,6 +18,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from sim.provenance import git_commit
+
+GIT_AT_START = git_commit()
+"""The checkout when the benchmark started: the code that ran. A long run outlives commits and
+edits made beside it; what its document records is this, with the checkout at the end beside
+it (``git_at_end``) when they differ."""
+
 
 def positive_int_list(text: str) -> list[int]:
     """argparse type: ``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be a positive integer."""
@@ -144,12 +151,16 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], file=None
 def print_json(document: dict[str, Any], *, provenance: bool = True) -> None:
     """The result document on stdout, one line, nothing else; it gains a ``provenance`` entry
     (:func:`sim.provenance.provenance`: git commit, package versions, threads, host, command line)
-    unless it holds one, so every saved result says what code and packages made it.
+    unless it holds one, so every saved result says what code and packages made it: the git
+    entry is :data:`GIT_AT_START`, the checkout's state at the end ``git_at_end`` if it changed.
     ``provenance=False`` for a document whose top-level keys are data that tools iterate over."""
     if provenance and "provenance" not in document:
         from sim.provenance import provenance as record
 
-        document = {**document, "provenance": record()}
+        made = record()
+        if made["git"] != GIT_AT_START:
+            made = {**made, "git": GIT_AT_START, "git_at_end": made["git"]}
+        document = {**document, "provenance": made}
     print(json.dumps(document), flush=True)
 
 
