@@ -23,7 +23,7 @@ class Prediction:
         fixed: (N,) bool, robots that are obstacles, not decision variables.
         horizon: (N,) ticks predicted.
         brake_vel: (N, 2) the velocity a braking command aims to stop [m/s]: ``vel``, or the
-            measured velocity of a robot whose delay jitters (module docstring, Braking);
+            measured velocity of a robot whose delay jitters (:mod:`controllers.safety.latency`, Braking);
             None: ``vel``.
         velocity_error: (N,) bound on the error of ``vel`` [m/s]: ``closing`` plus
             ``VELOCITY_NOISE_BOUND`` times the velocity noise the caller measured; read by the

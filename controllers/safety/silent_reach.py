@@ -54,7 +54,7 @@ their rest points lie along its heading, and one disc round them has a radius of
 line however thin it is. Once every branch is at rest and ``e(n)`` final (:attr:`settled_s`),
 the robot lies within ``e`` of the rest point of the branch it took, so a few discs round groups
 of rest points hold it as surely as the one disc (:meth:`SilentPaths.cover`); the filter takes
-them as fixed obstacles (:meth:`controllers.safety.latency.Prediction.with_covers`). Traced on
+them as fixed obstacles (:meth:`controllers.safety.prediction.Prediction.with_covers`). Traced on
 the frozen-robot condition: rest points 86 mm along the heading and 5 mm across, a 56 mm disc
 round a robot 7 mm from its centre, which held a neighbour off the way to its own target.
 
@@ -66,7 +66,7 @@ centre; the branches' disc is 10-74 mm, the true centre 0.2-15 mm from its centr
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -126,6 +126,7 @@ class SilentPaths:
     acting_ticks: int
     stop_ticks: int
     dt: float
+    _covers: dict = field(default_factory=dict, compare=False, repr=False)   # (merge, most) -> cover
 
     def error(self, n: int) -> float:
         """``e(n)`` [m], the module docstring's bound after ``n`` ticks."""
@@ -166,8 +167,13 @@ class SilentPaths:
         """
         if t + 1e-9 < self.settled_s:
             return None
+        key = (float(merge), int(most))            # settled: e(n) final, the cover fixed
+        if key not in self._covers:
+            self._covers[key] = self._cover(self.error(int(np.floor(t / self.dt + 1e-9)) + 1), *key)
+        return self._covers[key]
+
+    def _cover(self, error: float, merge: float, most: int) -> tuple[np.ndarray, np.ndarray]:
         rest = self.points[:, -1]
-        error = self.error(int(np.floor(t / self.dt + 1e-9)) + 1)
         lo, hi = rest.min(axis=0), rest.max(axis=0)
         merge = max(float(merge), 1e-6)
         order = np.argsort(rest[:, int(np.argmax(hi - lo))], kind="stable")
