@@ -419,3 +419,26 @@ def test_the_policy_sees_a_frozen_robot_where_it_stopped_not_where_it_last_repor
     assert stale_ticks[0] == 12 and stale_ticks[-1] == 39
     assert np.linalg.norm(state.positions[0] - rest) > 0.1          # the last report
     assert np.linalg.norm(seen[-1][0] - rest) < 0.02
+
+
+def test_a_target_passed_by_a_robot_that_froze_is_free_for_docking_once_that_robot_is_stale():
+    """Robot 0 crosses above the object at full thrust and freezes at tick 25, 49 mm from
+    robot 1's target; it stops 134 mm from it. Robot 1, pushed aside by the filter as robot 0
+    passed, docks from tick 28 (robot 0 stale: seen where it stopped) and ends 26 mm from its
+    target at tick 80. Judged by robot 0's last report the target stays taken: robot 1 never
+    docks and ends 142 mm off."""
+    from sim.scenario import Scenario
+    sc = Scenario(name="dock-beside-a-frozen-robot", num_robots=2, start_slots=((0.9, 0.74), (0.5, 0.85)),
+                  target_slots=((0.3, 0.8), (0.5, 0.8)), start_jitter=0.0)
+    world = PymunkWorld(sc, ModelError(freeze=(0, 25)))
+    state = world.reset(seed=0)
+    stack, docked = ControlStack(sc, lambda s: np.array([[-1.0, 0.0], [0.0, 0.0]])), []
+    for _ in range(80):
+        result = stack.tick(state)
+        docked.append(bool(result.docking[1]))
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+    target = sc.targets[1]
+    assert np.linalg.norm(state.positions[0] - target) < 0.09            # the last report: "taken"
+    assert docked.index(True) == 28 and all(docked[28:])
+    assert np.linalg.norm(world.true_state().positions[1] - target) < 0.03
