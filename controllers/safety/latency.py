@@ -362,8 +362,9 @@ class LatencyPredictor:
                     p[i], v[i], radius, rate = paths.disc(ages[i] + delay)
                     grow[i], closing[i] = radius + sigma[i], rate + cfg.velocity_noise
                     by_ball[i] = False
-                    cover = paths.cover(ages[i] + delay, cfg.cover_merge, cfg.cover_discs)
-                    if cover is not None and cfg.cover_discs > 1:
+                    cover = (None if cfg.cover_discs == 1
+                             else paths.cover(ages[i] + delay, cfg.cover_merge, cfg.cover_discs))
+                    if cover is not None:
                         covers.append((int(i), cover[0], cover[1] + sigma[i]))
             if by_ball.any():
                 brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay

@@ -56,7 +56,7 @@ the robot lies within ``e`` of the rest point of the branch it took, so a few di
 of rest points hold it as surely as the one disc (:meth:`SilentPaths.cover`); the filter takes
 them as fixed obstacles (:meth:`controllers.safety.prediction.Prediction.with_covers`). Traced on
 the frozen-robot condition: rest points 86 mm along the heading and 5 mm across, a 56 mm disc
-round a robot 7 mm from its centre, which held a neighbour off the way to its own target.
+round a robot 8 mm from its centre, which held a neighbour off the way to its own target.
 
 Measured on the frozen-robot condition (a robot that goes silent and deaf mid-episode, its
 watchdog braking it two ticks later), 80 episodes of a 3-5 robot policy: the ball's radius at
@@ -141,9 +141,7 @@ class SilentPaths:
         tick = int(np.floor(t / self.dt + 1e-9))
         lo = min(tick, last)
         hi = min(lo + 1, last)
-        pts = self.points[:, lo:hi + 1].reshape(-1, 2)
-        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-        spread = float(np.sqrt(((pts - centre) ** 2).sum(axis=1)).max())
+        centre, spread = _box_disc(self.points[:, lo:hi + 1].reshape(-1, 2))
         return centre, spread + self.error(tick + 1)     # e(n) grows past T while braking absorbs e_v
 
     @property
@@ -160,7 +158,7 @@ class SilentPaths:
         docstring), so the union of the discs of radius ``e`` round the ``B`` rest points holds
         it. Rest points that lie along the robot's heading (the branches differ in how long it
         went on) make a line that the one disc of :meth:`disc` covers with a radius of half its
-        length (traced: 86 mm of rest points, a 56 mm disc round a robot 7 mm from its centre).
+        length (traced: 86 mm of rest points, a 56 mm disc round a robot 8 mm from its centre).
         Here the rest points, in order along their widest axis, are grouped greedily while a
         group's bounding-box centre lies within ``merge`` of each of its points (``merge``
         doubled until at most ``most`` groups), each group a disc of radius ``e`` plus its spread.
@@ -180,19 +178,14 @@ class SilentPaths:
         while True:
             groups, start = [], 0
             for k in range(1, len(order) + 1):
-                if k < len(order):
-                    pts = rest[order[start:k + 1]]
-                    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
-                    if np.sqrt(((pts - centre) ** 2).sum(axis=1)).max() <= merge:
-                        continue
-                groups.append(rest[order[start:k]])
+                if k < len(order) and _box_disc(rest[order[start:k + 1]])[1] <= merge:
+                    continue
+                groups.append(_box_disc(rest[order[start:k]]))
                 start = k
             if len(groups) <= most:
                 break
             merge *= 2.0
-        centres = np.array([0.5 * (g.min(axis=0) + g.max(axis=0)) for g in groups])
-        radii = np.array([np.sqrt(((g - c) ** 2).sum(axis=1)).max() for g, c in zip(groups, centres, strict=True)])
-        return centres, radii + error
+        return np.array([c for c, _ in groups]), np.array([r for _, r in groups]) + error
 
     def disc(self, t: float) -> tuple[np.ndarray, np.ndarray, float, float]:
         """``(centre (2,), centre velocity (2,), radius, growth rate)`` at ``t`` seconds after
@@ -200,6 +193,13 @@ class SilentPaths:
         centre, radius = self._disc(t)
         ahead, radius_ahead = self._disc(t + self.dt)
         return centre, (ahead - centre) / self.dt, radius, max(radius_ahead - radius, 0.0) / self.dt
+
+
+def _box_disc(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The centre of the bounding box of (K, 2) points [m] and the largest distance of a point
+    from it [m]: a disc holding them all."""
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return centre, float(np.sqrt(((points - centre) ** 2).sum(axis=1)).max())
 
 
 def silent_paths(pos0: np.ndarray, vel0: np.ndarray, sequences: list[tuple[np.ndarray, np.ndarray]],
