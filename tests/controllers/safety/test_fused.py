@@ -62,18 +62,36 @@ def test_fused_rows_equal_the_fcl_rows(seed, n, speed):
 
 
 COMMAND_ATOL = 1e-6
-"""[m/s^2] how close the two paths' commands must be: rows equal to 1e-9 can still move the
-slack QP on an infeasible barrier QP by more than 1e-7 (DAQP's answers 1.5e-7 apart with six
-robots and 4.2 of slack, 1.4e-7 with five robots round the rotated object and 1.5 of slack: the
-examples below)."""
+"""[m/s^2] how close the two paths' commands must be where no row is softened."""
+
+
+def command_atol(got, want) -> float:
+    """[m/s^2] :data:`COMMAND_ATOL`, plus, on the slack QP, the multiplier times the rows' difference.
+
+    A softened row ``n . u + sigma >= b`` pushes ``u`` with multiplier ``lambda = 2 w sigma``
+    (``w`` up to ``slack_weight * static_slack_factor`` = 1e8): the command is pinned by the
+    actuator octagon, and a normal ``delta`` off moves it by up to ``lambda delta`` along the
+    octagon's edge. FCL's and the fused path's normals differ by ~1e-14, so with 6.6 m/s^2 of
+    slack the answers differ by 6.4e-6 (seed 978538864, n=6; the object's normal is axis-aligned,
+    so is the octagon's edge); DAQP itself moves 2.5e-13 for bounds 1e-13 apart.
+    """
+    if want.max_slack == 0.0:
+        return COMMAND_ATOL
+    cfg = FCL.config
+    lam = 2.0 * cfg.slack_weight * cfg.static_slack_factor * max(got.max_slack, want.max_slack)
+    delta = max(np.abs(got.terms.pair_normal - want.terms.pair_normal).max(initial=0.0),
+                np.abs(got.terms.object_normal - want.terms.object_normal).max(initial=0.0))
+    return COMMAND_ATOL + lam * delta
 
 
 @settings(max_examples=80, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 8), speed=st.floats(0.0, 0.6),
        spread=st.sampled_from([0.5, 1.0]))
 @example(seed=46710636, n=6, speed=0.5, spread=1.0)
+@example(seed=2889, n=7, speed=0.0, spread=0.5)
+@example(seed=978538864, n=6, speed=0.35724530224024775, spread=0.5)
 def test_fused_filter_gives_the_fcl_answer(seed, n, speed, spread):
-    """Same status, same braked and contact robots, same command (to :data:`COMMAND_ATOL`),
+    """Same status, same braked and contact robots, same command (to :func:`command_atol`),
     same reported margins."""
     rng = np.random.default_rng(seed)
     pos, vel, a_nom = scene(rng, n, speed, spread)
@@ -83,7 +101,7 @@ def test_fused_filter_gives_the_fcl_answer(seed, n, speed, spread):
     assert got.reason == want.reason
     np.testing.assert_array_equal(got.braked, want.braked)
     np.testing.assert_array_equal(got.contact, want.contact)
-    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=COMMAND_ATOL)
+    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=command_atol(got, want))
     assert got.min_barrier == pytest.approx(want.min_barrier, abs=1e-9)
     assert got.min_clearance == pytest.approx(want.min_clearance, abs=1e-9)
     assert got.max_slack == pytest.approx(want.max_slack, abs=1e-6)
@@ -102,7 +120,7 @@ def test_rotated_object_takes_the_polygon_path_and_still_matches_fcl(seed, n, th
     want, got = fcl_f.filter(pos, vel, a_nom, pose), fused_f.filter(pos, vel, a_nom, pose)
     assert got.status is want.status
     np.testing.assert_array_equal(got.braked, want.braked)
-    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=COMMAND_ATOL)
+    np.testing.assert_allclose(got.a_safe, want.a_safe, rtol=0, atol=command_atol(got, want))
 
 
 @settings(max_examples=40, deadline=None)
