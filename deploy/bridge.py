@@ -13,7 +13,8 @@ Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic cloc
     * **silent**: seen before, but its token is gone (left, crashed, frozen past the link
       lease), or it is live and its latest state was discarded (it rejoined, or the bridge
       stalled, and has sent nothing since). Passed as ``FleetState.silent`` (last position,
-      velocity, age) so the safety layer keeps it as an obstacle; never commanded. A robot
+      velocity, age, target) so the safety layer keeps it as an obstacle and the controller's
+      policy sees it where it must have stopped (:mod:`stack.team_view`); never commanded. A robot
       whose token is gone gets its last state discarded, so after a rejoin it is a row again
       only with a new state (the controller keys its estimates by robot id and resets them); a
       state of a new link (another epoch) that arrives before the rejoining robot's token is
@@ -383,10 +384,12 @@ class Bridge:
         rows = [rs.msg for rs in view.rows]
         silent = None
         if view.silent:
-            silent = SilentRobots(tuple(rs.robot for rs, _ in view.silent),
-                                  np.array([rs.msg.position for rs, _ in view.silent]),
+            names = tuple(rs.robot for rs, _ in view.silent)
+            known = all(r in self.targets for r in names)   # known: the policy sees them too
+            silent = SilentRobots(names, np.array([rs.msg.position for rs, _ in view.silent]),
                                   np.array([rs.msg.velocity for rs, _ in view.silent]),
-                                  np.array([age for _, age in view.silent]))
+                                  np.array([age for _, age in view.silent]),
+                                  np.array([self.targets[r] for r in names]) if known else None)
         return FleetState(
             time=(self.link.clock_ns() - self._start_ns) / 1e9, step=self.stats.ticks,
             positions=np.array([m.position for m in rows]),

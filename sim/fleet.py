@@ -35,20 +35,28 @@ class SilentRobots:
         positions: (M, 2) last known centres [m].
         velocities: (M, 2) last known velocities [m/s].
         age_s: (M,) seconds since each of those states was measured [s], >= 0.
+        targets: (M, 2) their target slots [m], or None (unknown). Known, the policy and docking
+            see the silent robots as teammates that stand where they must have stopped (as a
+            stale row is seen); unknown, only the safety filter sees them.
     """
 
     ids: tuple[str, ...]
     positions: np.ndarray
     velocities: np.ndarray
     age_s: np.ndarray
+    targets: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         m = len(self.ids)
-        for name in ("positions", "velocities"):
+        for name in ("positions", "velocities", "targets"):
+            if name == "targets" and self.targets is None:      # unknown
+                continue
             arr = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1, 2)
             if arr.shape != (m, 2):
                 raise ValueError(f"SilentRobots.{name} must have shape ({m}, 2), got {arr.shape}")
             setattr(self, name, arr)
+        if self.targets is not None and not np.isfinite(self.targets).all():
+            raise ValueError(f"SilentRobots.targets must be finite (x, y) slots [m] or None, got {self.targets!r}")
         age = np.asarray(self.age_s, dtype=np.float64).reshape(-1)
         if age.shape != (m,) or not (age >= 0).all():
             raise ValueError(f"SilentRobots.age_s must be {m} ages >= 0 seconds, got {self.age_s!r}")

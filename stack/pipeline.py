@@ -21,6 +21,9 @@ every per-robot estimate is keyed by robot id)::
                    the centre of its branches' disc (LatencyPredictor.dead_reckoned, from the
                    commands it was sent), not where it last reported itself; the filter keeps
                    the whole disc
+      -> team:     silent robots whose targets are known join docking's view after the N
+                   rows, where they must have stopped (stack.team_view), and the policy's when
+                   it runs N + M robots (their actions are dropped)
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
@@ -112,6 +115,7 @@ from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
 from stack.policy_io import StackError, _mask_is_optional, load_policy
+from stack.team_view import team_view
 
 PolicyLike = (nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path
               | Callable[[FleetState], np.ndarray])
@@ -388,13 +392,20 @@ class ControlStack:
         else:
             if any_unknown or seen_vel is not state.velocities or seen_pos is not state.positions:
                 state = state.replaced(positions=seen_pos, velocities=seen_vel, state_age_s=ages)
-            a_nom, t_obs, t_pol = self._policy(state, t0)
+            team = team_view(state, self.predictor)           # the rows, then silent robots
+            extra = team.num_robots - n
+            a_nom, t_obs, t_pol = self._policy(team if extra and self._runs(n + extra) else state, t0)
             if not all_finite(f64(a_nom)):
                 a_nom = self.brake(vel)
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
             elif self.docking is not None:
-                a_nom, docked = self.docking(ids, seen_pos, seen_vel, state.targets, a_nom, movable=~stale)
+                a_team = a_nom if len(a_nom) == team.num_robots else np.vstack([a_nom, np.zeros((extra, 2))])
+                movable = np.concatenate([~stale, np.zeros(extra, dtype=bool)])
+                a_team, docked = self.docking(team.robot_ids, team.positions, team.velocities, team.targets,
+                                              a_team, movable=movable)
+                a_nom, docked = a_team[:n], docked[:n]
+            a_nom = a_nom[:n]
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
             safe = self._safety(state, pos, vel, ages, unknown, a_nom, position_std)
@@ -481,6 +492,14 @@ class ControlStack:
             raise StackError(f"the policy returned shape {raw.shape} for {n} robots; it must "
                              f"return ({n}, 2) accelerations (or (1, {n}, 2) for a network)")
         return raw, t_obs, t_pol
+
+    def _runs(self, k: int) -> bool:
+        """Whether the policy takes a team of ``k`` robots (silent robots join its view only then)."""
+        if self._exported is not None:
+            return k in self._exported.robot_counts
+        if self.network is not None:
+            return self.obs_kind == "tokens" and int(getattr(self.network, "num_robots", 0)) == -1
+        return False
 
     def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 unknown: np.ndarray, a_nom: np.ndarray, position_std: np.ndarray | None = None) -> SafeStage:

@@ -116,6 +116,7 @@ def test_a_robot_that_leaves_stays_a_silent_obstacle_until_it_rejoins(fleet):
     silent = seen[-1].silent
     assert silent.ids == ("r1",) and np.allclose(silent.positions, [[0.7, 0.6]])
     assert np.allclose(silent.velocities, [[0.05, 0.0]]) and silent.age_s[0] > 0.7
+    assert np.allclose(silent.targets, [TARGETS["r1"]])    # the policy and docking see it too
     assert not bridge.link.estop_engaged   # a robot that left is not a silent live robot
     rejoined = RobotLink("bf", "r1", REGISTRY, links[0].session)   # r1 back, on r0's session
     links.insert(0, rejoined)   # closed before the session it borrows

@@ -1,0 +1,152 @@
+"""Silent robots in the policy's and docking's view (stack/team_view.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sim.fleet import FleetState, SilentRobots
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import make_scenario
+from stack.pipeline import ControlStack
+from stack.team_view import team_view
+
+
+def fleet_state(silent: SilentRobots | None) -> FleetState:
+    return FleetState(time=1.0, step=20, positions=[[0.1, 0.2], [0.3, 0.4]], velocities=[[0.0, 0.1], [0.2, 0.0]],
+                      targets=[[0.2, 0.5], [0.2, 0.6]], object_pose=[0.5, 0.5, 0.0], robot_ids=("a", "b"),
+                      state_age_s=[0.05, 0.1], silent=silent, commands_pending=np.array([1, 0]))
+
+
+def test_silent_robots_with_targets_join_the_team_after_the_rows():
+    silent = SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7], targets=[[0.2, 0.7]])
+    team = team_view(fleet_state(silent), None)
+    np.testing.assert_array_equal(team.positions, [[0.1, 0.2], [0.3, 0.4], [0.7, 0.8]])
+    np.testing.assert_array_equal(team.velocities, [[0.0, 0.1], [0.2, 0.0], [0.0, -0.2]])
+    np.testing.assert_array_equal(team.targets, [[0.2, 0.5], [0.2, 0.6], [0.2, 0.7]])
+    assert team.robot_ids == ("a", "b", "c")
+    np.testing.assert_array_equal(team.ages(), [0.05, 0.1, 0.7])
+    np.testing.assert_array_equal(team.pending(), [1, 0, -1])
+    assert team.silent is None
+    unknown = team_view(fleet_state(SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7])), None)
+    assert unknown.robot_ids == ("a", "b") and unknown.num_robots == 2
+
+
+@pytest.mark.parametrize("targets, message", [([[0.2, 0.7], [0.1, 0.1]], r"targets must have shape \(1, 2\)"),
+                                              ([[np.nan, 0.7]], "targets must be finite")])
+def test_silent_targets_are_checked_by_name(targets, message):
+    with pytest.raises(ValueError, match=message):
+        SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7], targets=targets)
+
+
+class DroppedFromLink:
+    """A pymunk fleet whose link drops robot 0 from ``drop`` on, as the bridge does when its token
+    lapses: no longer a row, but a silent robot with its last state, that state's age and (with
+    ``targets``) its target."""
+
+    def __init__(self, world: PymunkWorld, drop: int, targets: bool):
+        self.world, self.drop, self.targets, self.last = world, drop, targets, None
+
+    def view(self, state: FleetState) -> FleetState:
+        if state.step < self.drop:
+            self.last = (state.positions[0].copy(), state.velocities[0].copy(), state.time - state.ages()[0])
+            return state
+        pos, vel, measured = self.last
+        silent = SilentRobots(("r0",), pos[None], vel[None], [state.time - measured],
+                              targets=state.targets[:1] if self.targets else None)
+        return FleetState(time=state.time, step=state.step, positions=state.positions[1:],
+                          velocities=state.velocities[1:], targets=state.targets[1:],
+                          object_pose=state.object_pose, robot_ids=state.robot_ids[1:], silent=silent)
+
+
+class PushFirstRow(torch.nn.Module):
+    """A network for any N that drives its first row at full thrust along ``push`` and leaves
+    the others at rest."""
+
+    obs_kind = "tokens"
+    num_robots = -1
+
+    def __init__(self, push: np.ndarray):
+        super().__init__()
+        self.register_buffer("push", torch.as_tensor(push, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        out = torch.zeros(obs.shape[0], obs.shape[1], 2)
+        out[:, 0] = self.push
+        return out
+
+
+def seen_by_policy(stack: ControlStack) -> list[dict[str, np.ndarray]]:
+    """Record, per tick, each robot id's position in the fleet state the policy is given."""
+    seen, policy = [], stack._policy
+
+    def recorded(state, t0):
+        seen.append(dict(zip(state.robot_ids, state.positions.copy(), strict=True)))
+        return policy(state, t0)
+
+    stack._policy = recorded
+    return seen
+
+
+@pytest.mark.parametrize("targets", [True, False])
+def test_a_robot_dropped_from_the_link_is_seen_where_a_stale_row_is_seen(targets):
+    """Robot 0 of paper-3 is pushed away from the object at full thrust and freezes at tick 10
+    at the speed limit; it counts as stale from tick 12, when a second link drops it (silent,
+    with its last state). A policy for any N fed the dropped robot's fleet sees it, from the tick
+    after, where the stack fed the full fleet sees the stale row: where it must have stopped, not
+    where it last reported itself (the same to 1e-12 m; both links without pending counts, which
+    a silent robot does not carry). Its target unknown, the policy does
+    not see it at all."""
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(freeze=(0, 10)))
+    state = world.reset(seed=0)
+    away = state.positions[0] - state.object_pose[:2]
+    policy = PushFirstRow(away / np.linalg.norm(away))
+    full, dropped = ControlStack(sc, policy), ControlStack(sc, policy)
+    seen_full, seen_dropped = seen_by_policy(full), seen_by_policy(dropped)
+    link = DroppedFromLink(world, drop=12, targets=targets)
+    for _ in range(30):
+        state = state.replaced(commands_pending=None)   # a silent robot's pending count is unknown
+        result = full.tick(state)
+        dropped.tick(link.view(state))
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+    assert not result.stale[1:].any() and result.stale[0]
+    for k in range(13, 30):
+        if targets:
+            assert set(seen_dropped[k]) == {"r0", "r1", "r2"}
+            np.testing.assert_allclose(seen_dropped[k]["r0"], seen_full[k]["r0"], rtol=0, atol=1e-12)
+        else:
+            assert set(seen_dropped[k]) == {"r1", "r2"}
+    rest = world.true_state().positions[0]
+    assert np.linalg.norm(seen_full[-1]["r0"] - rest) < 0.02 < np.linalg.norm(link.last[0] - rest)
+
+
+@pytest.mark.parametrize("targets", [True, False])
+def test_docking_judges_a_target_by_a_dropped_robot_as_by_a_stale_row(targets):
+    """Robot 0 crosses above the object at full thrust and freezes at tick 25, 49 mm from robot
+    1's target; it counts as stale from tick 27, when a second link drops it. Robot 1 (its
+    policy a plain callable, which keeps its rows) docks from tick 28 in both stacks: docking
+    sees the dropped robot where the first stack sees the stale row. Its target unknown, the
+    dropped robot is not in docking's view and robot 1 docks a tick earlier, at 27."""
+    from sim.scenario import Scenario
+    sc = Scenario(name="dock-beside-a-frozen-robot", num_robots=2, start_slots=((0.9, 0.74), (0.5, 0.85)),
+                  target_slots=((0.3, 0.8), (0.5, 0.8)), start_jitter=0.0)
+    world = PymunkWorld(sc, ModelError(freeze=(0, 25)))
+    state = world.reset(seed=0)
+
+    def policy(s: FleetState) -> np.ndarray:
+        return np.array([[-1.0, 0.0] if rid == "r0" else [0.0, 0.0] for rid in s.robot_ids])
+
+    full, dropped = ControlStack(sc, policy), ControlStack(sc, policy)
+    link = DroppedFromLink(world, drop=27, targets=targets)
+    docked_full, docked_dropped = [], []
+    for _ in range(60):
+        result = full.tick(state)
+        docked_full.append(bool(result.docking[1]))
+        docked_dropped.append(bool(dropped.tick(link.view(state)).docking[-1]))
+        world.send_accelerations(result.a_cmd)
+        state = world.step()
+    assert docked_full.index(True) == 28 and all(docked_full[28:])
+    assert docked_dropped.index(True) == (28 if targets else 27)
