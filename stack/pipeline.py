@@ -79,8 +79,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from enum import StrEnum
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -88,19 +87,13 @@ import torch
 from torch import nn
 
 from controllers.array_kernels import all_finite, clip_norm_rows, non_finite_rows
-from controllers.docking import Docking, DockingConfig
+from controllers.docking import Docking
 from controllers.jit import f64, warm_up
-from controllers.mec import MecConfig, MecStatus, ModelErrorCompensator
+from controllers.mec import ModelErrorCompensator
 from controllers.observation_kernels import fleet_tokens
 from controllers.position_estimator import PositionEstimator
-from controllers.safety import (
-    SafetyConfig,
-    SafetyFilter,
-    SafetyResult,
-    SafetyStatus,
-    braking_acceleration,
-)
-from controllers.safety.latency import LatencyConfig, LatencyPredictor, Prediction
+from controllers.safety import SafetyFilter, SafetyResult, braking_acceleration
+from controllers.safety.latency import LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
 from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
@@ -116,109 +109,10 @@ from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
 from stack.policy_io import StackError, _mask_is_optional, load_policy
 from stack.team_view import team_view
+from stack.tick_types import PolicyStatus, StackConfig, TickResult
 
 PolicyLike = (nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path
               | Callable[[FleetState], np.ndarray])
-
-
-class PolicyStatus(StrEnum):
-    """What the observe + policy stages produced."""
-
-    OK = "ok"
-    INVALID_STATE = "invalid_state"            # the fleet state was not finite: braking
-    NON_FINITE_OUTPUT = "non_finite_output"    # the policy returned NaN/inf: braking
-
-
-@dataclass
-class TickResult:
-    """One control tick for N robots.
-
-    Attributes:
-        a_nom: (N, 2) policy command [m/s^2] (braking where the policy failed), finite.
-        a_safe: (N, 2) command after the safety filter (``a_nom`` clipped to the actuator limit
-            when the filter is off) [m/s^2].
-        a_cmd: (N, 2) command to send [m/s^2], finite, norm <= accel_limit.
-        policy_status: see :class:`PolicyStatus`.
-        safety_status: the filter's :class:`SafetyStatus` (None: filter off).
-        mec_status: the compensator's :class:`MecStatus` (None: MEC off).
-        safety_reason: the filter's reason text ("" when unchanged or intervened).
-        brake_reason: why a stage output was replaced by braking ("" when none was).
-        stale: (N,) bool, robots treated as obstacles this tick (state older than the latency
-            config's ``stale_after_s``, or not finite): they were sent the braking law.
-        docking: (N,) bool, robots whose ``a_nom`` is the docking law (:mod:`controllers.docking`).
-        timings_ns: nanoseconds per stage: observe, policy, safety, mec, total.
-    """
-
-    a_nom: np.ndarray
-    a_safe: np.ndarray
-    a_cmd: np.ndarray
-    policy_status: PolicyStatus
-    safety_status: SafetyStatus | None
-    mec_status: MecStatus | None
-    safety_reason: str = ""
-    brake_reason: str = ""
-    stale: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    docking: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    timings_ns: dict[str, int] = field(default_factory=dict)
-
-    @property
-    def intervened(self) -> bool:
-        """The safety filter changed the nominal command (any status but UNCHANGED)."""
-        return self.safety_status is not None and self.safety_status is not SafetyStatus.UNCHANGED
-
-    @property
-    def infeasible(self) -> bool:
-        """The barrier QP was infeasible and the slack QP (or braking) answered."""
-        return self.safety_status is SafetyStatus.SLACK or "OSQP" in self.safety_reason
-
-    @property
-    def fallback(self) -> bool:
-        """Some robot got a braking command from the filter's fallback or post-check."""
-        return self.safety_status is SafetyStatus.FALLBACK_BRAKE
-
-    @property
-    def braking(self) -> bool:
-        """A non-finite value was replaced by braking somewhere in the tick."""
-        return self.policy_status is not PolicyStatus.OK or bool(self.brake_reason)
-
-    def events(self) -> dict[str, bool]:
-        return {"intervened": self.intervened, "infeasible": self.infeasible,
-                "fallback": self.fallback, "braking": self.braking}
-
-
-@dataclass(frozen=True)
-class StackConfig:
-    """Which stages run, and their settings.
-
-    Attributes:
-        safety: run the safety filter.
-        mec: run the model error compensator.
-        safety_config: settings of the filter (default: the fused fast path, see
-            :mod:`controllers.safety.fused`; ``geometry="fcl"`` gives the same answers slower).
-        mec_config: settings of the compensator.
-        latency: what the filter assumes of the link (:mod:`controllers.safety.latency`; the
-            default covers 150 ms of command delay; ``LatencyConfig(enabled=False)`` judges the
-            measured state as it is).
-        estimated_velocity: policy and filter read the compensator's velocity estimate (its
-            Kalman observer, noise-adaptive, :mod:`controllers.mec`) instead of the measured
-            velocity (only with ``mec``; stale rows keep their measurement).
-        estimated_position: policy and filter read the position estimator's positions
-            (:mod:`controllers.position_estimator`: a Kalman filter that measures each robot's
-            position noise and passes exact measurements through unchanged); the filter grows
-            each disc by the estimate's standard deviation.
-        docking: the terminal mode that takes a robot near its free matched target onto it
-            (:mod:`controllers.docking`), before the filter; ``DockingConfig(enabled=False)``
-            leaves the policy's command as it is.
-    """
-
-    safety: bool = True
-    mec: bool = True
-    safety_config: SafetyConfig = field(default_factory=SafetyConfig)
-    mec_config: MecConfig = field(default_factory=MecConfig)
-    latency: LatencyConfig = field(default_factory=LatencyConfig)
-    estimated_velocity: bool = True
-    estimated_position: bool = True
-    docking: DockingConfig = field(default_factory=DockingConfig)
 
 
 @dataclass

@@ -146,7 +146,7 @@ class EpisodeRecorder:
     """A ControlStack as the bridge's controller, with counters per fleet episode.
 
     ``start_episode(k)`` (the bridge's ``on_episode``) closes the running episode and resets the
-    stack. Per tick it counts the safety events of :class:`stack.pipeline.TickResult`, keeps the
+    stack. Per tick it counts the safety events of :class:`stack.tick_types.TickResult`, keeps the
     stack's tick time and the one-tick tracking error ``mean_i |p_i(k+1) - p^_i(k+1)|`` [m],
     where ``p^(k+1)`` is :func:`stack.pipeline.nominal_step` from the measured state of tick k
     driven by ``a_safe`` (what the MEC makes the robots follow); it is measured only between two
