@@ -88,6 +88,8 @@ class DockingConfig:
             (slower than ``stall_speed``) starts docking too [m] (module docstring, "How near";
             0 turns this tier off).
         stall_speed: see ``stall_radius`` [m/s].
+        detour_after_s: a robot held still this long away from every target, its policy pushing,
+            is led round what holds it (:mod:`controllers.detour`) [s]; 0 turns detours off.
     """
 
     enabled: bool = True
@@ -99,10 +101,11 @@ class DockingConfig:
     capture_speed: float = 0.2
     stall_radius: float = 0.12
     stall_speed: float = 0.1
+    detour_after_s: float = 1.0
 
     def __post_init__(self) -> None:
         check_numbers(self, ("capture_radius", "release_radius", "free_margin", "kp", "kd", "capture_speed",
-                             "stall_radius", "stall_speed"), "docking", DockingConfigError)
+                             "stall_radius", "stall_speed", "detour_after_s"), "docking", DockingConfigError)
         for name in ("capture_radius", "stall_radius"):
             if self.release_radius < getattr(self, name):
                 raise DockingConfigError(f"docking.release_radius ({self.release_radius}) must be >= "

@@ -37,6 +37,8 @@ every per-robot estimate is keyed by robot id)::
                    an all-true mask kept per N; a TorchScript forward is called directly)
       -> docking:  controllers.docking.Docking: a robot near its free matched target gets a PD
                    law onto it instead (``docking``); the filter judges it like any command
+      -> detour:   controllers.detour.Detour: a robot held still away from every target while
+                   its policy pushes is led round what holds it on a grid path (``detour``)
       -> latency:  controllers.safety.latency.LatencyPredictor: every robot (silent ones
                    appended) predicted to where the new command acts, over its state age plus
                    the command delay, through the commands in flight; discs grown by what the
@@ -87,6 +89,7 @@ import torch
 from torch import nn
 
 from controllers.array_kernels import all_finite, clip_norm_rows, non_finite_rows
+from controllers.detour import Detour
 from controllers.docking import Docking
 from controllers.jit import f64, warm_up
 from controllers.mec import ModelErrorCompensator
@@ -191,7 +194,12 @@ class ControlStack:
         self.positions = PositionEstimator(self.dynamics.dt) if self.config.estimated_position else None
         self.docking = (Docking(scenario.robot_radius, self.dynamics.accel_limit, self.config.docking)
                         if self.config.docking.enabled else None)
+        dock = self.config.docking
+        self.detour = (Detour(scenario.robot_radius, self.dynamics.accel_limit, scenario.arena, scenario.polygon,
+                              self.dynamics.dt, dock.detour_after_s, dock.stall_radius)
+                       if dock.enabled and dock.detour_after_s > 0 else None)
         self._last_known = LastKnown()
+        self._fixed_discs: np.ndarray | None = None     # (K, 3) the filter's fixed discs, last tick
         self.num_robots: int | None = None
         warm_up()                       # compile or load the kernels now, not at the first tick
 
@@ -205,7 +213,10 @@ class ControlStack:
             self.positions.reset()
         if self.docking is not None:
             self.docking.reset()
+        if self.detour is not None:
+            self.detour.reset()
         self._last_known = LastKnown()
+        self._fixed_discs = None
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
             reset()
@@ -277,7 +288,7 @@ class ControlStack:
         if self.predictor is not None and np.count_nonzero(stale):
             seen_pos, seen_vel = self.predictor.dead_reckoned(ids, pos, vel, ages, stale, state.time)
         policy_status, brake_reason = PolicyStatus.OK, ""
-        docked = np.zeros(n, dtype=bool)
+        docked, detoured = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         if any_unknown and unplaced.any():      # nowhere to put a robot: nobody may move
             a_nom = self.brake(vel)
             policy_status = PolicyStatus.INVALID_STATE
@@ -294,11 +305,7 @@ class ControlStack:
                 policy_status = PolicyStatus.NON_FINITE_OUTPUT
                 brake_reason = "policy output not finite: braking"
             elif self.docking is not None:
-                a_team = a_nom if len(a_nom) == team.num_robots else np.vstack([a_nom, np.zeros((extra, 2))])
-                movable = np.concatenate([~stale, np.zeros(extra, dtype=bool)])
-                a_team, docked = self.docking(team.robot_ids, team.positions, team.velocities, team.targets,
-                                              a_team, movable=movable)
-                a_nom, docked = a_team[:n], docked[:n]
+                a_nom, docked, detoured = self._terminal_modes(team, a_nom, stale)
             a_nom = a_nom[:n]
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
@@ -330,7 +337,7 @@ class ControlStack:
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
-            brake_reason=brake_reason, stale=stale, docking=docked,
+            brake_reason=brake_reason, stale=stale, docking=docked, detour=detoured,
             timings_ns={"observe": t_obs - t0, "policy": t_pol - t_obs, "safety": t_safe - t_pol,
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 
@@ -387,6 +394,21 @@ class ControlStack:
                              f"return ({n}, 2) accelerations (or (1, {n}, 2) for a network)")
         return raw, t_obs, t_pol
 
+    def _terminal_modes(self, team: FleetState, a_nom: np.ndarray,
+                        stale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Docking, then detours, over the team (the N rows, then silent robots, which neither
+        moves): ``(a_nom (N, 2), docking (N,), detour (N,))`` of the rows."""
+        n, extra = len(stale), team.num_robots - len(stale)
+        a_team = a_nom if len(a_nom) == team.num_robots else np.vstack([a_nom, np.zeros((extra, 2))])
+        movable = np.concatenate([~stale, np.zeros(extra, dtype=bool)])
+        a_team, docked = self.docking(team.robot_ids, team.positions, team.velocities, team.targets,
+                                      a_team, movable=movable)
+        detoured = np.zeros(len(movable), dtype=bool)
+        if self.detour is not None:
+            a_team, detoured = self.detour(team.robot_ids, team.positions, team.velocities, team.targets,
+                                           a_team, movable & ~docked, self._fixed_discs)
+        return a_team[:n], docked[:n], detoured[:n]
+
     def _runs(self, k: int) -> bool:
         """Whether the policy takes a team of ``k`` robots (silent robots join its view only then)."""
         if self._exported is not None:
@@ -430,6 +452,9 @@ class ControlStack:
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
+        if prediction is not None:             # the detours of the next tick keep clear of them
+            fixed = prediction.fixed
+            self._fixed_discs = np.column_stack([prediction.pos[fixed], self.scenario.robot_radius + prediction.grow[fixed]])
         return SafeStage(result, prediction, len(pos), ids)
 
     def _resize(self, n: int) -> None:

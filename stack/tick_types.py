@@ -39,6 +39,7 @@ class TickResult:
         stale: (N,) bool, robots treated as obstacles this tick (state older than the latency
             config's ``stale_after_s``, or not finite): they were sent the braking law.
         docking: (N,) bool, robots whose ``a_nom`` is the docking law (:mod:`controllers.docking`).
+        detour: (N,) bool, robots whose ``a_nom`` follows a detour (:mod:`controllers.detour`).
         timings_ns: nanoseconds per stage: observe, policy, safety, mec, total.
     """
 
@@ -52,6 +53,7 @@ class TickResult:
     brake_reason: str = ""
     stale: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     docking: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    detour: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     timings_ns: dict[str, int] = field(default_factory=dict)
 
     @property

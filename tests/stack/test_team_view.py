@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scipy.optimize import linear_sum_assignment
 
 from sim.fleet import FleetState, SilentRobots
 from sim.pymunk_world import ModelError, PymunkWorld
@@ -41,23 +42,34 @@ def test_silent_targets_are_checked_by_name(targets, message):
 
 
 class DroppedFromLink:
-    """A pymunk fleet whose link drops robot 0 from ``drop`` on, as the bridge does when its token
-    lapses: no longer a row, but a silent robot with its last state, that state's age and (with
-    ``targets``) its target."""
+    """A pymunk fleet whose link drops robot ``robot`` from ``drop`` on, as the bridge does when
+    its token lapses: no longer a row, but a silent robot with its last state, that state's age
+    and (with ``targets``) its target."""
 
-    def __init__(self, world: PymunkWorld, drop: int, targets: bool):
-        self.world, self.drop, self.targets, self.last = world, drop, targets, None
+    def __init__(self, world: PymunkWorld, drop: int, targets: bool, robot: int = 0):
+        self.world, self.drop, self.targets, self.robot, self.last = world, drop, targets, robot, None
 
     def view(self, state: FleetState) -> FleetState:
+        k = self.robot
         if state.step < self.drop:
-            self.last = (state.positions[0].copy(), state.velocities[0].copy(), state.time - state.ages()[0])
+            self.last = (state.positions[k].copy(), state.velocities[k].copy(), state.time - state.ages()[k])
             return state
         pos, vel, measured = self.last
-        silent = SilentRobots(("r0",), pos[None], vel[None], [state.time - measured],
-                              targets=state.targets[:1] if self.targets else None)
-        return FleetState(time=state.time, step=state.step, positions=state.positions[1:],
-                          velocities=state.velocities[1:], targets=state.targets[1:],
-                          object_pose=state.object_pose, robot_ids=state.robot_ids[1:], silent=silent)
+        rows = np.arange(state.num_robots) != k
+        silent = SilentRobots((state.robot_ids[k],), pos[None], vel[None], [state.time - measured],
+                              targets=state.targets[k:k + 1] if self.targets else None)
+        return FleetState(time=state.time, step=state.step, positions=state.positions[rows],
+                          velocities=state.velocities[rows], targets=state.targets[rows],
+                          object_pose=state.object_pose, robot_ids=tuple(np.array(state.robot_ids)[rows]),
+                          silent=silent)
+
+    def commands(self, rows: np.ndarray, step: int) -> np.ndarray:
+        """The (N, 2) command the fleet gets from a stack's rows (the dropped robot's: 0)."""
+        if step < self.drop:
+            return rows
+        out = np.zeros((len(rows) + 1, 2))
+        out[np.arange(len(out)) != self.robot] = rows
+        return out
 
 
 class PushFirstRow(torch.nn.Module):
@@ -150,3 +162,36 @@ def test_docking_judges_a_target_by_a_dropped_robot_as_by_a_stale_row(targets):
         state = world.step()
     assert docked_full.index(True) == 28 and all(docked_full[28:])
     assert docked_dropped.index(True) == (28 if targets else 27)
+
+
+@pytest.mark.parametrize("detour", [True, False])
+def test_a_robot_held_behind_a_dropped_robot_is_led_round_it(detour):
+    """Scripted paper-5: robot 3 freezes at tick 20 on its way above the object and its link
+    drops it. The scripted controller drives robots 2 and 4 straight at their slots, into the
+    filter's bound round robot 3, and without detours both stand there to the end (tick 240),
+    over 0.3 m from any free target. Held still for a second, each is led round on a grid path:
+    robot 4 ends on a target; robot 2 gets round too (tick 171), but its controller, which is
+    not given robot 3's slot, drives it back along the top of the object, where it is held
+    again (a new plan at tick 238).
+    Nobody touches anything either way."""
+    from controllers.docking import DockingConfig
+    from controllers.scripted import ScriptedController
+    from stack.pipeline import StackConfig
+    sc = make_scenario("paper-5")
+    world = PymunkWorld(sc, ModelError(freeze=(3, 20)))
+    state = world.reset(seed=0)
+    config = StackConfig(docking=DockingConfig(detour_after_s=1.0 if detour else 0.0))
+    stack, link, detoured = ControlStack(sc, ScriptedController(sc), config), DroppedFromLink(world, 20, True, 3), []
+    for step in range(240):
+        result = stack.tick(link.view(state))
+        detoured.append(bool(result.detour.any()))
+        world.send_accelerations(link.commands(result.a_cmd, step))
+        state = world.step()
+    others = world.true_state().positions[[0, 1, 2, 4]]
+    gaps = np.linalg.norm(others[:, None] - sc.targets[None], axis=2)
+    off = gaps[linear_sum_assignment(gaps)]                  # each robot to a target of its own
+    assert world.collision_counts.robot == world.collision_counts.object == world.collision_counts.wall == 0
+    if detour:
+        assert np.count_nonzero(off < 0.01) == 3 and any(detoured)
+    else:
+        assert np.count_nonzero(off < 0.01) == 2 and np.sort(off)[-2:].min() > 0.3 and not any(detoured)

@@ -1,0 +1,183 @@
+r"""Detour: a robot stuck away from its target is led round what holds it.
+
+A learned policy never met a robot that stopped for good in its way. When a robot drops from
+the link in a corridor the others need, the safety filter keeps them off it, but a policy that
+pushes on into it gets nothing through the filter and its robot stands there for the rest of
+the episode. Traced (paper-5, an own-target generalist, robot 3 silent from tick 15 in the
+corridor above the object): robot 2 stood at the top wall from tick 60 to the end, 0.47 m from
+its target, its policy asking 1 m/s^2 towards the gap above the silent robot, the filter
+answering 0.
+
+**When.** A movable robot that is not docking is *stuck* once it has been, for ``after_s`` in a
+row, slower than ``STUCK_SPEED`` while asked for at least ``STUCK_PUSH`` (the policy wants it to
+move, something holds it) and farther than ``stall_radius`` from every target (it has not
+arrived). It then follows a detour until it comes within ``stall_radius`` of its target (where
+docking's second tier takes it), no path exists, or ``MAX_S`` have passed; a robot that
+stalls on its detour is stuck again and replans.
+
+**Path.** On a grid of ``CELL`` over the arena, a cell is free when a robot centred there keeps
+``CLEARANCE`` to the walls and the object and ``2 r + CLEARANCE`` to every other robot (at its
+centre as the stack sees it: a silent robot where it must have stopped) and ``r + CLEARANCE`` to
+every disc the safety filter last kept round a robot not listening (so the path does not lead
+where the filter will not let the robot go); the robot's target is
+its match under the least total distance (:func:`scipy.optimize.linear_sum_assignment`, as
+docking matches); the path is the shortest 8-connected one between the free cells nearest the
+robot and the target (Dijkstra, :func:`scipy.sparse.csgraph.dijkstra`), planned again every
+``REPLAN_TICKS``.
+
+**Law** (per detouring robot, m/s^2; ``w`` the path point ``LOOKAHEAD`` cells ahead, ``d`` the
+path length left)::
+
+    v_des = min(SPEED, sqrt(2 BRAKE d)) (w - p) / |w - p|
+    a     = clip_norm(GAIN (v_des - v), accel_limit)
+
+The result goes through the safety filter like any command: a detour never bypasses it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from controllers.safety.geometry import point_polygon
+from sim.scenario import clip_norm
+
+CELL = 0.01            # [m] grid spacing
+CLEARANCE = 0.03       # [m] kept to walls, object and other robots
+STUCK_SPEED = 0.02     # [m/s]
+STUCK_PUSH = 0.2       # [m/s^2]
+MAX_S = 8.0            # [s] longest detour before the policy has its robot back
+REPLAN_TICKS = 10
+LOOKAHEAD = 6          # [cells]
+SPEED = 0.2            # [m/s]
+BRAKE = 0.5            # [m/s^2]
+GAIN = 4.0             # [1/s]
+_STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+
+
+class Detour:
+    """Per-robot stuck counters and detours, keyed by robot id (module docstring)."""
+
+    def __init__(self, robot_radius: float, accel_limit: float, arena: tuple[float, float],
+                 polygon: np.ndarray, dt: float, after_s: float, stall_radius: float):
+        self.radius, self.accel_limit, self.dt = float(robot_radius), float(accel_limit), float(dt)
+        self.after_ticks = max(1, int(round(after_s / dt)))
+        self.stall_radius = float(stall_radius)
+        w, h = arena
+        xs, ys = np.arange(CELL / 2, w, CELL), np.arange(CELL / 2, h, CELL)
+        self.shape = (len(xs), len(ys))
+        self.centres = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)   # (X*Y, 2)
+        keep = self.radius + CLEARANCE
+        walls = np.minimum(np.minimum(self.centres[:, 0], w - self.centres[:, 0]),
+                           np.minimum(self.centres[:, 1], h - self.centres[:, 1]))
+        self.static_free = (walls >= keep) & (point_polygon(self.centres, np.asarray(polygon, float))[0] >= keep)
+        self.reset()
+
+    def reset(self) -> None:
+        self._stuck: dict[str, int] = {}
+        self._paths: dict[str, tuple[np.ndarray, int, int]] = {}   # id -> (path (K, 2), planned at, started at)
+        self._tick = 0
+
+    def __call__(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
+                 a_nom: np.ndarray, movable: np.ndarray,
+                 discs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) commands with detouring robots' rows replaced, and (N,) bool of those rows.
+        ``pos``, ``vel``, ``targets``, ``a_nom``: (N, 2) [m, m/s, m, m/s^2]; ``movable`` (N,) bool:
+        robots that may detour (not stale, silent or docking); ``discs`` (K, 3): centre x, y and
+        radius [m] of the safety filter's fixed obstacles (the discs that bound robots not
+        listening, grown by what is not known of them), kept clear like robots."""
+        self._tick += 1
+        n = len(pos)
+        near = np.linalg.norm(pos[:, None] - targets[None], axis=2).min(axis=1) <= self.stall_radius
+        held = (np.linalg.norm(vel, axis=1) < STUCK_SPEED) & (np.linalg.norm(a_nom, axis=1) >= STUCK_PUSH)
+        self._stuck = {rid: self._stuck.get(rid, 0) + 1 if movable[i] and held[i] and not near[i] else 0
+                       for i, rid in enumerate(ids)}
+        detour = np.zeros(n, dtype=bool)
+        wanted = [i for i, rid in enumerate(ids) if movable[i] and not near[i]
+                  and (rid in self._paths or self._stuck[rid] >= self.after_ticks)]
+        self._paths = {rid: p for rid, p in self._paths.items() if rid in {ids[i] for i in wanted}}
+        if not wanted:
+            return a_nom, detour
+        match = linear_sum_assignment(np.linalg.norm(pos[:, None] - targets[None], axis=2))[1]
+        out = np.array(a_nom, dtype=np.float64)
+        for i in wanted:
+            path = self._path(ids[i], i, pos, targets[match[i]], discs)
+            if path is None:
+                continue
+            out[i], detour[i] = self._follow(path, pos[i], vel[i]), True
+        return out, detour
+
+    def _path(self, rid: str, i: int, pos: np.ndarray, target: np.ndarray,
+              discs: np.ndarray | None) -> np.ndarray | None:
+        """Robot ``i``'s path (K, 2) [m], planned when it is stuck or its plan is due."""
+        planned = self._paths.get(rid)
+        if planned is not None and self._tick - planned[2] > MAX_S / self.dt:
+            del self._paths[rid]
+            self._stuck[rid] = 0
+            return None
+        if planned is None or self._stuck[rid] >= self.after_ticks or self._tick - planned[1] >= REPLAN_TICKS:
+            path = self.plan(pos[i], target, np.delete(pos, i, axis=0), discs)
+            if path is None:                     # try again in REPLAN_TICKS if still held
+                self._paths.pop(rid, None)
+                self._stuck[rid] = max(0, self.after_ticks - REPLAN_TICKS)
+                return None
+            started = self._tick if planned is None else planned[2]
+            self._paths[rid] = planned = (path, self._tick, started)
+            self._stuck[rid] = 0
+        path = planned[0]
+        k = int(np.argmin(np.linalg.norm(path - pos[i], axis=1)))       # where along it the robot is
+        return path[k:]
+
+    def plan(self, start: np.ndarray, goal: np.ndarray, others: np.ndarray,
+             discs: np.ndarray | None = None) -> np.ndarray | None:
+        """Shortest free path (K, 2) [m] of cell centres from near ``start`` to near ``goal``
+        round the walls, the object, robots at ``others`` (M, 2) and ``discs`` (K, 3: centre,
+        radius); None when there is none."""
+        free = self.static_free.copy()
+        for c in others:
+            free &= np.linalg.norm(self.centres - c, axis=1) >= 2 * self.radius + CLEARANCE
+        for x, y, radius in (() if discs is None else discs):
+            free &= np.hypot(self.centres[:, 0] - x, self.centres[:, 1] - y) >= self.radius + radius + CLEARANCE
+        cells = np.flatnonzero(free)
+        if len(cells) == 0:
+            return None
+        s = cells[np.argmin(np.linalg.norm(self.centres[cells] - start, axis=1))]
+        g = cells[np.argmin(np.linalg.norm(self.centres[cells] - goal, axis=1))]
+        if np.linalg.norm(self.centres[g] - goal) > self.stall_radius:
+            return None                                  # the target itself is held
+        nx, ny = self.shape
+        ix, iy = np.unravel_index(np.arange(nx * ny), self.shape)
+        rows, cols, cost = [], [], []
+        for dx, dy in _STEPS:
+            jx, jy = ix + dx, iy + dy
+            ok = free & (jx >= 0) & (jx < nx) & (jy >= 0) & (jy < ny)
+            j = np.ravel_multi_index((np.clip(jx, 0, nx - 1), np.clip(jy, 0, ny - 1)), self.shape)
+            ok &= free[j]
+            rows.append(np.flatnonzero(ok))
+            cols.append(j[ok])
+            cost.append(np.full(np.count_nonzero(ok), math.hypot(dx, dy)))
+        graph = coo_matrix((np.concatenate(cost), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(nx * ny, nx * ny)).tocsr()
+        dist, pred = dijkstra(graph, indices=g, return_predecessors=True)
+        if not np.isfinite(dist[s]):
+            return None
+        order = [s]
+        while order[-1] != g:
+            order.append(pred[order[-1]])
+        return np.vstack([self.centres[order], goal])
+
+    def _follow(self, path: np.ndarray, p: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The detour law (module docstring) for a robot at ``p``, ``v`` on ``path``."""
+        w = path[min(LOOKAHEAD, len(path) - 1)]
+        left = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum() + np.linalg.norm(path[0] - p))
+        heading = w - p
+        norm = float(np.linalg.norm(heading))
+        v_des = np.zeros(2) if norm < 1e-9 else min(SPEED, math.sqrt(2 * BRAKE * left)) * heading / norm
+        return clip_norm(GAIN * (v_des - v), self.accel_limit)
+
+
+__all__ = ["Detour"]
