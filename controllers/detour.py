@@ -92,11 +92,14 @@ class Detour:
         listening, grown by what is not known of them), kept clear like robots."""
         self._tick += 1
         n = len(pos)
+        detour = np.zeros(n, dtype=bool)
+        held = (np.hypot(vel[:, 0], vel[:, 1]) < STUCK_SPEED) & (np.hypot(a_nom[:, 0], a_nom[:, 1]) >= STUCK_PUSH)
+        if not self._paths and not np.count_nonzero(held & movable):      # the usual tick
+            self._stuck = dict.fromkeys(ids, 0)
+            return a_nom, detour
         near = np.linalg.norm(pos[:, None] - targets[None], axis=2).min(axis=1) <= self.stall_radius
-        held = (np.linalg.norm(vel, axis=1) < STUCK_SPEED) & (np.linalg.norm(a_nom, axis=1) >= STUCK_PUSH)
         self._stuck = {rid: self._stuck.get(rid, 0) + 1 if movable[i] and held[i] and not near[i] else 0
                        for i, rid in enumerate(ids)}
-        detour = np.zeros(n, dtype=bool)
         wanted = [i for i, rid in enumerate(ids) if movable[i] and not near[i]
                   and (rid in self._paths or self._stuck[rid] >= self.after_ticks)]
         self._paths = {rid: p for rid, p in self._paths.items() if rid in {ids[i] for i in wanted}}
