@@ -37,6 +37,7 @@ The result goes through the safety filter like any command: a detour never bypas
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -84,21 +85,23 @@ class Detour:
 
     def __call__(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, targets: np.ndarray,
                  a_nom: np.ndarray, movable: np.ndarray,
-                 discs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 discs: Callable[[], np.ndarray | None] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) commands with detouring robots' rows replaced, and (N,) bool of those rows.
         ``pos``, ``vel``, ``targets``, ``a_nom``: (N, 2) [m, m/s, m, m/s^2]; ``movable`` (N,) bool:
-        robots that may detour (not stale, silent or docking); ``discs`` (K, 3): centre x, y and
-        radius [m] of the safety filter's fixed obstacles (the discs that bound robots not
-        listening, grown by what is not known of them), kept clear like robots."""
+        robots that may detour (not stale, silent or docking); ``discs()`` gives (K, 3): centre
+        x, y and radius [m] of the safety filter's fixed obstacles (the discs that bound robots
+        not listening, grown by what is not known of them), kept clear like robots; asked only
+        when a robot plans."""
         self._tick += 1
         n = len(pos)
         detour = np.zeros(n, dtype=bool)
-        held = (np.hypot(vel[:, 0], vel[:, 1]) < STUCK_SPEED) & (np.hypot(a_nom[:, 0], a_nom[:, 1]) >= STUCK_PUSH)
-        if not self._paths and not np.count_nonzero(held & movable):      # the usual tick
-            self._stuck = dict.fromkeys(ids, 0)
+        held = ((vel * vel).sum(1) < STUCK_SPEED**2) & ((a_nom * a_nom).sum(1) >= STUCK_PUSH**2) & movable
+        if not self._paths and not held.any():          # the usual tick: nobody held, none on a detour
+            if self._stuck:
+                self._stuck.clear()
             return a_nom, detour
         near = np.linalg.norm(pos[:, None] - targets[None], axis=2).min(axis=1) <= self.stall_radius
-        self._stuck = {rid: self._stuck.get(rid, 0) + 1 if movable[i] and held[i] and not near[i] else 0
+        self._stuck = {rid: self._stuck.get(rid, 0) + 1 if held[i] and not near[i] else 0
                        for i, rid in enumerate(ids)}
         wanted = [i for i, rid in enumerate(ids) if movable[i] and not near[i]
                   and (rid in self._paths or self._stuck[rid] >= self.after_ticks)]
@@ -115,7 +118,7 @@ class Detour:
         return out, detour
 
     def _path(self, rid: str, i: int, pos: np.ndarray, target: np.ndarray,
-              discs: np.ndarray | None) -> np.ndarray | None:
+              discs: Callable[[], np.ndarray | None] | None) -> np.ndarray | None:
         """Robot ``i``'s path (K, 2) [m], planned when it is stuck or its plan is due."""
         planned = self._paths.get(rid)
         if planned is not None and self._tick - planned[2] > MAX_S / self.dt:
@@ -123,7 +126,7 @@ class Detour:
             self._stuck[rid] = 0
             return None
         if planned is None or self._stuck[rid] >= self.after_ticks or self._tick - planned[1] >= REPLAN_TICKS:
-            path = self.plan(pos[i], target, np.delete(pos, i, axis=0), discs)
+            path = self.plan(pos[i], target, np.delete(pos, i, axis=0), None if discs is None else discs())
             if path is None:                     # try again in REPLAN_TICKS if still held
                 self._paths.pop(rid, None)
                 self._stuck[rid] = max(0, self.after_ticks - REPLAN_TICKS)

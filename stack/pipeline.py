@@ -199,7 +199,7 @@ class ControlStack:
                               self.dynamics.dt, dock.detour_after_s, dock.stall_radius)
                        if dock.enabled and dock.detour_after_s > 0 else None)
         self._last_known = LastKnown()
-        self._fixed_discs: np.ndarray | None = None     # (K, 3) the filter's fixed discs, last tick
+        self._last_prediction: Prediction | None = None   # the filter's, last tick (its fixed discs)
         self.num_robots: int | None = None
         warm_up()                       # compile or load the kernels now, not at the first tick
 
@@ -216,7 +216,7 @@ class ControlStack:
         if self.detour is not None:
             self.detour.reset()
         self._last_known = LastKnown()
-        self._fixed_discs = None
+        self._last_prediction = None
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
             reset()
@@ -400,7 +400,7 @@ class ControlStack:
         moves): ``(a_nom (N, 2), docking (N,), detour (N,))`` of the rows."""
         n, extra = len(stale), team.num_robots - len(stale)
         a_team = a_nom if len(a_nom) == team.num_robots else np.vstack([a_nom, np.zeros((extra, 2))])
-        movable = np.concatenate([~stale, np.zeros(extra, dtype=bool)])
+        movable = np.concatenate([~stale, np.zeros(extra, dtype=bool)]) if extra else ~stale
         a_team, docked = self.docking(team.robot_ids, team.positions, team.velocities, team.targets,
                                       a_team, movable=movable)
         detoured = np.zeros(len(movable), dtype=bool)
@@ -408,6 +408,14 @@ class ControlStack:
             a_team, detoured = self.detour(team.robot_ids, team.positions, team.velocities, team.targets,
                                            a_team, movable & ~docked, self._fixed_discs)
         return a_team[:n], docked[:n], detoured[:n]
+
+    def _fixed_discs(self) -> np.ndarray | None:
+        """(K, 3) centre and radius [m] of every disc the filter last kept round a robot not
+        listening (itself grown by what is not known of it), or None."""
+        p = self._last_prediction
+        if p is None:
+            return None
+        return np.column_stack([p.pos[p.fixed], self.scenario.robot_radius + p.grow[p.fixed]])
 
     def _runs(self, k: int) -> bool:
         """Whether the policy takes a team of ``k`` robots (silent robots join its view only then)."""
@@ -452,9 +460,7 @@ class ControlStack:
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
-        if prediction is not None:             # the detours of the next tick keep clear of them
-            fixed = prediction.fixed
-            self._fixed_discs = np.column_stack([prediction.pos[fixed], self.scenario.robot_radius + prediction.grow[fixed]])
+        self._last_prediction = prediction     # the detours of the next tick keep clear of its discs
         return SafeStage(result, prediction, len(pos), ids)
 
     def _resize(self, n: int) -> None:
