@@ -102,7 +102,8 @@ class StackConfig:
             position noise and passes exact measurements through unchanged); the filter grows
             each disc by the estimate's standard deviation.
         docking: the terminal mode that takes a robot near its free matched target onto it
-            (:mod:`controllers.docking`), before the filter; ``DockingConfig(enabled=False)``
+            (:mod:`controllers.docking`) and the detours of robots held away from every target
+            (:mod:`controllers.detour`), before the filter; ``DockingConfig(enabled=False)``
             leaves the policy's command as it is.
     """
 
