@@ -5,8 +5,8 @@ the link in a corridor the others need, the safety filter keeps them off it, but
 pushes on into it gets nothing through the filter and its robot stands there for the rest of
 the episode. Traced (paper-5, an own-target generalist, robot 3 silent from tick 15 in the
 corridor above the object): robot 2 stood at the top wall from tick 60 to the end, 0.52 m from
-the nearest target, its policy asking 1 m/s^2 towards the gap above the silent robot, the filter
-answering 0.
+the nearest target, its policy asking 1 m/s^2 up and to the left (into the wall, towards the
+gap above the silent robot), the filter answering 0.
 
 **When.** A movable robot that is not docking is *stuck* once it has been, for ``after_s`` in a
 row, slower than ``STUCK_SPEED`` while asked for at least ``STUCK_PUSH`` (the policy wants it to
