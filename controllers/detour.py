@@ -17,13 +17,12 @@ stalls on its detour is stuck again and replans.
 
 **Path.** On a grid of ``CELL`` over the arena, a cell is free when a robot centred there keeps
 ``CLEARANCE`` to the walls and the object and ``2 r + CLEARANCE`` to every other robot (at its
-centre as the stack sees it: a silent robot where it must have stopped) and ``r + CLEARANCE`` to
-every disc the safety filter last kept round a robot not listening (so the path does not lead
-where the filter will not let the robot go); the robot's target is
-its match under the least total distance (:func:`scipy.optimize.linear_sum_assignment`, as
-docking matches); the path is the shortest 8-connected one between the free cells nearest the
-robot and the target (Dijkstra, :func:`scipy.sparse.csgraph.dijkstra`), planned again every
-``REPLAN_TICKS``.
+centre as the stack sees it: a silent robot where it must have stopped) and ``r + CLEARANCE``
+to every disc the safety filter last kept round a robot not listening (so the path does not
+lead where the filter will not let the robot go); the robot's target is its match under the
+least total distance, docking's (:func:`controllers.docking.least_distance_matching`); the path
+is the shortest 8-connected one between the free cells nearest the robot and the target
+(Dijkstra, :func:`scipy.sparse.csgraph.dijkstra`), planned again every ``REPLAN_TICKS``.
 
 **Law** (per detouring robot, m/s^2; ``w`` the path point ``LOOKAHEAD`` cells ahead, ``d`` the
 path length left)::
@@ -40,10 +39,12 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from controllers import docking_kernels
+from controllers.docking import least_distance_matching
+from controllers.jit import f64
 from controllers.safety.geometry import point_polygon
 from sim.scenario import clip_norm
 
@@ -76,6 +77,7 @@ class Detour:
         walls = np.minimum(np.minimum(self.centres[:, 0], w - self.centres[:, 0]),
                            np.minimum(self.centres[:, 1], h - self.centres[:, 1]))
         self.static_free = (walls >= keep) & (point_polygon(self.centres, np.asarray(polygon, float))[0] >= keep)
+        self._edges = _grid_edges(*self.shape)
         self.reset()
 
     def reset(self) -> None:
@@ -100,15 +102,18 @@ class Detour:
             if self._stuck:
                 self._stuck.clear()
             return a_nom, detour
-        near = np.linalg.norm(pos[:, None] - targets[None], axis=2).min(axis=1) <= self.stall_radius
+        dist = np.empty((n, n))
+        docking_kernels.target_distances(f64(pos), f64(targets), dist)
+        near = dist.min(axis=1) <= self.stall_radius
         self._stuck = {rid: self._stuck.get(rid, 0) + 1 if held[i] and not near[i] else 0
                        for i, rid in enumerate(ids)}
         wanted = [i for i, rid in enumerate(ids) if movable[i] and not near[i]
                   and (rid in self._paths or self._stuck[rid] >= self.after_ticks)]
-        self._paths = {rid: p for rid, p in self._paths.items() if rid in {ids[i] for i in wanted}}
+        keep = {ids[i] for i in wanted}
+        self._paths = {rid: p for rid, p in self._paths.items() if rid in keep}
         if not wanted:
             return a_nom, detour
-        match = linear_sum_assignment(np.linalg.norm(pos[:, None] - targets[None], axis=2))[1]
+        match = least_distance_matching(dist)
         out = np.array(a_nom, dtype=np.float64)
         for i in wanted:
             path = self._path(ids[i], i, pos, targets[match[i]], discs)
@@ -155,19 +160,9 @@ class Detour:
         g = cells[np.argmin(np.linalg.norm(self.centres[cells] - goal, axis=1))]
         if np.linalg.norm(self.centres[g] - goal) > self.stall_radius:
             return None                                  # the target itself is held
-        nx, ny = self.shape
-        ix, iy = np.unravel_index(np.arange(nx * ny), self.shape)
-        rows, cols, cost = [], [], []
-        for dx, dy in _STEPS:
-            jx, jy = ix + dx, iy + dy
-            ok = free & (jx >= 0) & (jx < nx) & (jy >= 0) & (jy < ny)
-            j = np.ravel_multi_index((np.clip(jx, 0, nx - 1), np.clip(jy, 0, ny - 1)), self.shape)
-            ok &= free[j]
-            rows.append(np.flatnonzero(ok))
-            cols.append(j[ok])
-            cost.append(np.full(np.count_nonzero(ok), math.hypot(dx, dy)))
-        graph = coo_matrix((np.concatenate(cost), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(nx * ny, nx * ny)).tocsr()
+        src, dst, cost = self._edges
+        ok = free[src] & free[dst]
+        graph = coo_matrix((cost[ok], (src[ok], dst[ok])), shape=(len(free), len(free))).tocsr()
         dist, pred = dijkstra(graph, indices=g, return_predecessors=True)
         if not np.isfinite(dist[s]):
             return None
@@ -184,6 +179,20 @@ class Detour:
         norm = float(np.linalg.norm(heading))
         v_des = np.zeros(2) if norm < 1e-9 else min(SPEED, math.sqrt(2 * BRAKE * left)) * heading / norm
         return clip_norm(GAIN * (v_des - v), self.accel_limit)
+
+
+def _grid_edges(nx: int, ny: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every 8-connected step inside an ``nx`` x ``ny`` grid (cells numbered row-major over
+    ``(x, y)``): ``(from (E,), to (E,), length in cells (E,))``."""
+    ix, iy = np.unravel_index(np.arange(nx * ny), (nx, ny))
+    src, dst, cost = [], [], []
+    for dx, dy in _STEPS:
+        jx, jy = ix + dx, iy + dy
+        inside = (jx >= 0) & (jx < nx) & (jy >= 0) & (jy < ny)
+        src.append(np.flatnonzero(inside))
+        dst.append(np.ravel_multi_index((jx[inside], jy[inside]), (nx, ny)))
+        cost.append(np.full(np.count_nonzero(inside), math.hypot(dx, dy)))
+    return np.concatenate(src), np.concatenate(dst), np.concatenate(cost)
 
 
 __all__ = ["Detour"]

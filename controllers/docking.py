@@ -154,9 +154,7 @@ class Docking:
         if docking_kernels.target_distances(pos, targets, dist) >= cfg.release_radius:
             self._docking.clear()            # no robot near any target: the assignment cannot make one dock
             return a_nom, docking
-        match = np.empty(n, dtype=np.int64)
-        if not docking_kernels.strict_nearest_matching(dist, match):
-            match[:] = linear_sum_assignment(dist)[1]                          # rows come sorted
+        match = least_distance_matching(dist)
         was = np.array([rid in self._docking for rid in ids], dtype=bool)
         movable = np.ones(n, dtype=bool) if movable is None else np.ascontiguousarray(movable, dtype=bool)
         out = np.empty((n, 2))
@@ -166,5 +164,14 @@ class Docking:
         return (out if anyone else a_nom), docking
 
 
+def least_distance_matching(dist: np.ndarray) -> np.ndarray:
+    """(N,) each robot's target under the matching of least total distance, for (N, N)
+    robot-target distances [m]: each robot's nearest where no two share one and none ties
+    (compiled), else scipy's assignment (rows come sorted)."""
+    match = np.empty(len(dist), dtype=np.int64)
+    if not docking_kernels.strict_nearest_matching(dist, match):
+        match[:] = linear_sum_assignment(dist)[1]
+    return match
 
-__all__ = ["Docking", "DockingConfig", "DockingConfigError"]
+
+__all__ = ["Docking", "DockingConfig", "DockingConfigError", "least_distance_matching"]

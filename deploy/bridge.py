@@ -384,12 +384,11 @@ class Bridge:
         rows = [rs.msg for rs in view.rows]
         silent = None
         if view.silent:
-            names = tuple(rs.robot for rs, _ in view.silent)
-            known = all(r in self.targets for r in names)   # known: the policy sees them too
-            silent = SilentRobots(names, np.array([rs.msg.position for rs, _ in view.silent]),
+            silent = SilentRobots(tuple(rs.robot for rs, _ in view.silent),
+                                  np.array([rs.msg.position for rs, _ in view.silent]),
                                   np.array([rs.msg.velocity for rs, _ in view.silent]),
                                   np.array([age for _, age in view.silent]),
-                                  np.array([self.targets[r] for r in names]) if known else None)
+                                  np.array([self.targets[rs.robot] for rs, _ in view.silent]))
         return FleetState(
             time=(self.link.clock_ns() - self._start_ns) / 1e9, step=self.stats.ticks,
             positions=np.array([m.position for m in rows]),
