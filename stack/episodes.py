@@ -21,6 +21,7 @@ from sim.scenario import Dynamics
 
 if TYPE_CHECKING:
     from stack.pipeline import ControlStack
+    from stack.recorder import EpisodeRecorder
 
 
 def nominal_step(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
@@ -88,14 +89,25 @@ def _all_within(fleet: Fleet, state: FleetState, tolerance: float) -> bool:
     return bool(outcome.success[0])
 
 
+def _contact_rows(fleet: Fleet, state: FleetState) -> np.ndarray:
+    """(N, 3) bool robot / object / wall contact of a self-judging fleet now (its ``contacts``,
+    :class:`sim.pymunk_world.Contacts`; none known: all False)."""
+    contacts = getattr(fleet, "contacts", None)
+    if contacts is None:
+        return np.zeros((state.num_robots, 3), dtype=bool)
+    return np.stack((contacts.robot, contacts.object, contacts.wall), -1)
+
+
 def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int | None = None,
-                *, start: Callable[[Fleet], FleetState] | None = None) -> EpisodeMetrics:
+                *, start: Callable[[Fleet], FleetState] | None = None,
+                recorder: EpisodeRecorder | None = None) -> EpisodeMetrics:
     """Reset ``fleet`` with ``seed`` and run ``steps`` ticks (default: the scenario's episode).
 
     Collisions: a fleet with ``collision_counts`` and ``outcome()`` (the pymunk world) judges
     itself on its true state; any other fleet is judged here with :mod:`sim.metrics` on the
     state it reports. ``start(fleet)``, if given, runs after the reset (e.g. to place robots)
-    and returns the first state.
+    and returns the first state. ``recorder`` (:class:`stack.recorder.EpisodeRecorder`), if
+    given, records every tick; its :meth:`~stack.recorder.EpisodeRecorder.finish` is the caller's.
     """
     scenario = fleet.scenario
     steps = scenario.dynamics.episode_steps if steps is None else steps
@@ -105,6 +117,8 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
     if start is not None:
         state = start(fleet)
     stack.reset()
+    if recorder is not None:
+        recorder.start(fleet, state)
     self_judging = hasattr(fleet, "collision_counts") and hasattr(fleet, "outcome")
     polygon = torch.as_tensor(scenario.polygon, dtype=torch.float64)
     prev_contact = np.zeros((state.num_robots, 3), dtype=bool)
@@ -121,7 +135,7 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
         counters["braking"] += tick.braking
         predicted, _ = nominal_step(state.positions, state.velocities, tick.a_safe, scenario.dynamics)
         fleet.send_accelerations(tick.a_cmd)
-        state = fleet.step()
+        given, state = state, fleet.step()
         tracking.append(float(np.linalg.norm(state.positions - predicted, axis=1).mean()))
         if arrival_step is None and _all_within(fleet, state, scenario.target_tolerance):
             arrival_step = step + 1
@@ -131,6 +145,8 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
             contact = torch.stack((ev.robot[0], ev.object[0], ev.wall[0]), -1).numpy()
             counts += (contact & ~prev_contact).sum(0)
             prev_contact = contact
+        if recorder is not None:
+            recorder.tick(given, tick, fleet, state, contact if not self_judging else _contact_rows(fleet, state))
     if self_judging:
         c = fleet.collision_counts
         counts = np.array([c.robot, c.object, c.wall])

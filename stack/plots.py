@@ -126,7 +126,7 @@ def moving_mean(y: np.ndarray, window: int) -> np.ndarray:
     return (c[hi] - c[lo]) / (hi - lo)
 
 
-def _figure(**kwargs):
+def new_figure(**kwargs):
     """A matplotlib Figure drawn by the Agg canvas (no pyplot: no global backend or state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -142,7 +142,7 @@ def _colormap(name: str):
     return colormaps[name]
 
 
-def _save(fig, out_png: str | Path) -> Path:
+def save_figure(fig, out_png: str | Path) -> Path:
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=DPI, bbox_inches="tight", facecolor="white")
@@ -169,7 +169,7 @@ def plot_training_curves(runs: Mapping[str, object], out_png: str | Path, *, tit
     curves = [_as_curves(label, src) for label, src in runs.items()]
     from matplotlib.lines import Line2D
 
-    fig = _figure(figsize=(17, 5.2))
+    fig = new_figure(figsize=(17, 5.2))
     axes = fig.subplots(1, 3)
     colours = _colormap("tab10").colors
     handles = []
@@ -217,7 +217,7 @@ def plot_training_curves(runs: Mapping[str, object], out_png: str | Path, *, tit
     fig.legend(handles=handles + styles, loc="outside lower center", ncol=min(3, len(handles) + 3),
                frameon=False)
     fig.suptitle(title or "Training curves: " + " vs ".join(r.label for r in curves), fontsize=13)
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 def _reference_line(ax, y: float, text: str) -> None:
@@ -299,7 +299,7 @@ def robot_colours(n: int) -> list:
     return [_colormap("turbo")(k / max(1, n - 1)) for k in range(n)]
 
 
-def _draw_scene(ax, scenario) -> None:
+def draw_scene(ax, scenario) -> None:
     from matplotlib.patches import Circle, Polygon, Rectangle
 
     w, h = scenario.arena
@@ -339,7 +339,7 @@ def plot_trajectories(traj: Trajectories, scenario, out_png: str | Path, *, titl
     k, _, n, _ = pos.shape
     cols = min(k, max_cols)
     rows = math.ceil(k / cols)
-    fig = _figure(figsize=(4.3 * cols + 2.5 * (cols == 1), 4.5 * rows + 0.9))
+    fig = new_figure(figsize=(4.3 * cols + 2.5 * (cols == 1), 4.5 * rows + 0.9))
     axes = fig.subplots(rows, cols, squeeze=False)
     colours = robot_colours(n)
     r = scenario.robot_radius
@@ -349,7 +349,7 @@ def plot_trajectories(traj: Trajectories, scenario, out_png: str | Path, *, titl
         if e >= k:
             ax.axis("off")
             continue
-        _draw_scene(ax, scenario)
+        draw_scene(ax, scenario)
         for i in range(n):
             path = pos[e, :, i]
             ax.plot(path[:, 0], path[:, 1], color=colours[i], lw=1.6, alpha=0.9)
@@ -389,7 +389,7 @@ def plot_trajectories(traj: Trajectories, scenario, out_png: str | Path, *, titl
     dt = scenario.dynamics.dt
     fig.suptitle(title or f"{scenario.name}: {n} robots, {steps} steps ({steps * dt:g} s), "
                  f"deterministic policy, starts drawn with seed {traj.seed}", fontsize=12)
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 # ------------------------------------------------------------------ attention
@@ -483,7 +483,7 @@ def plot_attention(weights: np.ndarray, token_labels: Sequence[str], out_png: st
         mosaic = [["mean", "mean"]] + pairs
         ratios = {"height_ratios": [2] + [1] * len(pairs)}
         figsize = (unit_w + 1.0, unit_h * (1 + len(pairs) / 2) + 0.6)
-    fig = _figure(figsize=figsize)
+    fig = new_figure(figsize=figsize)
     axes = fig.subplot_mosaic(mosaic, **ratios)
     rows = list(row_labels) if row_labels is not None else [f"robot {i + 1}" for i in range(n)]
     finite = w[np.isfinite(w)]
@@ -515,7 +515,7 @@ def plot_attention(weights: np.ndarray, token_labels: Sequence[str], out_png: st
     fig.suptitle(title or "Attention weights of each robot over its tokens", fontsize=12)
     fig.supxlabel("tokens: G_k target k, R_j robot j (grey: the robot itself), O object, "
                   "self / P, V the robot's own state", fontsize=8, color="0.3")
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 def _groups(labels: Sequence[str]) -> list[int]:

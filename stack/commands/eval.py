@@ -66,6 +66,11 @@ def register(sub) -> None:
                    help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
+    p.add_argument("--trace", type=Path, default=None, metavar="DIR",
+                   help="--world pymunk or zenoh: record every episode into DIR as episode_SEED.npz "
+                        "(positions, the commands of each layer, the stack's flags, contacts: "
+                        "stack.recorder) and draw it as episode_SEED.png (paths, which layer drove "
+                        "each robot, distances to the targets: stack.episode_plot)")
     zenoh = p.add_argument_group("--world zenoh")
     zenoh.add_argument("--fleet", default=None, help="the fleet's name (Zenoh key chunk)")
     zenoh.add_argument("--lockstep", action="store_true",
@@ -114,8 +119,12 @@ def evaluate_from_args(args) -> dict:
                     "the nominal model; use --world pymunk for the safety filter, MEC and model error")
             print(f"note: {note}", file=sys.stderr)
             notes.append(note)
+        if args.trace is not None:
+            raise EvalArgumentError("--trace records the ControlStack's episodes: use --world pymunk or "
+                                    "--world zenoh (the batched world runs the policy alone)")
         metrics = _batched(args, scenario)
     else:
+        _check_trace_dir(args.trace)
         metrics = _stack_episodes(args, scenario, parse_model_error(args.model_error))
     return {"scenario": scenario.name, "num_robots": scenario.num_robots, "world": args.world,
             "policy": args.policy or str(args.policy_path), "episodes": args.episodes,
@@ -130,7 +139,7 @@ def _batched(args, scenario) -> dict:
         from sim.fleet import BatchedFleet
 
         stack = ControlStack(scenario, ScriptedController(scenario), StackConfig(safety=False, mec=False))
-        return _episodes(args, BatchedFleet(scenario), stack, safety=False, mec=False)
+        return _episodes(args, BatchedFleet(scenario), stack, safety=False, mec=False)[0]
     from controllers.mappo.evaluate import evaluate
 
     if args.steps is not None:
@@ -169,7 +178,8 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
                                     f"{last + 1} states an episode")
         args = _with(args, steps=args.steps or last)
         with _zenoh_fleet(args, scenario) as fleet:
-            out = _episodes(args, fleet, stack, safety=safety, mec=mec)
+            out, traced = _episodes(args, fleet, stack, safety=safety, mec=mec)
+        _draw_traces(traced, scenario)
         out["model_error"] = None         # the fleet's own
         out["command_delay_ms"] = args.command_delay_ms
         return out
@@ -177,10 +187,44 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
         world = PymunkWorld(scenario, model_error, seed=args.seed)
     except ValueError as exc:
         raise EvalArgumentError(str(exc)) from None
-    out = _episodes(args, world, stack, safety=safety, mec=mec)
+    out, traced = _episodes(args, world, stack, safety=safety, mec=mec)
+    _draw_traces(traced, scenario)
     out["model_error"] = dataclasses.asdict(model_error)
     out["command_delay_ms"] = args.command_delay_ms
     return out
+
+
+def _check_trace_dir(folder: Path | None) -> None:
+    if folder is None:
+        return
+    if folder.exists() and not folder.is_dir():
+        raise EvalArgumentError(f"--trace {folder}: exists and is not a folder; give a folder to write "
+                                "episode_SEED.npz and .png into")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise EvalArgumentError(f"--trace {folder}: cannot create the folder ({exc.strerror})") from None
+
+
+def _trace(args, stack, seed: int, recorder, metrics) -> Path:
+    """Save episode ``seed``'s record under ``--trace`` (drawn later by :func:`_draw_traces`)."""
+    scenario = stack.scenario
+    record = recorder.finish({"scenario": scenario.to_dict(), "seed": seed, "world": args.world,
+                              "policy": args.policy or str(args.policy_path), "metrics": metrics.to_dict(),
+                              "model_error": args.model_error, "command_delay_ms": args.command_delay_ms,
+                              "safety": stack.safety is not None, "mec": stack.mec is not None,
+                              "docking": stack.docking is not None})
+    return record.save(args.trace / f"episode_{seed}.npz")
+
+
+def _draw_traces(paths: list[Path], scenario) -> None:
+    """episode_SEED.png beside each saved record; after the episodes, since a fleet over Zenoh
+    waits for its next command while a figure is drawn."""
+    from stack.episode_plot import plot_episode
+    from stack.recorder import load_record
+
+    for path in tqdm(paths, desc="trace figures", unit="ep", file=sys.stderr, leave=False):
+        plot_episode(load_record(path), scenario, path.with_suffix(".png"))
 
 
 def _with(args, **changes):
@@ -205,12 +249,19 @@ def _zenoh_fleet(args, scenario):
         raise EvalArgumentError(str(exc)) from None
 
 
-def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> dict:
+def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> tuple[dict, list[Path]]:
+    """The metrics of ``args.episodes`` episodes, and the records saved under ``--trace``."""
     from stack.pipeline import run_episode
+    from stack.recorder import EpisodeRecorder
 
     torch.set_num_threads(1)
-    rows = [run_episode(fleet, stack, args.seed + k, args.steps)
-            for k in tqdm(range(args.episodes), desc="eval", unit="ep", file=sys.stderr, leave=False)]
+    trace = getattr(args, "trace", None)
+    rows, traced = [], []
+    for k in tqdm(range(args.episodes), desc="eval", unit="ep", file=sys.stderr, leave=False):
+        recorder = EpisodeRecorder() if trace is not None else None
+        rows.append(run_episode(fleet, stack, args.seed + k, args.steps, recorder=recorder))
+        if recorder is not None:
+            traced.append(_trace(args, stack, args.seed + k, recorder, rows[-1]))
 
     def mean(name: str) -> float:
         return float(np.mean([getattr(r, name) for r in rows]))
@@ -226,7 +277,7 @@ def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> dict:
             "tracking_error_m": mean("tracking_error"),
             "tick_p50_ms": float(np.median([r.p50_tick_ms for r in rows])),
             "tick_p99_ms": float(np.max([r.p99_tick_ms for r in rows])),
-            "safety": safety, "mec": mec}
+            "safety": safety, "mec": mec}, traced
 
 
 def print_result(result: dict) -> None:

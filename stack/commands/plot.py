@@ -1,4 +1,4 @@
-"""`formation plot`: figures of training runs as PNG files.
+"""`formation plot`: figures of training runs, or of recorded stack episodes, as PNG files.
 
 Writes into --out (default RUN_DIR/plots of the first run):
 
@@ -13,6 +13,11 @@ Writes into --out (default RUN_DIR/plots of the first run):
 Each RUN_DIR is a folder written by `formation train --out RUN_DIR` (train.jsonl, eval.jsonl,
 config.json, checkpoint.pt). --scenario runs the policy on another task, e.g. a 3-robot policy
 on paper-5 (typed actors run any N; slot actors get fresh slots for the new robots).
+
+Given episode records instead (``episode_SEED.npz`` of `formation eval --trace DIR`), it draws
+each as EPISODE.png (into --out, default beside the record): the robots' paths, which layer
+drove each robot tick by tick (policy, docking, detour, safety filter, stale, absent) and each
+robot's distance to its target (:mod:`stack.episode_plot`).
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ from stack.commands import argtypes
 
 def register(sub) -> None:
     p = sub.add_parser("plot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR", help="run folders of `formation train`")
+    p.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR",
+                   help="run folders of `formation train`, or episode records (.npz) of `formation eval --trace`")
     p.add_argument("--labels", nargs="+", metavar="LABEL",
                    help="legend label per RUN_DIR (default: the folder names)")
     p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/plots of the first run)")
@@ -58,6 +64,11 @@ def make_plots(args) -> list[Path]:
     """Check the arguments, then write the figures; returns the PNG paths (raises on bad input)."""
     from stack.plots import PlotError, load_run, plot_training_curves
 
+    records = [p for p in args.run_dirs if p.suffix == ".npz"]
+    if records:
+        if len(records) != len(args.run_dirs):
+            raise PlotError("give run folders or episode records (.npz of formation eval --trace), not both")
+        return _record_plots(records, args.out)
     labels = args.labels or [_default_label(d, args.run_dirs) for d in args.run_dirs]
     if len(labels) != len(args.run_dirs):
         raise PlotError(f"--labels has {len(labels)} labels for {len(args.run_dirs)} RUN_DIRs; give one per run")
@@ -77,6 +88,26 @@ def make_plots(args) -> list[Path]:
     paths = [plot_training_curves(runs, out / "curves.png")]
     if policy is not None:
         paths += _policy_plots(args, *policy, labels[0], out)
+    return paths
+
+
+def _record_plots(records: list[Path], out: Path | None) -> list[Path]:
+    """EPISODE.png of each episode record, into ``out`` or beside the record."""
+    from sim.scenario import Scenario
+    from stack.episode_plot import plot_episode
+    from stack.plots import PlotError
+    from stack.recorder import RecordError, load_record
+
+    paths = []
+    for path in records:
+        try:
+            record = load_record(path)
+        except RecordError as exc:
+            raise PlotError(str(exc)) from None
+        if "scenario" not in record.meta:
+            raise PlotError(f"{path}: the record names no scenario; record it with formation eval --trace")
+        scenario = Scenario.from_dict(record.meta["scenario"])
+        paths.append(plot_episode(record, scenario, (out or path.parent) / f"{path.stem}.png"))
     return paths
 
 

@@ -22,7 +22,7 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
     try:
         code = main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "ez", "--lockstep",
                      "--episodes", "2", "--scenario", "paper-5", "--connect", endpoint,
-                     "--json", str(tmp_path / "eval.json")])
+                     "--json", str(tmp_path / "eval.json"), "--trace", str(tmp_path / "trace")])
         assert code == 0
         assert sim.finish() == 0, "".join(sim.stderr)
     finally:
@@ -36,6 +36,18 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
     # judged one tick before the fleet's own report (module docstring), both within a millimetre
     assert ours["final_distance"] < 1e-3
     assert max(e["final_distance"] for e in theirs) < 1e-3
+    # the recorder keeps what the fleet reported over the wire, tick by tick
+    from sim.scenario import make_scenario
+    from stack.episode_plot import assigned_distances
+    from stack.recorder import load_record
+
+    for seed in (0, 1):
+        record = load_record(tmp_path / "trace" / f"episode_{seed}.npz")
+        assert (record.steps, record.num_robots) == (127, 5) and record.present.all()
+        assert not record.contacts.any() and record.meta["world"] == "zenoh"
+        dist, _ = assigned_distances(record, make_scenario("paper-5"))
+        assert dist[-1].mean() == pytest.approx(record.meta["metrics"]["final_distance"], abs=1e-12)
+        assert (tmp_path / "trace" / f"episode_{seed}.png").stat().st_size > 50_000
 
 
 def test_eval_over_zenoh_names_what_is_missing(capsys):

@@ -171,3 +171,25 @@ def test_the_docking_switch_reaches_the_stack():
     assert parser.parse_args(["--no-docking"]).docking is False
     assert build_stack(make_scenario("paper-3"), "scripted", True, True, docking=False).docking is None
     assert build_stack(make_scenario("paper-3"), "scripted", True, True).docking is not None
+
+
+def test_eval_trace_records_and_draws_every_stack_episode(tmp_path, capsys):
+    from stack.recorder import load_record
+
+    folder = tmp_path / "trace"
+    rc = main(["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--episodes", "2",
+               "--seed", "5", "--steps", "15", "--model-error", "freeze=0:5", "--trace", str(folder)])
+    assert rc == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["episode_5.npz", "episode_5.png", "episode_6.npz",
+                                                        "episode_6.png"]
+    record = load_record(folder / "episode_6.npz")
+    assert (record.steps, record.num_robots, record.meta["seed"]) == (15, 4, 6)
+    assert record.meta["scenario"]["name"] == "paper-4" and record.meta["safety"] and record.meta["mec"]
+    assert record.frozen[14, 0] and not record.frozen[3, 0]
+    capsys.readouterr()
+    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--trace", str(folder)]) == 2
+    assert "--trace records the ControlStack's episodes: use --world pymunk" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--trace",
+                 str(tmp_path / "file")]) == 2
+    assert "exists and is not a folder" in capsys.readouterr().err

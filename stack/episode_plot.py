@@ -1,0 +1,180 @@
+"""One recorded stack episode as a figure: the paths, which layer was driving each robot, and
+how far each robot was from its target.
+
+:func:`robot_modes` reads an :class:`stack.recorder.EpisodeRecord` tick by tick, per robot
+(later entries win)::
+
+    POLICY     the policy's command went out as it was (up to the actuator's norm clip)
+    DOCKING    the docking law drove it (controllers.docking)
+    DETOUR     a detour drove it (controllers.detour)
+    FILTER     the safety filter changed the command by more than ``tolerance`` [m/s^2]
+    STALE      its state was stale or unknown: an obstacle, sent the braking law
+    ABSENT     it had no row in the tick's state (silent: off the link)
+
+:func:`plot_episode` draws three panels: the arena with every robot's true path (segments where
+the filter changed its command drawn thick in orange, where it was stale or absent dashed grey,
+contact onsets marked, a robot frozen by the world hatched at its end); a raster of the modes,
+robots x time; and each robot's distance to the target it ended matched to (the episode's
+assignment), the target tolerance dashed.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+from pathlib import Path
+
+import numpy as np
+
+from sim.scenario import Scenario, clip_norm
+from stack.plots import draw_scene, new_figure, robot_colours, save_figure
+from stack.recorder import EpisodeRecord
+
+
+class Mode(IntEnum):
+    """Which layer drove a robot at a tick (module docstring)."""
+
+    POLICY = 0
+    DOCKING = 1
+    DETOUR = 2
+    FILTER = 3
+    STALE = 4
+    ABSENT = 5
+
+
+MODE_COLOURS = {Mode.POLICY: "#f2f2f2", Mode.DOCKING: "#2ca02c", Mode.DETOUR: "#9467bd",
+                Mode.FILTER: "#ff7f0e", Mode.STALE: "#7f7f7f", Mode.ABSENT: "#000000"}
+FILTER_TOLERANCE = 0.05
+"""[m/s^2] a filter answer this close to the (norm-clipped) policy command counts as unchanged."""
+
+
+def robot_modes(record: EpisodeRecord, accel_limit: float, tolerance: float = FILTER_TOLERANCE) -> np.ndarray:
+    """(S, N) :class:`Mode` codes of every robot at every tick (module docstring)."""
+    modes = np.full(record.stale.shape, Mode.POLICY, dtype=np.int64)
+    modes[record.docking] = Mode.DOCKING
+    modes[record.detour] = Mode.DETOUR
+    asked = clip_norm(np.nan_to_num(record.a_nom).reshape(-1, 2), accel_limit).reshape(record.a_nom.shape)
+    changed = np.linalg.norm(np.nan_to_num(record.a_safe) - asked, axis=-1) > tolerance
+    modes[changed & record.present] = Mode.FILTER
+    modes[record.stale] = Mode.STALE
+    modes[~record.present] = Mode.ABSENT
+    return modes
+
+
+def assigned_distances(record: EpisodeRecord, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
+    """``(distance (S+1, N) [m], target index (N,))``: each robot's distance to the target it was
+    matched to at the end (least total distance, :func:`sim.metrics.episode_outcome`)."""
+    import torch
+
+    from sim.metrics import episode_outcome
+
+    final = np.nan_to_num(record.positions[-1])
+    targets = np.asarray(scenario.targets, dtype=float)
+    if len(targets) != record.num_robots:
+        raise ValueError(f"the record holds {record.num_robots} robots, scenario {scenario.name!r} "
+                         f"{len(targets)} targets")
+    outcome = episode_outcome(torch.from_numpy(final)[None], torch.from_numpy(targets)[None],
+                              torch.tensor([False]), scenario.target_tolerance)
+    sigma = outcome.assignment[0].numpy()
+    return np.linalg.norm(record.positions - targets[sigma][None], axis=-1), sigma
+
+
+def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path, *,
+                 title: str | None = None) -> Path:
+    """Draw ``record`` (an episode of ``scenario``) into ``out_png`` (module docstring)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    n, s, dt = record.num_robots, record.steps, scenario.dynamics.dt
+    modes = robot_modes(record, scenario.dynamics.accel_limit)
+    colours = robot_colours(n)
+    fig = new_figure(figsize=(13, 6.2))
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 1.25), height_ratios=(1, 1.2))
+    scene, raster, dist = fig.add_subplot(grid[:, 0]), fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, 1])
+    _draw_paths(scene, record, scenario, modes, colours)
+    _draw_modes(raster, modes, record, dt)
+    _draw_distances(dist, record, scenario, colours, dt)
+    legend = [Patch(facecolor=MODE_COLOURS[m], edgecolor="0.5", label=m.name.lower()) for m in Mode]
+    legend += [Line2D([], [], color="#ff7f0e", lw=5, alpha=0.45, label="path: filter changed the command"),
+               Line2D([], [], color="0.4", ls="--", lw=1.2, label="path: stale or absent"),
+               Line2D([], [], color="red", marker="X", mfc="none", ls="none", ms=8, label="contact onset"),
+               Patch(facecolor="white", edgecolor="black", hatch="xxx", label="frozen by the world")]
+    fig.legend(handles=legend, loc="outside lower center", ncol=5, frameon=False, fontsize=8)
+    m = record.meta.get("metrics", {})
+    verdict = ("success" if m.get("success") else "failed") if m else ""
+    fig.suptitle(title or f"{scenario.name}: {n} robots, {s} ticks ({s * dt:g} s), seed {record.meta.get('seed')}"
+                 + (f", {verdict}, final distance {1000 * m['final_distance']:.1f} mm" if m else ""), fontsize=12)
+    return save_figure(fig, out_png)
+
+
+def _draw_paths(ax, record: EpisodeRecord, scenario: Scenario, modes: np.ndarray, colours: list) -> None:
+    from matplotlib.patches import Circle
+
+    draw_scene(ax, scenario)
+    r = scenario.robot_radius
+    pos = record.positions
+    onset = record.contacts & ~np.concatenate((np.zeros_like(record.contacts[:1]), record.contacts[:-1]))
+    for i in range(record.num_robots):
+        path = pos[:, i]
+        ax.plot(path[:, 0], path[:, 1], color=colours[i], lw=1.4, alpha=0.9, zorder=3)
+        for mask, style in ((modes[:, i] == Mode.FILTER, {"color": "#ff7f0e", "lw": 5, "alpha": 0.45}),
+                            (modes[:, i] >= Mode.STALE, {"color": "0.4", "lw": 1.2, "ls": "--"})):
+            for a, b in _runs(mask):        # tick k moves the robot from positions[k] to [k + 1]
+                ax.plot(path[a:b + 1, 0], path[a:b + 1, 1], zorder=2, **style)
+        start, end = path[np.isfinite(path[:, 0])][[0, -1]]
+        ax.add_patch(Circle(start, r, facecolor=colours[i], alpha=0.3, edgecolor=colours[i], zorder=2))
+        frozen = bool(record.frozen[:, i].any())
+        ax.add_patch(Circle(end, r, facecolor=colours[i], alpha=0.95, edgecolor="black", lw=0.8, zorder=4,
+                            hatch="xxx" if frozen else None))
+        ax.text(*end, record.ids[i], ha="center", va="center", fontsize=7, color="white", fontweight="bold", zorder=5)
+        hits = np.flatnonzero(onset[:, i].any(-1)) + 1
+        ax.plot(pos[hits, i, 0], pos[hits, i, 1], "X", ms=8, mfc="none", mec="red", mew=1.6, zorder=6)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def _draw_modes(ax, modes: np.ndarray, record: EpisodeRecord, dt: float) -> None:
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    cmap = ListedColormap([MODE_COLOURS[m] for m in Mode])
+    norm = BoundaryNorm(np.arange(len(Mode) + 1) - 0.5, len(Mode))
+    s, n = modes.shape
+    ax.imshow(modes.T, aspect="auto", interpolation="nearest", cmap=cmap, norm=norm,
+              extent=(0, s * dt, n - 0.5, -0.5))
+    for i in range(n):
+        frozen = np.flatnonzero(record.frozen[:, i])
+        if len(frozen):
+            ax.plot([frozen[0] * dt, s * dt], [i, i], color="red", lw=1, ls=":")
+    ax.set_yticks(range(n), [str(x) for x in record.ids], fontsize=8)
+    ax.set_ylabel("robot")
+    ax.set_title("which layer drove each robot (red dotted: frozen by the world)", fontsize=10)
+
+
+def _draw_distances(ax, record: EpisodeRecord, scenario: Scenario, colours: list, dt: float) -> None:
+    dist, _ = assigned_distances(record, scenario)
+    t = np.arange(len(dist)) * dt
+    floor = 1e-4
+    for i in range(record.num_robots):
+        ax.plot(t, np.maximum(dist[:, i], floor), color=colours[i], lw=1.3, label=str(record.ids[i]))
+    ax.axhline(scenario.target_tolerance, color="0.2", ls="--", lw=0.9)
+    ax.annotate(f"tolerance {scenario.target_tolerance:g} m", (0.01, scenario.target_tolerance),
+                xycoords=("axes fraction", "data"), xytext=(0, 3), textcoords="offset points", fontsize=8)
+    onsets = np.flatnonzero((record.contacts & ~np.concatenate(
+        (np.zeros_like(record.contacts[:1]), record.contacts[:-1]))).any((1, 2))) + 1
+    for k in onsets:
+        ax.axvline(k * dt, color="red", lw=0.8, alpha=0.6)
+    ax.set_yscale("log")
+    ax.set_ylim(floor, max(1.0, math.ceil(float(np.nanmax(dist)) * 10) / 10))
+    ax.set_xlim(0, len(dist) * dt)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("distance to assigned target [m]")
+    ax.legend(fontsize=7, ncol=max(1, record.num_robots // 5), loc="lower left")
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[(a, b), ...]``: the half-open index ranges where ``mask`` (S,) is True."""
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+
+
+__all__ = ["FILTER_TOLERANCE", "MODE_COLOURS", "Mode", "assigned_distances", "plot_episode", "robot_modes"]

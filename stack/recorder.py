@@ -1,0 +1,199 @@
+"""Flight recorder of stack episodes: where each robot went, what the stack asked of it, and why.
+
+:func:`stack.episodes.run_episode` fills an :class:`EpisodeRecorder` tick by tick when given
+one; :meth:`EpisodeRecorder.finish` returns an :class:`EpisodeRecord`, which saves to and loads
+from one ``.npz`` file (:meth:`EpisodeRecord.save`, :func:`load_record`; no pickled objects) and
+draws as a figure (:func:`stack.episode_plot.plot_episode`). ``formation eval --trace DIR``
+writes both for every episode.
+
+Arrays of an episode of S ticks, robots in columns by id (the ids of the first state, then any
+that joined, in order of appearance; a robot missing from a tick's rows is NaN / False there):
+
+========================  ==============  =========================================================
+``ids``                   (N,) str        robot ids
+``time``                  (S,) s          the time of each tick's state
+``measured``              (S, N, 2) m     positions the stack was given (NaN: row missing)
+``positions``             (S+1, N, 2) m   true centres where the fleet has a true state (pymunk),
+                                          else reported ones; index 0 is the start
+``a_nom``                 (S, N, 2) m/s^2 the policy's command (docking and detours included)
+``a_safe``                (S, N, 2) m/s^2 after the safety filter
+``a_cmd``                 (S, N, 2) m/s^2 what was sent (MEC included; braking for stale rows)
+``stale``, ``docking``,   (S, N) bool     :class:`stack.tick_types.TickResult`'s row flags
+``detour``, ``present``                   ``present``: the robot had a row in the tick's state
+``frozen``                (S, N) bool     the world froze the robot (pymunk ``ModelError.freeze``)
+``contacts``              (S, N, 3) bool  robot / object / wall contact after each tick
+``safety_status``         (S,) str        the filter's status per tick ("" with the filter off)
+========================  ==============  =========================================================
+
+``meta`` (a JSON object): the scenario (:meth:`sim.scenario.Scenario.to_dict`), the seed, the
+episode's metrics (:class:`stack.episodes.EpisodeMetrics`) and anything the caller adds.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim.files import atomic_path
+from sim.fleet import Fleet, FleetState
+
+ARRAYS = ("ids", "time", "measured", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
+          "present", "frozen", "contacts", "safety_status")
+
+
+class RecordError(ValueError):
+    """A record file that cannot be read; the message names the file and what is wrong."""
+
+
+@dataclass
+class EpisodeRecord:
+    """One recorded episode (module docstring for the arrays' shapes and units)."""
+
+    ids: np.ndarray
+    time: np.ndarray
+    measured: np.ndarray
+    positions: np.ndarray
+    a_nom: np.ndarray
+    a_safe: np.ndarray
+    a_cmd: np.ndarray
+    stale: np.ndarray
+    docking: np.ndarray
+    detour: np.ndarray
+    present: np.ndarray
+    frozen: np.ndarray
+    contacts: np.ndarray
+    safety_status: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def steps(self) -> int:
+        return len(self.time)
+
+    @property
+    def num_robots(self) -> int:
+        return len(self.ids)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the record to ``path`` (``.npz``), atomically: a crash leaves the old file or none."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {name: getattr(self, name) for name in ARRAYS}
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, meta=np.array(json.dumps(self.meta)), **arrays)
+        return path
+
+
+def load_record(path: str | Path) -> EpisodeRecord:
+    """The :class:`EpisodeRecord` saved at ``path`` (no pickled objects are read)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [name for name in (*ARRAYS, "meta") if name not in data.files]
+            if missing:
+                raise RecordError(f"{path}: not an episode record (no {', '.join(missing)}); "
+                                  "write one with formation eval --trace DIR")
+            arrays = {name: data[name] for name in ARRAYS}
+            meta = json.loads(str(data["meta"]))
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, RecordError):
+            raise
+        raise RecordError(f"{path}: cannot read an episode record ({exc})") from None
+    return EpisodeRecord(**arrays, meta=meta)
+
+
+@dataclass
+class _Tick:
+    ids: tuple[str, ...]
+    time: float
+    measured: np.ndarray
+    positions: np.ndarray
+    a_nom: np.ndarray
+    a_safe: np.ndarray
+    a_cmd: np.ndarray
+    stale: np.ndarray
+    docking: np.ndarray
+    detour: np.ndarray
+    after_ids: tuple[str, ...]
+    frozen: np.ndarray | None
+    contacts: np.ndarray
+    safety_status: str
+
+
+class EpisodeRecorder:
+    """Collects one episode's ticks (call :meth:`start`, then :meth:`tick` per tick, then :meth:`finish`)."""
+
+    def __init__(self) -> None:
+        self._start: tuple[tuple[str, ...], np.ndarray] | None = None
+        self._ticks: list[_Tick] = []
+        self._scenario = None
+
+    def start(self, fleet: Fleet, state: FleetState) -> None:
+        """The episode's first state (after the fleet's reset)."""
+        self._start = _where(fleet, state)
+        self._ticks = []
+        self._scenario = getattr(fleet, "scenario", None)
+
+    def tick(self, state: FleetState, result, fleet: Fleet, after: FleetState, contacts: np.ndarray) -> None:
+        """One tick: the ``state`` the stack was given, its :class:`~stack.tick_types.TickResult`,
+        the fleet once it stepped, the state it then reported, and the (N', 3) bool contacts of
+        that state's rows."""
+        after_ids, positions = _where(fleet, after)
+        frozen = getattr(fleet, "frozen", None)
+        status = result.safety_status
+        self._ticks.append(_Tick(
+            ids=tuple(state.robot_ids), time=float(state.time), measured=np.array(state.positions, dtype=float),
+            positions=positions, a_nom=np.array(result.a_nom, dtype=float), a_safe=np.array(result.a_safe, dtype=float),
+            a_cmd=np.array(result.a_cmd, dtype=float), stale=np.array(result.stale, dtype=bool),
+            docking=np.array(result.docking, dtype=bool), detour=np.array(result.detour, dtype=bool),
+            after_ids=after_ids, frozen=None if frozen is None else np.array(frozen, dtype=bool),
+            contacts=np.array(contacts, dtype=bool), safety_status="" if status is None else str(status)))
+
+    def finish(self, meta: dict[str, Any] | None = None) -> EpisodeRecord:
+        """The recorded episode; ``meta`` is stored with it (with the fleet's scenario, unless
+        ``meta`` names one)."""
+        if self._start is None:
+            raise RuntimeError("EpisodeRecorder.finish before start")
+        start_ids, start_pos = self._start
+        ids = list(dict.fromkeys([*start_ids, *(i for t in self._ticks for i in (*t.ids, *t.after_ids))]))
+        column = {rid: k for k, rid in enumerate(ids)}
+        s, n = len(self._ticks), len(ids)
+
+        def table(width: tuple[int, ...], dtype, fill) -> np.ndarray:
+            return np.full((s, n, *width), fill, dtype=dtype)
+
+        rec = EpisodeRecord(
+            ids=np.array(ids, dtype=str), time=np.array([t.time for t in self._ticks], dtype=float),
+            measured=table((2,), float, np.nan), positions=np.full((s + 1, n, 2), np.nan),
+            a_nom=table((2,), float, np.nan), a_safe=table((2,), float, np.nan), a_cmd=table((2,), float, np.nan),
+            stale=table((), bool, False), docking=table((), bool, False), detour=table((), bool, False),
+            present=table((), bool, False), frozen=table((), bool, False), contacts=table((3,), bool, False),
+            safety_status=np.array([t.safety_status for t in self._ticks], dtype=str), meta=dict(meta or {}))
+        if self._scenario is not None:
+            rec.meta.setdefault("scenario", self._scenario.to_dict())
+        rec.meta = json.loads(json.dumps(rec.meta))        # as a loaded record holds it
+        rec.positions[0, [column[i] for i in start_ids]] = start_pos
+        for k, t in enumerate(self._ticks):
+            rows = [column[i] for i in t.ids]
+            for name in ("measured", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
+                getattr(rec, name)[k, rows] = getattr(t, name)
+            rec.present[k, rows] = True
+            after = [column[i] for i in t.after_ids]
+            rec.positions[k + 1, after] = t.positions
+            rec.contacts[k, after] = t.contacts
+            if t.frozen is not None and len(t.frozen) == len(after):
+                rec.frozen[k, after] = t.frozen
+        return rec
+
+
+def _where(fleet: Fleet, state: FleetState) -> tuple[tuple[str, ...], np.ndarray]:
+    """Ids and (N, 2) positions of the fleet now: its true state where it has one."""
+    true_state = getattr(fleet, "true_state", None)
+    if true_state is not None:
+        state = true_state()
+    return tuple(state.robot_ids), np.array(state.positions, dtype=float)
+
+
+__all__ = ["ARRAYS", "EpisodeRecord", "EpisodeRecorder", "RecordError", "load_record"]

@@ -1,0 +1,146 @@
+"""The flight recorder (stack.recorder) and its figure (stack.episode_plot): a real pymunk episode
+with a robot frozen mid-way, recorded tick by tick, saved, loaded and drawn; robot modes and the
+id columns on hand-built ticks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers.scripted import ScriptedController
+from sim.fleet import FleetState
+from sim.pymunk_world import ModelError, PymunkWorld
+from sim.scenario import make_scenario
+from stack.cli import main
+from stack.episode_plot import Mode, assigned_distances, plot_episode, robot_modes
+from stack.episodes import run_episode
+from stack.pipeline import ControlStack, StackConfig
+from stack.recorder import EpisodeRecord, EpisodeRecorder, RecordError, load_record
+from stack.tick_types import PolicyStatus, TickResult
+
+FROZEN, AT = 1, 10          # robot 1 freezes at tick 10 (silent and deaf)
+
+
+@pytest.fixture(scope="module")
+def frozen_episode():
+    """paper-3, scripted, filter + MEC + docking on, robot 1 frozen at tick 10, 60 ticks; the
+    TickResults and the world's true positions are captured beside the recorder."""
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(freeze=(FROZEN, AT)))
+    stack = ControlStack(sc, ScriptedController(sc), StackConfig())
+    results, truth = [], []
+    real_tick, real_step = stack.tick, world.step
+
+    def tick(state):
+        results.append(real_tick(state))
+        return results[-1]
+
+    def step():
+        out = real_step()
+        truth.append(world.true_state().positions.copy())
+        return out
+
+    stack.tick, world.step = tick, step
+    recorder = EpisodeRecorder()
+    metrics = run_episode(world, stack, 3, 60, recorder=recorder)
+    start = PymunkWorld(sc).reset(seed=3).positions
+    return sc, recorder.finish({"seed": 3, "metrics": metrics.to_dict()}), results, np.array(truth), start, metrics
+
+
+def test_the_record_holds_what_the_stack_asked_and_where_the_robots_went(frozen_episode):
+    sc, rec, results, truth, start, _ = frozen_episode
+    assert (rec.steps, rec.num_robots) == (60, 3) and list(rec.ids) == ["r0", "r1", "r2"]
+    np.testing.assert_allclose(rec.time, np.arange(60) * sc.dynamics.dt, atol=1e-12)
+    for name in ("a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
+        np.testing.assert_array_equal(getattr(rec, name), np.stack([getattr(r, name) for r in results]))
+    np.testing.assert_array_equal(rec.positions[1:], truth)
+    np.testing.assert_allclose(rec.positions[0], start, atol=0.0)
+    assert rec.present.all() and not rec.contacts.any()
+
+
+def test_the_frozen_robot_is_marked_from_its_tick_and_turns_stale_three_ticks_later(frozen_episode):
+    """The world freezes robot 1 from tick 10: the state after tick 9's step is its last report,
+    so the stack sees it age 0.05 s a tick and calls it stale once the age reaches 0.15 s
+    (``stale_after_s``; 3 ticks, to rounding: tick 12 or 13), from then on to the end."""
+    sc, rec, _, _, _, _ = frozen_episode
+    assert np.flatnonzero(rec.frozen[:, FROZEN]).tolist() == list(range(AT - 1, 60))
+    assert not rec.frozen[:, [0, 2]].any()
+    np.testing.assert_array_equal(rec.measured[AT:, FROZEN], np.repeat(rec.measured[AT - 1:AT, FROZEN], 60 - AT, 0))
+    first = np.flatnonzero(rec.stale[:, FROZEN])[0]
+    assert first in (AT + 2, AT + 3) and rec.stale[first:, FROZEN].all()
+    assert not rec.stale[:, [0, 2]].any()
+    modes = robot_modes(rec, sc.dynamics.accel_limit)
+    assert (modes[first:, FROZEN] == Mode.STALE).all()
+
+
+def test_a_record_survives_the_file_and_draws(frozen_episode, tmp_path):
+    sc, rec, _, _, _, metrics = frozen_episode
+    path = rec.save(tmp_path / "deep" / "episode_3.npz")
+    back = load_record(path)
+    for name in ("ids", "time", "measured", "positions", "a_nom", "a_cmd", "stale", "frozen", "contacts",
+                 "safety_status"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
+    assert back.meta == rec.meta and back.meta["metrics"]["final_distance"] == metrics.final_distance
+    dist, sigma = assigned_distances(back, sc)
+    assert dist.shape == (61, 3) and sorted(sigma.tolist()) == [0, 1, 2]
+    assert dist[-1].mean() == pytest.approx(metrics.final_distance, abs=1e-9)
+    png = plot_episode(back, sc, tmp_path / "episode_3.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 50_000
+    assert main(["plot", str(path), "--out", str(tmp_path / "again")]) == 0      # the command redraws it
+    assert (tmp_path / "again" / "episode_3.png").stat().st_size > 50_000
+    assert main(["plot", str(path), str(tmp_path)]) == 2
+    np.savez(tmp_path / "other.npz", time=np.zeros(3))
+    with pytest.raises(RecordError, match="not an episode record .*ids"):
+        load_record(tmp_path / "other.npz")
+    with pytest.raises(RecordError, match="cannot read"):
+        load_record(tmp_path / "episode_3.png")
+
+
+def _tick(rows: int, **flags) -> TickResult:
+    a = np.zeros((rows, 2))
+    return TickResult(a_nom=flags.pop("a_nom", a), a_safe=flags.pop("a_safe", a), a_cmd=a,
+                      policy_status=PolicyStatus.OK, safety_status=None, mec_status=None,
+                      **{k: np.asarray(flags.get(k, np.zeros(rows)), dtype=bool) for k in ("stale", "docking", "detour")})
+
+
+def _state(ids, step: int) -> FleetState:
+    n = len(ids)
+    pos = np.column_stack([np.arange(n) * 0.1 + 0.2, np.full(n, 0.1 * step + 0.1)])
+    return FleetState(time=0.05 * step, step=step, positions=pos, velocities=np.zeros((n, 2)),
+                      targets=pos.copy(), object_pose=np.array([0.5, 0.5, 0.0]), robot_ids=tuple(ids))
+
+
+def test_robots_that_leave_and_join_keep_their_columns():
+    """r1 drops off the link after tick 0; r3 joins at tick 2: every robot keeps its column,
+    NaN and absent where it had no row."""
+    ticks = [("r0", "r1", "r2"), ("r0", "r2"), ("r0", "r2", "r3")]
+    rec = EpisodeRecorder()
+    rec.start(None, _state(ticks[0], 0))
+    for k, ids in enumerate(ticks):
+        after = ticks[k + 1] if k + 1 < len(ticks) else ids
+        rec.tick(_state(ids, k), _tick(len(ids)), None, _state(after, k + 1), np.zeros((len(after), 3), bool))
+    out = rec.finish()
+    assert list(out.ids) == ["r0", "r1", "r2", "r3"]
+    np.testing.assert_array_equal(out.present, [[1, 1, 1, 0], [1, 0, 1, 0], [1, 0, 1, 1]])
+    assert np.isnan(out.measured[1, 1]).all() and np.isnan(out.positions[1:, 1]).all()
+    np.testing.assert_allclose(out.measured[2, 3], [0.4, 0.3])       # r3, the third row at step 2
+    np.testing.assert_allclose(out.positions[0, :3, 1], 0.1)
+    assert (robot_modes(out, 1.0)[~out.present] == Mode.ABSENT).all()
+
+
+def test_modes_say_which_layer_drove_each_robot():
+    """Hand-built tick of five robots: as asked (its 2 m/s^2 only clipped to the 1 m/s^2 norm,
+    which the filter does not count), docking, a detour, a docking command the filter changed by
+    0.1 m/s^2, and a stale robot."""
+    a_nom = np.array([[2.0, 0.0], [0.1, 0.0], [0.0, 0.2], [0.3, 0.0], [0.0, 0.0]])
+    a_safe = np.array([[1.0, 0.0], [0.1, 0.0], [0.0, 0.2], [0.2, 0.0], [-0.5, 0.0]])
+    flags = {"docking": [0, 1, 0, 1, 0], "detour": [0, 0, 1, 0, 0], "stale": [0, 0, 0, 0, 1]}
+    t = _tick(5, a_nom=a_nom, a_safe=a_safe, **flags)
+    rec = EpisodeRecord(ids=np.array(["a", "b", "c", "d", "e"]), time=np.zeros(1), measured=np.zeros((1, 5, 2)),
+                        positions=np.zeros((2, 5, 2)), a_nom=a_nom[None], a_safe=a_safe[None], a_cmd=a_safe[None],
+                        stale=t.stale[None], docking=t.docking[None], detour=t.detour[None],
+                        present=np.ones((1, 5), bool), frozen=np.zeros((1, 5), bool),
+                        contacts=np.zeros((1, 5, 3), bool), safety_status=np.array([""]))
+    expected = [Mode.POLICY, Mode.DOCKING, Mode.DETOUR, Mode.FILTER, Mode.STALE]
+    assert robot_modes(rec, accel_limit=1.0)[0].tolist() == expected
+    assert robot_modes(rec, accel_limit=1.0, tolerance=0.2)[0, 3] == Mode.DOCKING
