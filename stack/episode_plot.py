@@ -61,22 +61,23 @@ def robot_modes(record: EpisodeRecord, accel_limit: float, tolerance: float = FI
     return modes
 
 
-def assigned_distances(record: EpisodeRecord, scenario: Scenario) -> tuple[np.ndarray, np.ndarray]:
-    """``(distance (S+1, N) [m], target index (N,))``: each robot's distance to the target it was
-    matched to at the end (least total distance, :func:`sim.metrics.episode_outcome`)."""
+def assigned_distances(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
+    """``(distance (S+1, N) [m], target column (N,))``: each robot's distance, at every tick, to
+    the target it was matched to at the end (least total distance over the robots present at the
+    last tick and their targets, :func:`sim.metrics.episode_outcome`; NaN and -1 for the rest)."""
     import torch
 
     from sim.metrics import episode_outcome
 
-    final = np.nan_to_num(record.positions[-1])
-    targets = np.asarray(scenario.targets, dtype=float)
-    if len(targets) != record.num_robots:
-        raise ValueError(f"the record holds {record.num_robots} robots, scenario {scenario.name!r} "
-                         f"{len(targets)} targets")
-    outcome = episode_outcome(torch.from_numpy(final)[None], torch.from_numpy(targets)[None],
-                              torch.tensor([False]), scenario.target_tolerance)
-    sigma = outcome.assignment[0].numpy()
-    return np.linalg.norm(record.positions - targets[sigma][None], axis=-1), sigma
+    final, targets = record.positions[-1], record.targets[-1]
+    keep = np.flatnonzero(np.isfinite(final).all(-1) & np.isfinite(targets).all(-1))
+    dist, column = np.full(record.positions.shape[:2], np.nan), np.full(record.num_robots, -1)
+    if len(keep):
+        outcome = episode_outcome(torch.from_numpy(final[keep])[None], torch.from_numpy(targets[keep])[None],
+                                  torch.tensor([False]), 0.0)
+        column[keep] = keep[outcome.assignment[0].numpy()]
+        dist[:, keep] = np.linalg.norm(record.positions[:, keep] - targets[column[keep]][None], axis=-1)
+    return dist, column
 
 
 def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path, *,
@@ -151,7 +152,7 @@ def _draw_modes(ax, modes: np.ndarray, record: EpisodeRecord, dt: float) -> None
 
 
 def _draw_distances(ax, record: EpisodeRecord, scenario: Scenario, colours: list, dt: float) -> None:
-    dist, _ = assigned_distances(record, scenario)
+    dist, _ = assigned_distances(record)
     t = np.arange(len(dist)) * dt
     floor = 1e-4
     for i in range(record.num_robots):
@@ -164,7 +165,8 @@ def _draw_distances(ax, record: EpisodeRecord, scenario: Scenario, colours: list
     for k in onsets:
         ax.axvline(k * dt, color="red", lw=0.8, alpha=0.6)
     ax.set_yscale("log")
-    ax.set_ylim(floor, max(1.0, math.ceil(float(np.nanmax(dist)) * 10) / 10))
+    top = float(np.nanmax(dist)) if np.isfinite(dist).any() else 1.0
+    ax.set_ylim(floor, max(1.0, math.ceil(top * 10) / 10))
     ax.set_xlim(0, len(dist) * dt)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("distance to assigned target [m]")

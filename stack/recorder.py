@@ -13,6 +13,7 @@ that joined, in order of appearance; a robot missing from a tick's rows is NaN /
 ``ids``                   (N,) str        robot ids
 ``time``                  (S,) s          the time of each tick's state
 ``measured``              (S, N, 2) m     positions the stack was given (NaN: row missing)
+``targets``               (S, N, 2) m     each robot's target as the stack was given it
 ``positions``             (S+1, N, 2) m   true centres where the fleet has a true state (pymunk),
                                           else reported ones; index 0 is the start
 ``a_nom``                 (S, N, 2) m/s^2 the policy's command (docking and detours included)
@@ -41,7 +42,7 @@ import numpy as np
 from sim.files import atomic_path
 from sim.fleet import Fleet, FleetState
 
-ARRAYS = ("ids", "time", "measured", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
+ARRAYS = ("ids", "time", "measured", "targets", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
           "present", "frozen", "contacts", "safety_status")
 
 
@@ -56,6 +57,7 @@ class EpisodeRecord:
     ids: np.ndarray
     time: np.ndarray
     measured: np.ndarray
+    targets: np.ndarray
     positions: np.ndarray
     a_nom: np.ndarray
     a_safe: np.ndarray
@@ -109,86 +111,193 @@ class _Tick:
     ids: tuple[str, ...]
     time: float
     measured: np.ndarray
-    positions: np.ndarray
+    targets: np.ndarray
     a_nom: np.ndarray
     a_safe: np.ndarray
     a_cmd: np.ndarray
     stale: np.ndarray
     docking: np.ndarray
     detour: np.ndarray
-    after_ids: tuple[str, ...]
-    frozen: np.ndarray | None
-    contacts: np.ndarray
     safety_status: str
+    after_ids: tuple[str, ...] | None = None     # None: the next tick's measurement tells
+    positions: np.ndarray | None = None
+    frozen: np.ndarray | None = None
+    contacts: np.ndarray | None = None
 
 
 class EpisodeRecorder:
-    """Collects one episode's ticks (call :meth:`start`, then :meth:`tick` per tick, then :meth:`finish`)."""
+    """Collects one episode's ticks: :meth:`start`, :meth:`tick` per tick, then :meth:`finish`.
 
-    def __init__(self) -> None:
+    With a fleet (``run_episode``) each tick also gets the fleet after its step: its true state
+    where it has one, and its contacts. Without (a controller that sees only what the link
+    brings, ``formation bridge --record``), ``positions`` are the measured ones and the
+    contacts are judged on them (:func:`sim.metrics.collision_events`) when the scenario is
+    known. ``scenario`` (or the fleet's) is stored in the record's meta.
+    """
+
+    def __init__(self, scenario=None) -> None:
         self._start: tuple[tuple[str, ...], np.ndarray] | None = None
         self._ticks: list[_Tick] = []
-        self._scenario = None
+        self._scenario = scenario
 
-    def start(self, fleet: Fleet, state: FleetState) -> None:
+    def __len__(self) -> int:
+        return len(self._ticks)
+
+    def start(self, fleet: Fleet | None, state: FleetState) -> None:
         """The episode's first state (after the fleet's reset)."""
         self._start = _where(fleet, state)
         self._ticks = []
-        self._scenario = getattr(fleet, "scenario", None)
+        self._scenario = getattr(fleet, "scenario", None) or self._scenario
 
-    def tick(self, state: FleetState, result, fleet: Fleet, after: FleetState, contacts: np.ndarray) -> None:
-        """One tick: the ``state`` the stack was given, its :class:`~stack.tick_types.TickResult`,
-        the fleet once it stepped, the state it then reported, and the (N', 3) bool contacts of
-        that state's rows."""
-        after_ids, positions = _where(fleet, after)
-        frozen = getattr(fleet, "frozen", None)
+    def tick(self, state: FleetState, result, fleet: Fleet | None = None, after: FleetState | None = None,
+             contacts: np.ndarray | None = None) -> None:
+        """One tick: the ``state`` the stack was given and its :class:`~stack.tick_types.TickResult`;
+        with a fleet, the fleet once it stepped, the state it then reported and the (N', 3) bool
+        contacts of that state's rows."""
+        if self._start is None:
+            self.start(fleet, state)
         status = result.safety_status
-        self._ticks.append(_Tick(
-            ids=tuple(state.robot_ids), time=float(state.time), measured=np.array(state.positions, dtype=float),
-            positions=positions, a_nom=np.array(result.a_nom, dtype=float), a_safe=np.array(result.a_safe, dtype=float),
-            a_cmd=np.array(result.a_cmd, dtype=float), stale=np.array(result.stale, dtype=bool),
-            docking=np.array(result.docking, dtype=bool), detour=np.array(result.detour, dtype=bool),
-            after_ids=after_ids, frozen=None if frozen is None else np.array(frozen, dtype=bool),
-            contacts=np.array(contacts, dtype=bool), safety_status="" if status is None else str(status)))
+        t = _Tick(ids=tuple(state.robot_ids), time=float(state.time), measured=np.array(state.positions, dtype=float),
+                  targets=np.array(state.targets, dtype=float), a_nom=np.array(result.a_nom, dtype=float),
+                  a_safe=np.array(result.a_safe, dtype=float), a_cmd=np.array(result.a_cmd, dtype=float),
+                  stale=np.array(result.stale, dtype=bool), docking=np.array(result.docking, dtype=bool),
+                  detour=np.array(result.detour, dtype=bool), safety_status="" if status is None else str(status))
+        if after is not None:
+            t.after_ids, t.positions = _where(fleet, after)
+            frozen = getattr(fleet, "frozen", None)
+            t.frozen = None if frozen is None else np.array(frozen, dtype=bool)
+            t.contacts = None if contacts is None else np.array(contacts, dtype=bool)
+        self._ticks.append(t)
 
     def finish(self, meta: dict[str, Any] | None = None) -> EpisodeRecord:
-        """The recorded episode; ``meta`` is stored with it (with the fleet's scenario, unless
-        ``meta`` names one)."""
+        """The recorded episode; ``meta`` is stored with it (with the scenario, unless ``meta``
+        names one)."""
         if self._start is None:
             raise RuntimeError("EpisodeRecorder.finish before start")
+        ticks = self._ticks
+        for k, t in enumerate(ticks):                     # measured: the next state is where it went
+            if t.after_ids is None:
+                nxt = ticks[k + 1] if k + 1 < len(ticks) else t
+                t.after_ids, t.positions = nxt.ids, nxt.measured
         start_ids, start_pos = self._start
-        ids = list(dict.fromkeys([*start_ids, *(i for t in self._ticks for i in (*t.ids, *t.after_ids))]))
+        ids = list(dict.fromkeys([*start_ids, *(i for t in ticks for i in (*t.ids, *t.after_ids))]))
         column = {rid: k for k, rid in enumerate(ids)}
-        s, n = len(self._ticks), len(ids)
+        s, n = len(ticks), len(ids)
 
         def table(width: tuple[int, ...], dtype, fill) -> np.ndarray:
             return np.full((s, n, *width), fill, dtype=dtype)
 
         rec = EpisodeRecord(
-            ids=np.array(ids, dtype=str), time=np.array([t.time for t in self._ticks], dtype=float),
-            measured=table((2,), float, np.nan), positions=np.full((s + 1, n, 2), np.nan),
+            ids=np.array(ids, dtype=str), time=np.array([t.time for t in ticks], dtype=float),
+            measured=table((2,), float, np.nan), targets=table((2,), float, np.nan),
+            positions=np.full((s + 1, n, 2), np.nan),
             a_nom=table((2,), float, np.nan), a_safe=table((2,), float, np.nan), a_cmd=table((2,), float, np.nan),
             stale=table((), bool, False), docking=table((), bool, False), detour=table((), bool, False),
             present=table((), bool, False), frozen=table((), bool, False), contacts=table((3,), bool, False),
-            safety_status=np.array([t.safety_status for t in self._ticks], dtype=str), meta=dict(meta or {}))
+            safety_status=np.array([t.safety_status for t in ticks], dtype=str), meta=dict(meta or {}))
         if self._scenario is not None:
             rec.meta.setdefault("scenario", self._scenario.to_dict())
         rec.meta = json.loads(json.dumps(rec.meta))        # as a loaded record holds it
         rec.positions[0, [column[i] for i in start_ids]] = start_pos
-        for k, t in enumerate(self._ticks):
+        judged = True
+        for k, t in enumerate(ticks):
             rows = [column[i] for i in t.ids]
-            for name in ("measured", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
+            for name in ("measured", "targets", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
                 getattr(rec, name)[k, rows] = getattr(t, name)
             rec.present[k, rows] = True
             after = [column[i] for i in t.after_ids]
             rec.positions[k + 1, after] = t.positions
-            rec.contacts[k, after] = t.contacts
+            judged &= t.contacts is not None
+            if t.contacts is not None:
+                rec.contacts[k, after] = t.contacts
             if t.frozen is not None and len(t.frozen) == len(after):
                 rec.frozen[k, after] = t.frozen
+        if not judged and self._scenario is not None and s:
+            rec.contacts = _contacts(rec.positions[1:], self._scenario)
         return rec
 
 
-def _where(fleet: Fleet, state: FleetState) -> tuple[tuple[str, ...], np.ndarray]:
+class RecordedStack:
+    """A :class:`stack.pipeline.ControlStack` whose every tick is recorded (``formation bridge
+    --record DIR``); anything else is the stack's own.
+
+    Ticks are recorded as the link brought them (:class:`EpisodeRecorder` without a fleet). A
+    record closes when the stack is reset (a new fleet episode, a stall of the bridge), after
+    ``chunk_ticks`` ticks and at :meth:`close`, and a writer thread, off the control loop, saves it
+    as ``folder/record_KKKKK.npz`` (meta: its index, why it closed, ``meta``). A record that
+    cannot be written is reported on stderr and the loop goes on; :meth:`close` waits for the
+    writer, so Ctrl-C loses nothing.
+    """
+
+    def __init__(self, stack, folder: str | Path, chunk_ticks: int = 1200, meta: dict[str, Any] | None = None):
+        if not isinstance(chunk_ticks, int) or chunk_ticks < 1:
+            raise ValueError(f"chunk_ticks must be a positive integer, got {chunk_ticks!r}")
+        import queue
+        import threading
+
+        self.stack, self.folder, self.chunk_ticks = stack, Path(folder), chunk_ticks
+        self.meta, self.written, self.failed = dict(meta or {}), [], []
+        self._recorder, self._index = EpisodeRecorder(stack.scenario), 0
+        self._queue: queue.Queue = queue.Queue()
+        self._writer = threading.Thread(target=self._write_all, name="RecordedStack-writer", daemon=True)
+        self._writer.start()
+
+    def tick(self, state: FleetState):
+        result = self.stack.tick(state)
+        self._recorder.tick(state, result)
+        if len(self._recorder) >= self.chunk_ticks:
+            self._close_record("chunk")
+        return result
+
+    __call__ = tick
+
+    def reset(self) -> None:
+        self._close_record("reset")
+        self.stack.reset()
+
+    def close(self) -> list[Path]:
+        """Save the running record, wait for the writer; the paths written."""
+        self._close_record("exit")
+        self._queue.put(None)
+        self._writer.join()
+        return self.written
+
+    def __getattr__(self, name: str):
+        return getattr(self.stack, name)
+
+    def _close_record(self, reason: str) -> None:
+        if len(self._recorder):
+            meta = {**self.meta, "index": self._index, "closed_by": reason}
+            self._queue.put((self._recorder, self.folder / f"record_{self._index:05d}.npz", meta))
+            self._index += 1
+        self._recorder = EpisodeRecorder(self.stack.scenario)
+
+    def _write_all(self) -> None:
+        import sys
+
+        while (job := self._queue.get()) is not None:
+            recorder, path, meta = job
+            try:
+                self.written.append(recorder.finish(meta).save(path))
+            except Exception as exc:  # a full disk must not stop the fleet's controller
+                self.failed.append(str(path))
+                print(f"warning: record {path} not written: {exc}", file=sys.stderr, flush=True)
+
+
+def _contacts(positions: np.ndarray, scenario) -> np.ndarray:
+    """(S, N, 3) bool robot / object / wall contact of (S, N, 2) positions (NaN: none)."""
+    import torch
+
+    from sim.metrics import collision_events
+
+    pos = torch.from_numpy(np.nan_to_num(positions, nan=-1e3))     # far outside: touches no robot
+    ev = collision_events(pos, torch.as_tensor(scenario.polygon, dtype=torch.float64), scenario.robot_radius,
+                          scenario.arena)
+    out = torch.stack((ev.robot, ev.object, ev.wall), -1).numpy()
+    return out & np.isfinite(positions).all(-1)[..., None]
+
+
+def _where(fleet: Fleet | None, state: FleetState) -> tuple[tuple[str, ...], np.ndarray]:
     """Ids and (N, 2) positions of the fleet now: its true state where it has one."""
     true_state = getattr(fleet, "true_state", None)
     if true_state is not None:
@@ -196,4 +305,4 @@ def _where(fleet: Fleet, state: FleetState) -> tuple[tuple[str, ...], np.ndarray
     return tuple(state.robot_ids), np.array(state.positions, dtype=float)
 
 
-__all__ = ["ARRAYS", "EpisodeRecord", "EpisodeRecorder", "RecordError", "load_record"]
+__all__ = ["ARRAYS", "EpisodeRecord", "EpisodeRecorder", "RecordError", "RecordedStack", "load_record"]

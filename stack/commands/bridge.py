@@ -9,7 +9,7 @@ any subset may be present, and the count changes as robots join or leave.
 
 With --episode-ticks T (a fleet that resets every T ticks, e.g. `fleet-sim --episodes`), the
 stack is reset at each fleet episode and the --report gains "episodes": per episode the ticks
-answered, safety events, the MEC tracking error and the stack's tick time (EpisodeRecorder).
+answered, safety events, the MEC tracking error and the stack's tick time (EpisodeCounters).
 A robot whose state is older than --stale-after stays in the controller's picture (with its
 age) and is sent BRAKE; a robot that left the link stays in it as a silent obstacle; any one
 live robot silent for --estop-after raises the fleet e-stop; after a stall of the bridge itself
@@ -121,6 +121,13 @@ def register(sub) -> None:
     p.add_argument("--trace", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...], '
                         '"stale": [...], "silent": [...]}')
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record every tick into DIR/record_KKKKK.npz (stack.recorder: positions as "
+                        "reported, each layer's command, the stack's flags), a file per fleet episode, "
+                        "per stall of the bridge and per --record-ticks ticks, written off the control "
+                        "loop; draw one with formation plot DIR/record_00000.npz")
+    p.add_argument("--record-ticks", type=argtypes.positive, default=1200, metavar="K",
+                   help="ticks per --record file at most (default %(default)s: a minute at 20 Hz)")
     p.set_defaults(func=run)
 
 
@@ -142,7 +149,7 @@ def build_controller(scenario: Scenario, policy: str, safety: bool, mec: bool):
     return lambda state: stack.tick(state).a_cmd
 
 
-class EpisodeRecorder:
+class EpisodeCounters:
     """A ControlStack as the bridge's controller, with counters per fleet episode.
 
     ``start_episode(k)`` (the bridge's ``on_episode``) closes the running episode and resets the
@@ -211,6 +218,17 @@ class EpisodeRecorder:
         return self.episodes
 
 
+def _recorded(stack, args):
+    """``stack`` recording into ``--record`` (the folder made, or a clear error)."""
+    from stack.recorder import RecordedStack
+
+    if args.record.exists() and not args.record.is_dir():
+        raise ValueError(f"--record {args.record}: exists and is not a folder; give a folder for the records")
+    args.record.mkdir(parents=True, exist_ok=True)
+    return RecordedStack(stack, args.record, args.record_ticks,
+                         meta={"fleet": args.fleet, "policy": args.policy, "world": "bridge"})
+
+
 def _print_tick(record) -> None:
     print(json.dumps({"tick": record.tick, "robots": list(record.robots),
                       "stale": list(record.stale), "silent": list(record.silent)}), flush=True)
@@ -222,7 +240,9 @@ def run(args) -> int:
         scenario = make_scenario(args.scenario)
         stack = build_stack(scenario, args.policy, args.safety, args.mec,
                             latency_config(args), args.docking)
-        recorder = EpisodeRecorder(stack) if args.episode_ticks is not None else None
+        if args.record is not None:
+            stack = _recorded(stack, args)
+        recorder = EpisodeCounters(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)
         transport = argtypes.transport_config(args)
@@ -247,9 +267,14 @@ def run(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: bridge.stop())
     print(f"bridge {args.fleet}: {scenario.name}, policy {args.policy}", file=sys.stderr, flush=True)
-    with bridge:
-        bridge.run(max_ticks=args.ticks, on_tick=_print_tick if args.trace else None)
-        summary = bridge.summary()
+    try:
+        with bridge:
+            bridge.run(max_ticks=args.ticks, on_tick=_print_tick if args.trace else None)
+            summary = bridge.summary()
+    finally:
+        if args.record is not None:
+            records = stack.close()
+            print(f"bridge {args.fleet}: {len(records)} record(s) in {args.record}", file=sys.stderr, flush=True)
     if recorder is not None:
         summary["episodes"] = recorder.summary()
     if args.report:

@@ -14,7 +14,7 @@ progress bar); the bridge is then stopped with SIGTERM (its clean path: loop sto
 session closed, report written). Both must exit with 0. Their reports (``fleet/sim.json``,
 ``fleet/bridge.json``) and logs stay in the demo folder; the stage result merges them per
 episode: success, final distance [m], collision onsets, ticks with a safety intervention, MEC
-tracking error [m] (:class:`stack.commands.bridge.EpisodeRecorder`), the stack's tick time
+tracking error [m] (:class:`stack.commands.bridge.EpisodeCounters`), the stack's tick time
 and the Zenoh round trip [ms].
 """
 

@@ -165,7 +165,7 @@ def test_sigkill_of_the_bridge_stops_every_robot_within_half_a_second(tmp_path):
 def test_robots_leaving_and_rejoining_change_n_and_the_task_completes(tmp_path):
     sim, bridge, _ = run_pair(
         tmp_path, ["--ticks", "200", "--leave", "r4@30", "--join", "r4@50", "--leave", "r0@150"],
-        SCRIPTED)
+        [*SCRIPTED, "--record", str(tmp_path / "rec"), "--record-ticks", "120"])
     counts = [n for _, n in bridge["robot_counts"]]
     assert counts == [5, 4, 5, 4]
     assert bridge["rearms"] >= 1  # r4 came back latched and was re-armed with STOP
@@ -173,6 +173,27 @@ def test_robots_leaving_and_rejoining_change_n_and_the_task_completes(tmp_path):
     assert modes[35] == "offline" and "latched" in modes[50:53]
     assert silent_contacts(sim, 4)[0] == 0
     assert_task_done(sim)
+    assert_recorded(tmp_path / "rec", sim, bridge["ticks"])
+
+
+def assert_recorded(folder: Path, sim: dict, ticks: int) -> None:
+    """The bridge's records (--record, 120 ticks a file) hold every tick it answered, each robot in
+    its column, absent while off the link, where fleet-sim reported it at that time."""
+    from stack.recorder import load_record
+
+    first, second = (load_record(folder / f"record_0000{k}.npz") for k in (0, 1))
+    assert (first.steps, first.meta["closed_by"], second.meta["closed_by"]) == (120, "chunk", "exit")
+    assert first.steps + second.steps == ticks and not (folder / "record_00002.npz").exists()
+    trace = {round(t["t"], 6): t for t in sim["trace"]}
+    for rec in (first, second):
+        assert list(rec.ids) == ["r0", "r1", "r2", "r3", "r4"] and not rec.contacts.any()
+        for k in range(rec.steps):
+            seen = trace[round(float(rec.time[k]), 6)]
+            offline = [m == "offline" for m in seen["modes"]]
+            np.testing.assert_array_equal(rec.present[k], np.logical_not(offline))
+            np.testing.assert_allclose(rec.measured[k][~np.array(offline)],
+                                       np.array(seen["positions"])[~np.array(offline)], atol=2e-6)
+    assert not first.present[35, 4] and not second.present[-1, 0]
 
 
 def test_a_lockstep_run_with_a_silent_robot_repeats_exactly(tmp_path):

@@ -37,7 +37,6 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
     assert ours["final_distance"] < 1e-3
     assert max(e["final_distance"] for e in theirs) < 1e-3
     # the recorder keeps what the fleet reported over the wire, tick by tick
-    from sim.scenario import make_scenario
     from stack.episode_plot import assigned_distances
     from stack.recorder import load_record
 
@@ -45,7 +44,7 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
         record = load_record(tmp_path / "trace" / f"episode_{seed}.npz")
         assert (record.steps, record.num_robots) == (127, 5) and record.present.all()
         assert not record.contacts.any() and record.meta["world"] == "zenoh"
-        dist, _ = assigned_distances(record, make_scenario("paper-5"))
+        dist, _ = assigned_distances(record)
         assert dist[-1].mean() == pytest.approx(record.meta["metrics"]["final_distance"], abs=1e-12)
         assert (tmp_path / "trace" / f"episode_{seed}.png").stat().st_size > 50_000
 

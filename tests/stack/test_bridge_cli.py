@@ -59,3 +59,33 @@ def test_the_rearm_alarm_threshold_is_a_flag_that_refuses_zero(capsys):
     with pytest.raises(SystemExit) as done:
         parser.parse_args([*base, "--rearm-alarm-after", "0"])
     assert done.value.code == 2 and "--rearm-alarm-after" in capsys.readouterr().err
+
+
+def test_a_recorded_stack_closes_a_record_per_episode_and_chunk_and_survives_a_failed_write(tmp_path, capsys):
+    """Two pymunk episodes through the bridge's stack recording in 50-tick files: episode 1 (128
+    ticks) gives files of 50, 50 and 28 ticks (the last closed by the reset), episode 2 of 50, 50
+    and 28 (the last at close). The third file's name is taken by a folder: that record is
+    reported and skipped, the others are written."""
+    import numpy as np
+
+    from stack.cli import main
+    from stack.recorder import RecordedStack, load_record
+
+    sc = make_scenario("paper-3")
+    (tmp_path / "rec" / "record_00002.npz").mkdir(parents=True)
+    stack = RecordedStack(build_stack(sc, "scripted", safety=True, mec=True), tmp_path / "rec", 50, {"fleet": "f"})
+    world = PymunkWorld(sc)
+    results = [run_episode(world, stack, seed) for seed in range(2)]
+    written = stack.close()
+    assert [m.success for m in results] == [True, True]
+    names = [f"record_0000{k}.npz" for k in (0, 1, 3, 4, 5)]
+    assert sorted(p.name for p in written) == names and stack.failed == [str(tmp_path / "rec" / "record_00002.npz")]
+    assert "record_00002.npz not written" in capsys.readouterr().err
+    records = [load_record(tmp_path / "rec" / name) for name in names]
+    assert [(r.steps, r.meta["closed_by"], r.meta["index"]) for r in records] == [
+        (50, "chunk", 0), (50, "chunk", 1), (50, "chunk", 3), (50, "chunk", 4), (28, "exit", 5)]
+    np.testing.assert_allclose(records[2].time[0], 0.0, atol=1e-12)        # episode 2 starts afresh
+    assert records[0].meta["fleet"] == "f" and records[0].meta["scenario"]["name"] == "paper-3"
+    (tmp_path / "file").write_text("x")
+    assert main(["bridge", "--fleet", "f", "--policy", "scripted", "--record", str(tmp_path / "file")]) == 2
+    assert "--record" in capsys.readouterr().err

@@ -16,7 +16,7 @@ from controllers.mappo import train
 from sim.fleet import FleetState
 from sim.scenario import make_scenario
 from stack.cli import main
-from stack.commands.bridge import EpisodeRecorder
+from stack.commands.bridge import EpisodeCounters
 from stack.commands.demo import print_zero_shot_table
 from stack.demo.fleet import tracking_noise_floor
 from stack.demo.stages import GENERALIST_LOG, generalist_stage, train_config, train_stage
@@ -31,7 +31,7 @@ def test_recorder_tracking_error_is_the_hand_worked_gain_error():
     dyn = sc.dynamics
     a = np.tile([0.3, 0.4], (3, 1))   # |a| = 0.5 m/s^2, below accel_limit
     stack = ControlStack(sc, lambda state: a.copy(), StackConfig(safety=False, mec=False))
-    recorder = EpisodeRecorder(stack)
+    recorder = EpisodeCounters(stack)
     for episode in (4, 5):
         recorder.start_episode(episode)
         pos, vel = sc.starts.copy(), np.zeros((3, 2))
@@ -52,7 +52,7 @@ def test_recorder_tracking_error_is_zero_for_a_nominal_robot():
     sc = make_scenario("paper-3")
     dyn = sc.dynamics
     stack = ControlStack(sc, lambda state: np.tile([0.3, -0.2], (3, 1)), StackConfig(safety=False, mec=False))
-    recorder = EpisodeRecorder(stack)
+    recorder = EpisodeCounters(stack)
     pos, vel = sc.starts.copy(), np.zeros((3, 2))
     for k in range(4):
         cmd = recorder(FleetState(k * dyn.dt, k, pos, vel, sc.targets, np.zeros(3)))

@@ -51,6 +51,7 @@ def test_the_record_holds_what_the_stack_asked_and_where_the_robots_went(frozen_
     sc, rec, results, truth, start, _ = frozen_episode
     assert (rec.steps, rec.num_robots) == (60, 3) and list(rec.ids) == ["r0", "r1", "r2"]
     np.testing.assert_allclose(rec.time, np.arange(60) * sc.dynamics.dt, atol=1e-12)
+    np.testing.assert_array_equal(rec.targets, np.broadcast_to(sc.targets, (60, 3, 2)))
     for name in ("a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
         np.testing.assert_array_equal(getattr(rec, name), np.stack([getattr(r, name) for r in results]))
     np.testing.assert_array_equal(rec.positions[1:], truth)
@@ -81,7 +82,7 @@ def test_a_record_survives_the_file_and_draws(frozen_episode, tmp_path):
                  "safety_status"):
         np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
     assert back.meta == rec.meta and back.meta["metrics"]["final_distance"] == metrics.final_distance
-    dist, sigma = assigned_distances(back, sc)
+    dist, sigma = assigned_distances(back)
     assert dist.shape == (61, 3) and sorted(sigma.tolist()) == [0, 1, 2]
     assert dist[-1].mean() == pytest.approx(metrics.final_distance, abs=1e-9)
     png = plot_episode(back, sc, tmp_path / "episode_3.png")
@@ -137,6 +138,7 @@ def test_modes_say_which_layer_drove_each_robot():
     flags = {"docking": [0, 1, 0, 1, 0], "detour": [0, 0, 1, 0, 0], "stale": [0, 0, 0, 0, 1]}
     t = _tick(5, a_nom=a_nom, a_safe=a_safe, **flags)
     rec = EpisodeRecord(ids=np.array(["a", "b", "c", "d", "e"]), time=np.zeros(1), measured=np.zeros((1, 5, 2)),
+                        targets=np.zeros((1, 5, 2)),
                         positions=np.zeros((2, 5, 2)), a_nom=a_nom[None], a_safe=a_safe[None], a_cmd=a_safe[None],
                         stale=t.stale[None], docking=t.docking[None], detour=t.detour[None],
                         present=np.ones((1, 5), bool), frozen=np.zeros((1, 5), bool),
