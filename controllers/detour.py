@@ -8,16 +8,23 @@ corridor above the object): robot 2 stood at the top wall from tick 60 to the en
 the nearest target, its policy asking 1 m/s^2 up and to the left (into the wall, towards the
 gap above the silent robot), the filter answering 0.
 
-**When.** A movable robot that is not docking is *stuck* once it has been, for ``after_s`` in a
-row, slower than ``STUCK_SPEED`` while asked for at least ``STUCK_PUSH`` (the policy wants it to
-move, something holds it) and farther than ``stall_radius`` from every target (it has not
-arrived). It then follows a detour until it comes within ``stall_radius`` of its target (where
-docking's second tier takes it), no path exists, or ``MAX_S`` have passed; a robot that
-stalls on its detour is stuck again and replans.
+**When.** A movable robot that is not docking is *stuck* once it has stayed, for ``after_s`` in a
+row, within ``STUCK_DRIFT`` of where that stretch began while asked for at least ``STUCK_PUSH``
+(the policy wants it to move, something holds it), and is farther than ``stall_radius`` from
+every target (it has not arrived). Where it stays counts, not how fast it goes: traced over Zenoh (paper-5, an
+own-target generalist, robot 4 dropped at tick 15 near the top wall), its two neighbours,
+pushed into the wall and held off the silent robot by the filter, jittered in place at 2-8
+cm/s for the last 11 s, 0.4-0.6 m from their targets, moving 5-17 mm in any second: a 2 cm/s
+speed threshold never held them long enough. It then follows a detour until it comes within
+``stall_radius`` of a target (where docking's second tier takes it), no path exists, or
+``MAX_S`` have passed; a robot that stalls on
+its detour is stuck again and replans.
 
 **Path.** On a grid of ``CELL`` over the arena, a cell is free when a robot centred there keeps
-``CLEARANCE`` to the walls and the object and ``2 r + CLEARANCE`` to every other robot (at its
-centre as the stack sees it: a silent robot where it must have stopped) and ``r + CLEARANCE``
+``CLEARANCE`` to the walls and the object and ``2 r + CLEARANCE`` to every other robot standing
+(slower than ``MOVING_SPEED``, at its centre as the stack sees it: a silent robot where it must
+have stopped; a robot on the move will be elsewhere, and the filter keeps the two apart: planned
+round, the second of two robots detouring in single file down one corridor found no path) and ``r + CLEARANCE``
 to every disc the safety filter last kept round a robot not listening (so the path does not
 lead where the filter will not let the robot go); the robot's target is its match under the
 least total distance, docking's (:func:`controllers.docking.least_distance_matching`); the path
@@ -50,7 +57,7 @@ from sim.scenario import clip_norm
 
 CELL = 0.01            # [m] grid spacing
 CLEARANCE = 0.03       # [m] kept to walls, object and other robots
-STUCK_SPEED = 0.02     # [m/s]
+STUCK_DRIFT = 0.02     # [m] a held robot stays this close to where it was after_s ago
 STUCK_PUSH = 0.2       # [m/s^2]
 MAX_S = 8.0            # [s] longest detour before the policy has its robot back
 REPLAN_TICKS = 10
@@ -58,6 +65,7 @@ LOOKAHEAD = 6          # [cells]
 SPEED = 0.2            # [m/s]
 BRAKE = 0.5            # [m/s^2]
 GAIN = 4.0             # [1/s]
+MOVING_SPEED = 0.05    # [m/s] robots faster than this are not planned round (the filter keeps them apart)
 _STEPS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
 
 
@@ -81,7 +89,8 @@ class Detour:
         self.reset()
 
     def reset(self) -> None:
-        self._stuck: dict[str, int] = {}
+        self._stuck: dict[str, int] = {}       # id -> ticks held within STUCK_DRIFT of its anchor
+        self._anchor: dict[str, np.ndarray] = {}
         self._paths: dict[str, tuple[np.ndarray, int, int]] = {}   # id -> (path (K, 2), planned at, started at)
         self._tick = 0
 
@@ -97,32 +106,54 @@ class Detour:
         self._tick += 1
         n = len(pos)
         detour = np.zeros(n, dtype=bool)
-        held = ((vel * vel).sum(1) < STUCK_SPEED**2) & ((a_nom * a_nom).sum(1) >= STUCK_PUSH**2) & movable
-        if not self._paths and not held.any():          # the usual tick: nobody held, none on a detour
+        pushed = ((a_nom * a_nom).sum(1) >= STUCK_PUSH**2) & movable
+        if not self._paths and not pushed.any():        # nobody pushed, none on a detour
             if self._stuck:
                 self._stuck.clear()
+                self._anchor.clear()
             return a_nom, detour
+        self._count_held(ids, pos, pushed)
+        if not self._paths and max(self._stuck.values(), default=0) < self.after_ticks:
+            return a_nom, detour                        # the usual tick: no distance computed
         dist = np.empty((n, n))
         docking_kernels.target_distances(f64(pos), f64(targets), dist)
+        match = least_distance_matching(dist)
         near = dist.min(axis=1) <= self.stall_radius
-        self._stuck = {rid: self._stuck.get(rid, 0) + 1 if held[i] and not near[i] else 0
-                       for i, rid in enumerate(ids)}
+        for i in np.flatnonzero(near):
+            self._stuck.pop(ids[i], None)
+            self._anchor.pop(ids[i], None)
         wanted = [i for i, rid in enumerate(ids) if movable[i] and not near[i]
-                  and (rid in self._paths or self._stuck[rid] >= self.after_ticks)]
+                  and (rid in self._paths or self._stuck.get(rid, 0) >= self.after_ticks)]
         keep = {ids[i] for i in wanted}
         self._paths = {rid: p for rid, p in self._paths.items() if rid in keep}
         if not wanted:
             return a_nom, detour
-        match = least_distance_matching(dist)
         out = np.array(a_nom, dtype=np.float64)
         for i in wanted:
-            path = self._path(ids[i], i, pos, targets[match[i]], discs)
+            path = self._path(ids[i], i, pos, vel, targets[match[i]], discs)
             if path is None:
                 continue
             out[i], detour[i] = self._follow(path, pos[i], vel[i]), True
         return out, detour
 
-    def _path(self, rid: str, i: int, pos: np.ndarray, target: np.ndarray,
+    def _count_held(self, ids: tuple[str, ...], pos: np.ndarray, pushed: np.ndarray) -> None:
+        """Ticks each pushed robot has stayed within ``STUCK_DRIFT`` of its anchor (the first tick
+        counts); a robot not pushed, or gone, is forgotten; one that drifted starts over here."""
+        for i, rid in enumerate(ids):
+            anchor = self._anchor.get(rid)
+            if not pushed[i]:
+                if anchor is not None:
+                    del self._anchor[rid], self._stuck[rid]
+            elif anchor is None or ((pos[i] - anchor) ** 2).sum() > STUCK_DRIFT**2:
+                self._anchor[rid], self._stuck[rid] = np.array(pos[i], dtype=np.float64), 1
+            else:
+                self._stuck[rid] += 1
+        if len(self._anchor) > np.count_nonzero(pushed):
+            present = set(ids)
+            for rid in [r for r in self._anchor if r not in present]:
+                del self._anchor[rid], self._stuck[rid]
+
+    def _path(self, rid: str, i: int, pos: np.ndarray, vel: np.ndarray, target: np.ndarray,
               discs: Callable[[], np.ndarray | None] | None) -> np.ndarray | None:
         """Robot ``i``'s path (K, 2) [m], planned when it is stuck or its plan is due."""
         planned = self._paths.get(rid)
@@ -130,8 +161,10 @@ class Detour:
             del self._paths[rid]
             self._stuck[rid] = 0
             return None
-        if planned is None or self._stuck[rid] >= self.after_ticks or self._tick - planned[1] >= REPLAN_TICKS:
-            path = self.plan(pos[i], target, np.delete(pos, i, axis=0), None if discs is None else discs())
+        if planned is None or self._stuck.get(rid, 0) >= self.after_ticks or self._tick - planned[1] >= REPLAN_TICKS:
+            standing = (vel * vel).sum(1) < MOVING_SPEED**2
+            standing[i] = False
+            path = self.plan(pos[i], target, pos[standing], None if discs is None else discs())
             if path is None:                     # try again in REPLAN_TICKS if still held
                 self._paths.pop(rid, None)
                 self._stuck[rid] = max(0, self.after_ticks - REPLAN_TICKS)

@@ -55,33 +55,61 @@ def test_the_filter_discs_are_kept_clear_like_robots():
     assert path[:, 1].max() >= 0.65 + R + CLEARANCE
 
 
-@pytest.mark.parametrize("case", ["stuck", "not movable", "near a target", "moving", "not pushed"])
+@pytest.mark.parametrize("case", ["stuck", "jittering", "not movable", "near a target", "moving", "not pushed"])
 def test_a_robot_detours_once_held_still_for_after_s_away_from_every_target(case):
     """One robot at (0.15, 0.15), its target at (0.85, 0.15) past a robot in the way; the
-    policy pushes it at 0.5 m/s^2 into that robot. Held still 20 ticks (1 s), it detours from
-    the 20th call on: up through the gap. Not movable, within 12 cm of a target, moving, or not
-    pushed, it never does."""
+    policy pushes it at 0.5 m/s^2 into that robot. Held 20 ticks (1 s) within 2 cm of where it
+    was, it detours from the 20th call on: up through the gap; also when it jitters in place at
+    6 cm/s (1.5 mm back and forth a tick), which a 2 cm/s speed threshold never held. Not movable,
+    within 12 cm of a target, moving on at 2.5 cm/s, or not pushed, it never does."""
     d = detour()
     pos = np.array([[0.15, 0.15], [0.5, 0.15]])
     targets = np.array([[0.85, 0.15], [0.15, 0.6]])
     vel = np.zeros((2, 2))
     a_nom = np.array([[0.5, 0.0], [0.0, 0.0]])
     movable = np.array([True, False])
+    ids = ("a", "b")
     if case == "not movable":
         movable[0] = False
     elif case == "near a target":
         targets[1] = [0.2, 0.2]
-    elif case == "moving":
-        vel[0] = [0.05, 0.0]
     elif case == "not pushed":
         a_nom[0] = [0.1, 0.0]
     flags = []
-    for _ in range(25):
-        out, flag = d(("a", "b"), pos, vel, targets, a_nom, movable)
+    for k in range(25):
+        if case == "moving":                    # 2.5 cm/s: 2.5 cm from where it was in a second
+            vel[0] = [0.025, 0.0]
+            pos[0, 0] = 0.15 + 0.025 * SC.dynamics.dt * k
+        elif case == "jittering":
+            vel[0] = [0.06 * (-1) ** k, 0.0]
+            pos[0, 0] = 0.15 + 0.0015 * (k % 2)
+        out, flag = d(ids, pos.copy(), vel.copy(), targets, a_nom, movable)
         flags.append(bool(flag[0]))
-        assert not flag[1]
-    if case != "stuck":
+        assert not flag[1:].any()
+    if case not in ("stuck", "jittering"):
         assert not any(flags) and np.array_equal(out, a_nom)
         return
     assert flags.index(True) == 19 and all(flags[19:])
     assert out[0, 1] > 0.0 and np.linalg.norm(out[0]) <= SC.dynamics.accel_limit + 1e-12
+
+
+@pytest.mark.parametrize("speed", [0.0, 0.2])
+def test_a_robot_on_the_move_is_left_to_the_filter_not_planned_round(speed):
+    """Robot a, held at (0.15, 0.15), bound for (0.85, 0.2); b sits on its target in the way at
+    (0.5, 0.15); c stands in the gap above b, at (0.5, 0.27). Standing, c closes the gap: a's path
+    goes over the object (1.53 m, up to y = 0.725). Moving at 0.2 m/s, c will be elsewhere: the
+    path takes the gap (0.78 m, below y = 0.27; the straight line through the gap is 0.73). Planned round, the second of two robots
+    detouring in single file down one corridor found no path."""
+    d = detour()
+    pos = np.array([[0.15, 0.15], [0.5, 0.15], [0.5, 0.27]])
+    vel = np.array([[0.0, 0.0], [0.0, 0.0], [speed, 0.0]])
+    targets = np.array([[0.85, 0.2], [0.5, 0.15], [0.5, 0.3]])
+    a_nom = np.array([[0.5, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    for _ in range(20):
+        _, flag = d(("a", "b", "c"), pos, vel, targets, a_nom, np.array([True, False, False]))
+    assert flag.tolist() == [True, False, False]
+    path = d._paths["a"][0]
+    if speed == 0.0:
+        assert 1.4 < length(path) < 1.7 and path[:, 1].max() > 0.65 + R + CLEARANCE
+    else:
+        assert 0.73 <= length(path) < 0.85 and path[:, 1].max() < 0.35 - R
