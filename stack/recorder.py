@@ -89,6 +89,18 @@ class EpisodeRecord:
         return path
 
 
+def record_folder(folder: Path, flag: str) -> Path:
+    """``folder`` made ready for records (created if missing); ValueError naming ``flag`` when it
+    is a file or cannot be made."""
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{flag} {folder}: exists and is not a folder; give a folder for the records")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{flag} {folder}: cannot create the folder ({exc.strerror})") from None
+    return folder
+
+
 def load_record(path: str | Path) -> EpisodeRecord:
     """The :class:`EpisodeRecord` saved at ``path`` (no pickled objects are read)."""
     try:
@@ -305,4 +317,5 @@ def _where(fleet: Fleet | None, state: FleetState) -> tuple[tuple[str, ...], np.
     return tuple(state.robot_ids), np.array(state.positions, dtype=float)
 
 
-__all__ = ["ARRAYS", "EpisodeRecord", "EpisodeRecorder", "RecordError", "RecordedStack", "load_record"]
+__all__ = ["ARRAYS", "EpisodeRecord", "EpisodeRecorder", "RecordError", "RecordedStack", "load_record",
+           "record_folder"]

@@ -220,12 +220,9 @@ class EpisodeCounters:
 
 def _recorded(stack, args):
     """``stack`` recording into ``--record`` (the folder made, or a clear error)."""
-    from stack.recorder import RecordedStack
+    from stack.recorder import RecordedStack, record_folder
 
-    if args.record.exists() and not args.record.is_dir():
-        raise ValueError(f"--record {args.record}: exists and is not a folder; give a folder for the records")
-    args.record.mkdir(parents=True, exist_ok=True)
-    return RecordedStack(stack, args.record, args.record_ticks,
+    return RecordedStack(stack, record_folder(args.record, "--record"), args.record_ticks,
                          meta={"fleet": args.fleet, "policy": args.policy, "world": "bridge"})
 
 

@@ -195,15 +195,13 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
 
 
 def _check_trace_dir(folder: Path | None) -> None:
-    if folder is None:
-        return
-    if folder.exists() and not folder.is_dir():
-        raise EvalArgumentError(f"--trace {folder}: exists and is not a folder; give a folder to write "
-                                "episode_SEED.npz and .png into")
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise EvalArgumentError(f"--trace {folder}: cannot create the folder ({exc.strerror})") from None
+    from stack.recorder import record_folder
+
+    if folder is not None:
+        try:
+            record_folder(folder, "--trace")
+        except ValueError as exc:
+            raise EvalArgumentError(str(exc)) from None
 
 
 def _trace(args, stack, seed: int, recorder, metrics) -> Path:
