@@ -38,6 +38,10 @@ path length left)::
     a     = clip_norm(GAIN (v_des - v), accel_limit)
 
 The result goes through the safety filter like any command: a detour never bypasses it.
+``SPEED`` is 0.3 m/s: at 0.2, the traced run above brought both neighbours round the object
+only 60-180 mm short of their targets when its 12 s ended; at 0.3 they were docked, and over 40
+fleet-sim + bridge runs with a robot leaving the mean summed distance of the others left went
+from 91 to 77 mm, the same 26 runs all home, no contact (README, Detours).
 """
 
 from __future__ import annotations
@@ -62,7 +66,7 @@ STUCK_PUSH = 0.2       # [m/s^2]
 MAX_S = 8.0            # [s] longest detour before the policy has its robot back
 REPLAN_TICKS = 10
 LOOKAHEAD = 6          # [cells]
-SPEED = 0.2            # [m/s]
+SPEED = 0.3            # [m/s]
 BRAKE = 0.5            # [m/s^2]
 GAIN = 4.0             # [1/s]
 MOVING_SPEED = 0.05    # [m/s] robots faster than this are not planned round (the filter keeps them apart)
