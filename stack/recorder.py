@@ -4,7 +4,8 @@
 one; :meth:`EpisodeRecorder.finish` returns an :class:`EpisodeRecord`, which saves to and loads
 from one ``.npz`` file (:meth:`EpisodeRecord.save`, :func:`load_record`; no pickled objects) and
 draws as a figure (:func:`stack.episode_plot.plot_episode`). ``formation eval --trace DIR``
-writes both for every episode.
+writes both for every episode; ``formation bridge --record DIR`` records every tick it answers
+through a :class:`RecordedStack` (a file per fleet episode, stall and chunk of ticks).
 
 Arrays of an episode of S ticks, robots in columns by id (the ids of the first state, then any
 that joined, in order of appearance; a robot missing from a tick's rows is NaN / False there):
@@ -22,7 +23,8 @@ that joined, in order of appearance; a robot missing from a tick's rows is NaN /
 ``stale``, ``docking``,   (S, N) bool     :class:`stack.tick_types.TickResult`'s row flags
 ``detour``, ``present``                   ``present``: the robot had a row in the tick's state
 ``frozen``                (S, N) bool     the world froze the robot (pymunk ``ModelError.freeze``)
-``contacts``              (S, N, 3) bool  robot / object / wall contact after each tick
+``contacts``              (S, N, 3) bool  robot / object / wall contact after each tick (the
+                                          fleet's own, else judged on ``positions``)
 ``safety_status``         (S,) str        the filter's status per tick ("" with the filter off)
 ========================  ==============  =========================================================
 
