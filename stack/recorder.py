@@ -26,6 +26,8 @@ that joined, in order of appearance; a robot missing from a tick's rows is NaN /
 ``contacts``              (S, N, 3) bool  robot / object / wall contact after each tick (the
                                           fleet's own, else judged on ``positions``)
 ``safety_status``         (S,) str        the filter's status per tick ("" with the filter off)
+``safety_reason``         (S,) str        the filter's reason, when it gives one (which robots the
+                                          post-check braked, why the QP failed)
 ========================  ==============  =========================================================
 
 ``meta`` (a JSON object): the scenario (:meth:`sim.scenario.Scenario.to_dict`), the seed, the
@@ -45,7 +47,7 @@ from sim.files import atomic_path
 from sim.fleet import Fleet, FleetState
 
 ARRAYS = ("ids", "time", "measured", "targets", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
-          "present", "frozen", "contacts", "safety_status")
+          "present", "frozen", "contacts", "safety_status", "safety_reason")
 
 
 class RecordError(ValueError):
@@ -71,6 +73,7 @@ class EpisodeRecord:
     frozen: np.ndarray
     contacts: np.ndarray
     safety_status: np.ndarray
+    safety_reason: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -133,6 +136,7 @@ class _Tick:
     docking: np.ndarray
     detour: np.ndarray
     safety_status: str
+    safety_reason: str
     after_ids: tuple[str, ...] | None = None     # None: the next tick's measurement tells
     positions: np.ndarray | None = None
     frozen: np.ndarray | None = None
@@ -175,7 +179,8 @@ class EpisodeRecorder:
                   targets=np.array(state.targets, dtype=float), a_nom=np.array(result.a_nom, dtype=float),
                   a_safe=np.array(result.a_safe, dtype=float), a_cmd=np.array(result.a_cmd, dtype=float),
                   stale=np.array(result.stale, dtype=bool), docking=np.array(result.docking, dtype=bool),
-                  detour=np.array(result.detour, dtype=bool), safety_status="" if status is None else str(status))
+                  detour=np.array(result.detour, dtype=bool), safety_status="" if status is None else str(status),
+                  safety_reason=result.safety_reason)
         if after is not None:
             t.after_ids, t.positions = _where(fleet, after)
             frozen = getattr(fleet, "frozen", None)
@@ -208,7 +213,8 @@ class EpisodeRecorder:
             a_nom=table((2,), float, np.nan), a_safe=table((2,), float, np.nan), a_cmd=table((2,), float, np.nan),
             stale=table((), bool, False), docking=table((), bool, False), detour=table((), bool, False),
             present=table((), bool, False), frozen=table((), bool, False), contacts=table((3,), bool, False),
-            safety_status=np.array([t.safety_status for t in ticks], dtype=str), meta=dict(meta or {}))
+            safety_status=np.array([t.safety_status for t in ticks], dtype=str),
+            safety_reason=np.array([t.safety_reason for t in ticks], dtype=str), meta=dict(meta or {}))
         if self._scenario is not None:
             rec.meta.setdefault("scenario", self._scenario.to_dict())
         rec.meta = json.loads(json.dumps(rec.meta))        # as a loaded record holds it

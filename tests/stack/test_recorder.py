@@ -54,6 +54,8 @@ def test_the_record_holds_what_the_stack_asked_and_where_the_robots_went(frozen_
     np.testing.assert_array_equal(rec.targets, np.broadcast_to(sc.targets, (60, 3, 2)))
     for name in ("a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
         np.testing.assert_array_equal(getattr(rec, name), np.stack([getattr(r, name) for r in results]))
+    assert rec.safety_reason.tolist() == [r.safety_reason for r in results]
+    assert rec.safety_status.tolist() == [str(r.safety_status) for r in results]
     np.testing.assert_array_equal(rec.positions[1:], truth)
     np.testing.assert_allclose(rec.positions[0], start, atol=0.0)
     assert rec.present.all() and not rec.contacts.any()
@@ -79,7 +81,7 @@ def test_a_record_survives_the_file_and_draws(frozen_episode, tmp_path):
     path = rec.save(tmp_path / "deep" / "episode_3.npz")
     back = load_record(path)
     for name in ("ids", "time", "measured", "positions", "a_nom", "a_cmd", "stale", "frozen", "contacts",
-                 "safety_status"):
+                 "safety_status", "safety_reason"):
         np.testing.assert_array_equal(getattr(back, name), getattr(rec, name))
     assert back.meta == rec.meta and back.meta["metrics"]["final_distance"] == metrics.final_distance
     dist, sigma = assigned_distances(back)
@@ -142,7 +144,8 @@ def test_modes_say_which_layer_drove_each_robot():
                         positions=np.zeros((2, 5, 2)), a_nom=a_nom[None], a_safe=a_safe[None], a_cmd=a_safe[None],
                         stale=t.stale[None], docking=t.docking[None], detour=t.detour[None],
                         present=np.ones((1, 5), bool), frozen=np.zeros((1, 5), bool),
-                        contacts=np.zeros((1, 5, 3), bool), safety_status=np.array([""]))
+                        contacts=np.zeros((1, 5, 3), bool), safety_status=np.array([""]),
+                        safety_reason=np.array([""]))
     expected = [Mode.POLICY, Mode.DOCKING, Mode.DETOUR, Mode.FILTER, Mode.STALE]
     assert robot_modes(rec, accel_limit=1.0)[0].tolist() == expected
     assert robot_modes(rec, accel_limit=1.0, tolerance=0.2)[0, 3] == Mode.DOCKING
