@@ -88,8 +88,9 @@ class DockingConfig:
             (slower than ``stall_speed``) starts docking too [m] (module docstring, "How near";
             0 turns this tier off).
         stall_speed: see ``stall_radius`` [m/s].
-        detour_after_s: a robot held still this long away from every target, its policy pushing,
-            is led round what holds it (:mod:`controllers.detour`) [s]; 0 turns detours off.
+        detour_after_s: a robot held in place (within 2 cm) this long away from every target, its
+            policy pushing, is led round what holds it (:mod:`controllers.detour`) [s]; 0 turns
+            detours off.
     """
 
     enabled: bool = True

@@ -37,7 +37,7 @@ every per-robot estimate is keyed by robot id)::
                    an all-true mask kept per N; a TorchScript forward is called directly)
       -> docking:  controllers.docking.Docking: a robot near its free matched target gets a PD
                    law onto it instead (``docking``); the filter judges it like any command
-      -> detour:   controllers.detour.Detour: a robot held still away from every target while
+      -> detour:   controllers.detour.Detour: a robot held in place away from every target while
                    its policy pushes is led round what holds it on a grid path (``detour``)
       -> latency:  controllers.safety.latency.LatencyPredictor: every robot (silent ones
                    appended) predicted to where the new command acts, over its state age plus

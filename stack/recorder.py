@@ -123,18 +123,15 @@ def load_record(path: str | Path) -> EpisodeRecord:
     return EpisodeRecord(**arrays, meta=meta)
 
 
+VECTOR_ROWS = ("measured", "targets", "a_nom", "a_safe", "a_cmd")    # (N, 2) per tick, from the state or result
+FLAG_ROWS = ("stale", "docking", "detour")                          # (N,) bool per tick, from the result
+
+
 @dataclass
 class _Tick:
     ids: tuple[str, ...]
     time: float
-    measured: np.ndarray
-    targets: np.ndarray
-    a_nom: np.ndarray
-    a_safe: np.ndarray
-    a_cmd: np.ndarray
-    stale: np.ndarray
-    docking: np.ndarray
-    detour: np.ndarray
+    rows: dict[str, np.ndarray]                   # VECTOR_ROWS and FLAG_ROWS of the tick's rows
     safety_status: str
     safety_reason: str
     after_ids: tuple[str, ...] | None = None     # None: the next tick's measurement tells
@@ -175,12 +172,11 @@ class EpisodeRecorder:
         if self._start is None:
             self.start(fleet, state)
         status = result.safety_status
-        t = _Tick(ids=tuple(state.robot_ids), time=float(state.time), measured=np.array(state.positions, dtype=float),
-                  targets=np.array(state.targets, dtype=float), a_nom=np.array(result.a_nom, dtype=float),
-                  a_safe=np.array(result.a_safe, dtype=float), a_cmd=np.array(result.a_cmd, dtype=float),
-                  stale=np.array(result.stale, dtype=bool), docking=np.array(result.docking, dtype=bool),
-                  detour=np.array(result.detour, dtype=bool), safety_status="" if status is None else str(status),
-                  safety_reason=result.safety_reason)
+        rows = {"measured": np.array(state.positions, dtype=float), "targets": np.array(state.targets, dtype=float),
+                **{name: np.array(getattr(result, name), dtype=float) for name in VECTOR_ROWS[2:]},
+                **{name: np.array(getattr(result, name), dtype=bool) for name in FLAG_ROWS}}
+        t = _Tick(ids=tuple(state.robot_ids), time=float(state.time), rows=rows,
+                  safety_status="" if status is None else str(status), safety_reason=result.safety_reason)
         if after is not None:
             t.after_ids, t.positions = _where(fleet, after)
             frozen = getattr(fleet, "frozen", None)
@@ -197,7 +193,7 @@ class EpisodeRecorder:
         for k, t in enumerate(ticks):                     # measured: the next state is where it went
             if t.after_ids is None:
                 nxt = ticks[k + 1] if k + 1 < len(ticks) else t
-                t.after_ids, t.positions = nxt.ids, nxt.measured
+                t.after_ids, t.positions = nxt.ids, nxt.rows["measured"]
         start_ids, start_pos = self._start
         ids = list(dict.fromkeys([*start_ids, *(i for t in ticks for i in (*t.ids, *t.after_ids))]))
         column = {rid: k for k, rid in enumerate(ids)}
@@ -208,11 +204,10 @@ class EpisodeRecorder:
 
         rec = EpisodeRecord(
             ids=np.array(ids, dtype=str), time=np.array([t.time for t in ticks], dtype=float),
-            measured=table((2,), float, np.nan), targets=table((2,), float, np.nan),
             positions=np.full((s + 1, n, 2), np.nan),
-            a_nom=table((2,), float, np.nan), a_safe=table((2,), float, np.nan), a_cmd=table((2,), float, np.nan),
-            stale=table((), bool, False), docking=table((), bool, False), detour=table((), bool, False),
-            present=table((), bool, False), frozen=table((), bool, False), contacts=table((3,), bool, False),
+            **{name: table((2,), float, np.nan) for name in VECTOR_ROWS},
+            **{name: table((), bool, False) for name in (*FLAG_ROWS, "present", "frozen")},
+            contacts=table((3,), bool, False),
             safety_status=np.array([t.safety_status for t in ticks], dtype=str),
             safety_reason=np.array([t.safety_reason for t in ticks], dtype=str), meta=dict(meta or {}))
         if self._scenario is not None:
@@ -222,8 +217,8 @@ class EpisodeRecorder:
         judged = True
         for k, t in enumerate(ticks):
             rows = [column[i] for i in t.ids]
-            for name in ("measured", "targets", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour"):
-                getattr(rec, name)[k, rows] = getattr(t, name)
+            for name, value in t.rows.items():
+                getattr(rec, name)[k, rows] = value
             rec.present[k, rows] = True
             after = [column[i] for i in t.after_ids]
             rec.positions[k + 1, after] = t.positions

@@ -205,9 +205,9 @@ def _check_trace_dir(folder: Path | None) -> None:
 
 
 def _trace(args, stack, seed: int, recorder, metrics) -> Path:
-    """Save episode ``seed``'s record under ``--trace`` (drawn later by :func:`_draw_traces`)."""
-    scenario = stack.scenario
-    record = recorder.finish({"scenario": scenario.to_dict(), "seed": seed, "world": args.world,
+    """Save episode ``seed``'s record under ``--trace`` (drawn later by :func:`_draw_traces`); the
+    recorder adds the fleet's scenario."""
+    record = recorder.finish({"seed": seed, "world": args.world,
                               "policy": args.policy or str(args.policy_path), "metrics": metrics.to_dict(),
                               "model_error": args.model_error, "command_delay_ms": args.command_delay_ms,
                               "safety": stack.safety is not None, "mec": stack.mec is not None,
