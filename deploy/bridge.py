@@ -53,7 +53,9 @@ state back). The ``delay_percentile`` of the last ``delay_window`` round trips (
 ``FleetState.command_delay_s``: a conservative bound on transport + actuation (it includes the
 robot's wait for its next tick and the uplink). ``summary()`` reports it. The same send times
 count each row's commands still in flight (sent after its ``last_cmd_seq``):
-``FleetState.commands_pending``, so the safety filter predicts through exactly those.
+``FleetState.commands_pending``, so the safety filter predicts through exactly those. A silent
+robot's count (``SilentRobots.commands_pending``) adds the ticks since it was last sent one: the
+controller records a braking row for it on each of them, so its count names the same commands.
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
 for every other live robot's (a fleet publishes its states as a burst, so one tick answers one
@@ -256,6 +258,7 @@ class Bridge:
         self._answered: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) last answered
         self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
         self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
+        self._sent_tick: dict[str, int] = {}  # robot -> the tick it was last sent a row's command
         self._resume_ns = 0  # end of the last stall [ns]
         self._last_look_ns: int | None = None
         self._stop = threading.Event()
@@ -319,6 +322,7 @@ class Bridge:
         self._resume_ns = now
         self._discard.update((r, _key(rs)) for r, rs in states.items())
         self.round_trips.forget_sent()
+        self._sent_tick.clear()
         if self.on_stall is not None:
             self.on_stall()
 
@@ -388,7 +392,8 @@ class Bridge:
                                   np.array([rs.msg.position for rs, _ in view.silent]),
                                   np.array([rs.msg.velocity for rs, _ in view.silent]),
                                   np.array([age for _, age in view.silent]),
-                                  np.array([self.targets[rs.robot] for rs, _ in view.silent]))
+                                  np.array([self.targets[rs.robot] for rs, _ in view.silent]),
+                                  np.array([self._silent_pending(rs) for rs, _ in view.silent], dtype=np.int64))
         return FleetState(
             time=(self.link.clock_ns() - self._start_ns) / 1e9, step=self.stats.ticks,
             positions=np.array([m.position for m in rows]),
@@ -399,6 +404,16 @@ class Bridge:
             command_delay_s=self.round_trips.bound_s(),
             commands_pending=np.array([self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
                                        for rs in view.rows], dtype=np.int64).reshape(-1))
+
+    def _silent_pending(self, rs: ReceivedState) -> int:
+        """A silent robot's ``SilentRobots.commands_pending`` (module docstring, Command delay):
+        the commands sent after the one its last state names, plus the ticks since the last of
+        them; -1 when those are not known."""
+        pending = self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
+        last = self._sent_tick.get(rs.robot)
+        if pending < 0 or last is None:
+            return -1
+        return pending + self.stats.ticks - last - 1
 
     def _run_controller(self, state: FleetState) -> tuple[CmdFlags, np.ndarray, float]:
         n = state.num_robots
@@ -487,6 +502,7 @@ class Bridge:
             msg = self.link.send_command(rs.robot, (float(commands[i, 0]), float(commands[i, 1])),
                                          self.config.ttl_ms, flags, state_seq=rs.msg.seq)
             self.round_trips.sent(rs.robot, msg)
+            self._sent_tick[rs.robot] = self.stats.ticks
             self._answered[rs.robot] = _key(rs)
             sent_flags.append(flags)
         stale = tuple(rs.robot for rs, age in zip(view.rows, view.ages, strict=True)

@@ -38,6 +38,12 @@ class SilentRobots:
         targets: (M, 2) their target slots [m], or None (unknown). Known, the policy and docking
             see the silent robots as teammates that stand where they must have stopped (as a
             stale row is seen); unknown, only the safety filter sees them.
+        commands_pending: (M,) int, control ticks since the command each robot had acted on when
+            its last state was measured (every command sent to it since, and every tick since it
+            was last sent one: the controller's own record of those ticks holds what it may
+            still act on), -1 where unknown; or None (all unknown). Known, the filter bounds it
+            by exactly those commands instead of every count the link's delay allows
+            (:mod:`controllers.safety.silent_reach`).
     """
 
     ids: tuple[str, ...]
@@ -45,6 +51,7 @@ class SilentRobots:
     velocities: np.ndarray
     age_s: np.ndarray
     targets: np.ndarray | None = None
+    commands_pending: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         m = len(self.ids)
@@ -61,6 +68,18 @@ class SilentRobots:
         if age.shape != (m,) or not (age >= 0).all():
             raise ValueError(f"SilentRobots.age_s must be {m} ages >= 0 seconds, got {self.age_s!r}")
         self.age_s = age
+        if self.commands_pending is not None:
+            pending = np.asarray(self.commands_pending).reshape(-1)
+            if pending.shape != (m,) or not np.issubdtype(pending.dtype, np.integer) or not (pending >= -1).all():
+                raise ValueError(f"SilentRobots.commands_pending must be {m} integers >= 0 (-1: unknown) "
+                                 f"or None, got {self.commands_pending!r}")
+            self.commands_pending = pending.astype(np.int64)
+
+    def pending(self) -> np.ndarray:
+        """(M,) ``commands_pending``, -1 where unknown."""
+        if self.commands_pending is None:
+            return np.full(len(self.ids), -1, dtype=np.int64)
+        return self.commands_pending
 
     @classmethod
     def empty(cls) -> SilentRobots:

@@ -446,7 +446,7 @@ class ControlStack:
         if self.predictor is not None:
             pending = state.pending()
             if silent is not None:
-                pending = np.concatenate([pending, np.full(len(silent), -1)])
+                pending = np.concatenate([pending, silent.pending()])
             nominal = clip_norm_rows(f64(a_nom), self.dynamics.accel_limit)
             prediction = self.predictor.predict(ids, pos, vel, ages, nominal, state.command_delay_s,
                                                 fixed=unknown, pending=pending, position_noise=position_std,

@@ -22,7 +22,7 @@ from sim.fleet import FleetState
 
 def team_view(state: FleetState, predictor: LatencyPredictor | None) -> FleetState:
     """``state`` with its M silent robots appended as rows N..N+M-1 (positions and velocities
-    (N+M, 2) [m, m/s], targets, ids, state ages, pending commands -1, no silent robots left),
+    (N+M, 2) [m, m/s], targets, ids, state ages, pending commands, no silent robots left),
     or ``state`` itself when there are none or their targets are unknown."""
     silent = state.silent
     if silent is None or not len(silent) or silent.targets is None:
@@ -33,7 +33,7 @@ def team_view(state: FleetState, predictor: LatencyPredictor | None) -> FleetSta
         pos, vel = predictor.dead_reckoned(silent.ids, pos, vel, silent.age_s, np.ones(m, dtype=bool),
                                            state.time)
     pending = None if state.commands_pending is None else np.concatenate(
-        [state.commands_pending, np.full(m, -1, dtype=np.int64)])
+        [state.commands_pending, silent.pending()])
     return state.replaced(positions=np.vstack([state.positions, pos]),
                           velocities=np.vstack([state.velocities, vel]),
                           targets=np.vstack([state.targets, silent.targets]),

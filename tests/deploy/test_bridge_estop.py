@@ -475,3 +475,40 @@ def test_the_first_tick_waits_for_every_registered_robot_to_join():
         for link in links:
             link.close()
         bridge.close()
+
+
+def test_a_robot_that_leaves_is_passed_on_with_its_commands_in_flight_counted(fleet):
+    """``SilentRobots.commands_pending``: the commands sent after the one the robot's last state
+    names, plus a tick for each tick since the bridge last sent it one (the controller records a
+    braking row for it on each); -1 when the state names no command the bridge sent."""
+    bridge, links, seen = fleet
+    for _ in range(3):
+        before = links[1].latest_command.msg.seq if links[1].latest_command else 0
+        _tick(bridge, links, links)
+        _last_flags(links[1], before)
+    acted = links[1].latest_command.msg.seq - 1          # one command not acted on yet
+    links[0].publish_state((0.3, 0.4), (0.0, 0.1))
+    links[1].publish_state((0.7, 0.6), (0.05, 0.0), last_cmd_seq=acted)
+    before = links[1].latest_command.msg.seq
+    bridge.step(timeout_s=0.1)
+    _last_flags(links[1], before)                        # answered: two after the acted one
+    links[1].close()
+    assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+    counts = []
+    for _ in range(3):
+        _tick(bridge, links, links[:1])
+        counts.append(int(seen[-1].silent.pending()[0]))
+    assert seen[-1].silent.ids == ("r1",)
+    assert counts == [2, 3, 4]
+
+
+def test_a_leaving_robot_whose_state_names_no_sent_command_is_passed_on_uncounted(fleet):
+    bridge, links, seen = fleet
+    _tick(bridge, links, links)
+    links[1].publish_state((0.7, 0.6), (0.05, 0.0), last_cmd_seq=10_000)
+    links[0].publish_state((0.3, 0.4), (0.0, 0.1))
+    bridge.step(timeout_s=0.1)
+    links[1].close()
+    assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
+    _tick(bridge, links, links[:1])
+    assert seen[-1].silent.ids == ("r1",) and seen[-1].silent.pending().tolist() == [-1]

@@ -9,8 +9,8 @@ from scipy.optimize import linear_sum_assignment
 
 from sim.fleet import FleetState, SilentRobots
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import make_scenario
-from stack.pipeline import ControlStack
+from sim.scenario import make_scenario, transport_scenario
+from stack.pipeline import ControlStack, StackConfig
 from stack.team_view import team_view
 
 
@@ -30,6 +30,9 @@ def test_silent_robots_with_targets_join_the_team_after_the_rows():
     np.testing.assert_array_equal(team.ages(), [0.05, 0.1, 0.7])
     np.testing.assert_array_equal(team.pending(), [1, 0, -1])
     assert team.silent is None
+    counted = SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7], targets=[[0.2, 0.7]],
+                           commands_pending=np.array([5]))
+    np.testing.assert_array_equal(team_view(fleet_state(counted), None).pending(), [1, 0, 5])
     unknown = team_view(fleet_state(SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7])), None)
     assert unknown.robot_ids == ("a", "b") and unknown.num_robots == 2
 
@@ -41,27 +44,42 @@ def test_silent_targets_are_checked_by_name(targets, message):
         SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7], targets=targets)
 
 
+@pytest.mark.parametrize("pending", [np.array([3, 4]), np.array([-2]), np.array([1.5])])
+def test_silent_pending_counts_are_checked_by_name(pending):
+    with pytest.raises(ValueError, match=r"SilentRobots.commands_pending must be 1 integers >= 0 \(-1: unknown\)"):
+        SilentRobots(("c",), [[0.7, 0.8]], [[0.0, -0.2]], [0.7], commands_pending=pending)
+
+
 class DroppedFromLink:
     """A pymunk fleet whose link drops robot ``robot`` from ``drop`` on, as the bridge does when
     its token lapses: no longer a row, but a silent robot with its last state, that state's age
-    and (with ``targets``) its target."""
+    and (with ``targets``) its target.
 
-    def __init__(self, world: PymunkWorld, drop: int, targets: bool, robot: int = 0):
+    ``pending``: the silent robot's ``commands_pending``: "unknown" (-1), "counted" as the bridge
+    counts it (its count at its last row, plus the ticks since: the controller records a braking
+    row for it on each), or "zero" (no command in flight, wrongly where the world delays them)."""
+
+    def __init__(self, world: PymunkWorld, drop: int, targets: bool, robot: int = 0, pending: str = "unknown"):
         self.world, self.drop, self.targets, self.robot, self.last = world, drop, targets, robot, None
+        self.pending = pending
 
     def view(self, state: FleetState) -> FleetState:
         k = self.robot
         if state.step < self.drop:
-            self.last = (state.positions[k].copy(), state.velocities[k].copy(), state.time - state.ages()[k])
+            self.last = (state.positions[k].copy(), state.velocities[k].copy(), state.time - state.ages()[k],
+                         int(state.pending()[k]), state.step)
             return state
-        pos, vel, measured = self.last
+        pos, vel, measured, count, step = self.last
         rows = np.arange(state.num_robots) != k
+        pending = {"unknown": -1, "counted": count + state.step - step, "zero": 0}[self.pending]
         silent = SilentRobots((state.robot_ids[k],), pos[None], vel[None], [state.time - measured],
-                              targets=state.targets[k:k + 1] if self.targets else None)
+                              targets=state.targets[k:k + 1] if self.targets else None,
+                              commands_pending=np.array([pending]))
         return FleetState(time=state.time, step=state.step, positions=state.positions[rows],
                           velocities=state.velocities[rows], targets=state.targets[rows],
                           object_pose=state.object_pose, robot_ids=tuple(np.array(state.robot_ids)[rows]),
-                          silent=silent)
+                          state_age_s=state.ages()[rows], silent=silent,
+                          commands_pending=None if state.commands_pending is None else state.commands_pending[rows])
 
     def commands(self, rows: np.ndarray, step: int) -> np.ndarray:
         """The (N, 2) command the fleet gets from a stack's rows (the dropped robot's: 0)."""
@@ -107,9 +125,8 @@ def test_a_robot_dropped_from_the_link_is_seen_where_a_stale_row_is_seen(targets
     at the speed limit; it counts as stale from tick 12, when a second link drops it (silent,
     with its last state). A policy for any N fed the dropped robot's fleet sees it, from the tick
     after, where the stack fed the full fleet sees the stale row: where it must have stopped, not
-    where it last reported itself (the same to 1e-12 m; both links without pending counts, which
-    a silent robot does not carry). Its target unknown, the policy does
-    not see it at all."""
+    where it last reported itself (the same to 1e-12 m; both links without pending counts). Its
+    target unknown, the policy does not see it at all."""
     sc = make_scenario("paper-3")
     world = PymunkWorld(sc, ModelError(freeze=(0, 10)))
     state = world.reset(seed=0)
@@ -195,3 +212,75 @@ def test_a_robot_held_behind_a_dropped_robot_is_led_round_it(detour):
         assert np.count_nonzero(off < 0.01) == 3 and any(detoured)
     else:
         assert np.count_nonzero(off < 0.01) == 2 and np.sort(off)[-2:].min() > 0.3 and not any(detoured)
+
+
+
+def _thrust_and_drop(pending: str, goal: tuple[float, float] | None, ticks: int) -> tuple:
+    """Robot 0 thrusts along +x, asked a sideways push that alternates (+-0.8 m/s^2: commands
+    that differ from tick to tick), through a world that delays every command two ticks; it
+    freezes at tick 12 at the speed limit (silent and deaf, holding its push two ticks, then its
+    watchdog brakes it) and the link drops it at once. Robot 1 is driven by a PD law to ``goal``
+    (None: it stays at rest, far off). Returns ``(regions, truth, gap, end)``: from the drop on,
+    the discs (centres (C, 2), radii (C,) [m]) the filter kept round robot 0 at each tick, robot
+    0's true centre after each tick, the smallest gap between the robots [m] and robot 1's final
+    distance to ``goal`` [m]."""
+    sc = transport_scenario(2)
+    world = PymunkWorld(sc, ModelError(freeze=(0, 12), delay_ticks=2))
+    world.reset(seed=0)
+    world.set_state(np.array([[0.1, 0.85], [0.35, 0.7 if goal else 0.4]]), np.zeros((2, 2)))
+    state, aim = world.read_state(), np.array(goal or (0.35, 0.4))
+
+    def policy(s: FleetState) -> np.ndarray:
+        return np.array([[1.0, 0.8 * (-1) ** s.step] if rid == "r0" else 4.0 * (aim - p) - 3.0 * v
+                         for rid, p, v in zip(s.robot_ids, s.positions, s.velocities, strict=True)])
+
+    stack, link = ControlStack(sc, policy), DroppedFromLink(world, 12, targets=False, pending=pending)
+    regions, truth, gap, predict = [], [], np.inf, stack.predictor.predict
+
+    def kept(*args, **kwargs):
+        p = predict(*args, **kwargs)
+        covers = [(c, r) for row, c, r in p.covers if row == 1]
+        regions.append(covers[0] if covers else (p.pos[1][None], p.grow[1:2]))
+        return p
+
+    stack.predictor.predict = kept
+    for step in range(ticks):
+        result = stack.tick(link.view(state))
+        world.send_accelerations(link.commands(result.a_cmd, step))
+        state = world.step()
+        true = world.true_state().positions
+        truth.append(true[0].copy())
+        gap = min(gap, float(np.linalg.norm(true[0] - true[1])) - 2 * sc.robot_radius)
+    return regions[12:], truth[12:], gap, float(np.linalg.norm(true[1] - aim))
+
+
+@pytest.mark.parametrize("pending", ["counted", "zero", "unknown"])
+def test_a_dropped_robot_counted_as_the_bridge_counts_it_lies_in_a_small_cover(pending):
+    """Robot 0 drops off the link at full speed with two commands in flight (:func:`_thrust_and_drop`).
+    Counted as the bridge counts it, its disc and then its cover (discs of 34 mm once it is at
+    rest) hold its true centre at every tick they are predicted for (the filter's command acts
+    three ticks on, its latency bound); counted as if nothing were in flight, they miss it on 40
+    or more ticks (by 13 mm); unknown, they hold it, but the cover's discs are 229 mm, seven
+    times as wide: every count the delay bound allows is a branch, and the spread of its
+    commands counts in full."""
+    regions, truth, _, _ = _thrust_and_drop(pending, None, 60)
+    ahead = int(round(StackConfig().latency.command_delay_s / 0.05))
+    misses = sum((np.linalg.norm(truth[k + ahead - 1] - centres, axis=1) - radii).min() > 1e-9
+                 for k, (centres, radii) in enumerate(regions[:-ahead]))
+    at_rest = float(regions[-1][1].max())
+    if pending == "counted":
+        assert misses == 0 and at_rest < 0.04
+    elif pending == "zero":
+        assert misses >= 40
+    else:
+        assert misses == 0 and at_rest > 0.2
+
+
+def test_a_neighbour_reaches_its_goal_beside_a_dropped_robot_counted_as_the_bridge_counts_it():
+    """Robot 1 drives to a goal 90 mm below where the dropped robot 0 comes to rest
+    (:func:`_thrust_and_drop`). With robot 0's commands counted it ends 5 mm from its goal; with
+    the count unknown the disc round robot 0 keeps it 78 mm off. Neither touches robot 0."""
+    near, gap_near = _thrust_and_drop("counted", (0.305, 0.763), 100)[2:][::-1]
+    far, gap_far = _thrust_and_drop("unknown", (0.305, 0.763), 100)[2:][::-1]
+    assert near < 0.006 and far > 0.07
+    assert gap_near > 0.03 and gap_far > 0.03
