@@ -25,9 +25,19 @@ episode is judged on the true state (success, final distance, assignment, collis
 and keeps its true positions (T+1, N, 2) [m], contacts (T, N, 3) (robot, object, wall) and,
 in lock-step, the round trip of each tick [ms]: first state published -> every command in.
 
+Playout (``playout_ticks = D``, 0: off): a robot acts on its newest command that answers its
+STATE of D ticks ago or older (``state_seq``; a command answering no state, ``state_seq`` 0,
+at once), so a command that came early waits in its buffer
+(:attr:`deploy.robot_link.RobotLink.recent_commands`) and one that came late acts on arrival.
+A delay that jitters up to D ticks then acts as a steady D, which the controller measures
+(``last_cmd_seq``) and predicts through; the commands' ``ttl`` must cover the D ticks. Without
+it a robot acts on its newest command, and commands that arrive a tick early or late are
+skipped or held (``bench/jittery_link.py``).
+
 Watchdog (per robot; ages in ticks of this process, converted with the tick period:
 ``1 / rate_hz`` in real time, ``dt`` = sim time in lock-step). A command is *fresh* for tick k
-when it arrived during tick k (after the state of tick k was published); decided per tick, in
+when it arrived during tick k (after the state of tick k was published; with playout, when it
+fell due); decided per tick, in
 priority order::
 
     e-stop latched (ESTOP)                      -> brake               status ESTOPPED
@@ -139,6 +149,7 @@ class FleetSimConfig:
     events: tuple[tuple[int, str, str], ...] = ()
     episodes: int | None = None
     shared_clock: bool | None = None
+    playout_ticks: int = 0
 
     def clock_is_shared(self) -> bool:
         """``shared_clock``, or (None) whether every endpoint is on loopback: the controller then
@@ -151,6 +162,8 @@ class FleetSimConfig:
             raise ValueError(f"episodes must be a positive integer (or None), got {self.episodes!r}")
         if self.rate_hz is not None and not self.rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
+        if isinstance(self.playout_ticks, bool) or not isinstance(self.playout_ticks, int) or self.playout_ticks < 0:
+            raise ValueError(f"playout_ticks must be an integer >= 0, got {self.playout_ticks!r}")
         if not 0.0 <= self.drop_commands < 1.0:
             raise ValueError(f"drop_commands must be in [0, 1), got {self.drop_commands!r}")
         self.model_error.check_team(self.scenario)
@@ -175,6 +188,7 @@ class _Robot:
     estopped: bool = False
     mode: str = "idle"
     accepted_seq: int = 0  # seq of the command in force (0: none yet)
+    state_seq: int = 0     # seq of the newest STATE its link published (0: none yet)
 
 
 class FleetSim:
@@ -230,6 +244,7 @@ class FleetSim:
                                lossless=self.lossless,
                                max_answer_age_s=None if self.lossless else MAX_ANSWER_AGE_S)
         robot.seen = (0, 0)
+        robot.state_seq = 0
 
     def _close_link(self, robot: _Robot) -> None:
         if robot.link is not None:
@@ -253,12 +268,17 @@ class FleetSim:
         return total
 
     # ------------------------------------------------------------------ watchdog
-    def _take_command(self, robot: _Robot) -> None:
+    def _take_command(self, robot: _Robot, tick_seq: int) -> None:
+        """Take the robot's newest command (with a playout buffer, its newest due one: module
+        docstring, Playout); ``tick_seq`` is the seq of its STATE of this tick."""
         link = robot.link
         if link is None:
             return
         robot.estopped = link.estopped
-        received = link.latest_command
+        if self.config.playout_ticks:
+            received = self._due_command(link.recent_commands, robot.seen, tick_seq - self.config.playout_ticks)
+        else:
+            received = link.latest_command
         if received is None or (received.msg.epoch, received.msg.seq) == robot.seen:
             return
         robot.seen = (received.msg.epoch, received.msg.seq)
@@ -280,6 +300,15 @@ class FleetSim:
         robot.stop_held = bool(flags & CmdFlags.STOP)
         robot.cmd_tick = self.tick
         robot.expires_ns = received.expires_at_ns
+
+    @staticmethod
+    def _due_command(recent, seen: tuple[int, int], due_seq: int):
+        """The newest of ``recent`` (oldest first) that arrived after the one ``seen`` and is
+        due: it answers a STATE of seq ``due_seq`` or older, or none (``state_seq`` 0)."""
+        keys = [(r.msg.epoch, r.msg.seq) for r in recent]
+        start = keys.index(seen) + 1 if seen in keys else 0
+        due = [r for r in recent[start:] if r.msg.state_seq <= due_seq]
+        return due[-1] if due else None
 
     def _choose(self, robot: _Robot, velocity: np.ndarray, now_ns: int,
                 deciding: bool = True) -> tuple[np.ndarray, StateStatus]:
@@ -417,7 +446,7 @@ class FleetSim:
                 answered: dict[str, int] = {}
                 modes = []
                 for i, robot in enumerate(self.robots):
-                    self._take_command(robot)
+                    self._take_command(robot, robot.state_seq + 1)
                     accels[i], status = self._choose(robot, state.velocities[i], now_ns,
                                                      deciding=False)
                     modes.append(robot.mode if robot.link is not None else "offline")
@@ -427,20 +456,20 @@ class FleetSim:
                             status |= StateStatus.LOCKSTEP
                         msg = robot.link.publish_state(state.positions[i], state.velocities[i], status,
                                                        last_cmd_seq=int(self._acted[i]))
-                        answered[robot.name] = msg.seq
+                        answered[robot.name] = robot.state_seq = msg.seq
                 entry = self._trace_entry(modes)
                 round_trip_ms = None
                 if cfg.rate_hz is None:
                     if self._wait_lockstep(answered) and published_ns is not None:
                         round_trip_ms = (time.perf_counter_ns() - published_ns) / 1e6
                     for i, robot in enumerate(self.robots):  # take the answers of this tick
-                        self._take_command(robot)
+                        self._take_command(robot, robot.state_seq)
                         accels[i], _ = self._choose(robot, state.velocities[i], now_ns)
                 else:
                     next_time += self.period_s
                     time.sleep(max(0.0, next_time - time.monotonic()))
                     for i, robot in enumerate(self.robots):
-                        self._take_command(robot)
+                        self._take_command(robot, robot.state_seq)
                         accels[i], _ = self._choose(robot, state.velocities[i], time.monotonic_ns())
                 entry["applied"] = [r.mode if r.link is not None else "offline" for r in self.robots]
                 self.world.send_accelerations(accels)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 
 import zenoh
@@ -39,6 +40,7 @@ MAX_ANSWER_AGE_S = 0.5
 (0.15 s state age plus 0.15 s command delay), a 20 Hz tick's wait, and room for a loaded host."""
 
 PUBLISHED_KEPT = 256
+RECENT_COMMANDS = 16   # accepted commands kept for a playout buffer (:attr:`RobotLink.recent_commands`)
 """STATE send times a link remembers (12.8 s at 20 Hz; older answers are refused anyway)."""
 
 
@@ -90,6 +92,7 @@ class RobotLink(_Link):
         self._published: dict[int, int] = {}      # seq -> send time of this epoch's recent STATEs
         self._stamper = Stamper(clock_ns)
         self._command: ReceivedCommand | None = None
+        self._recent: deque[ReceivedCommand] = deque(maxlen=RECENT_COMMANDS)
         self.missed_commands = 0   # valid commands never seen: gaps in the controller's seq
         self._estopped = False
         self._estop_reason = 0
@@ -134,6 +137,7 @@ class RobotLink(_Link):
                 if self.shared_clock:
                     expires = min(expires, msg.send_time_ns + msg.ttl_ms * 1_000_000)
                 self._command = ReceivedCommand(msg, now, expires)
+                self._recent.append(self._command)
                 self._cond.notify_all()
 
     def _answers_too_old(self, msg: CmdMsg, now: int) -> bool:
@@ -211,6 +215,13 @@ class RobotLink(_Link):
         with self._cond:
             return self._command
 
+    @property
+    def recent_commands(self) -> tuple[ReceivedCommand, ...]:
+        """The last ``RECENT_COMMANDS`` accepted commands, oldest first (in the order they
+        arrived), expired or not: what a robot with a playout buffer chooses from."""
+        with self._cond:
+            return tuple(self._recent)
+
     def command(self, now_ns: int | None = None) -> ReceivedCommand | None:
         """The newest accepted command if it has not expired at ``now_ns`` (default: now)."""
         now = self.clock_ns() if now_ns is None else now_ns
@@ -272,4 +283,4 @@ class RobotLink(_Link):
         return msg
 
 
-__all__ = ["COMMAND_RING", "MAX_ANSWER_AGE_S", "RobotLink"]
+__all__ = ["COMMAND_RING", "MAX_ANSWER_AGE_S", "RECENT_COMMANDS", "RobotLink"]

@@ -66,6 +66,10 @@ def register(sub) -> None:
     p.add_argument("--stop-after", type=float, default=0.5, metavar="S",
                    help="watchdog latch: seconds without a command before the robot holds at "
                         "rest until re-armed (default 0.5)")
+    p.add_argument("--playout-ticks", type=int, default=0, metavar="D",
+                   help="robots act on each command D ticks after the state it answers (a playout "
+                        "buffer: a delay that jitters up to D ticks acts as a steady D; the bridge's "
+                        "--ttl-ms must cover it) (default 0: on arrival)")
     p.add_argument("--drop-commands", type=float, default=0.0,
                    help="probability of discarding an arriving command (tests)")
     p.add_argument("--leave", type=_event("leave"), action="append", default=[],
@@ -94,7 +98,8 @@ def run(args) -> int:
             drop_commands=args.drop_commands, episodes=args.episodes,
             start_timeout_s=args.start_timeout,
             watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
-            events=tuple(args.leave + args.join), shared_clock=args.shared_clock)
+            events=tuple(args.leave + args.join), shared_clock=args.shared_clock,
+            playout_ticks=args.playout_ticks)
     except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

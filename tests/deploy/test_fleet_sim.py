@@ -62,3 +62,29 @@ def test_fleet_sim_refuses_to_freeze_a_robot_the_team_does_not_have(capsys):
 
     assert main(["fleet-sim", "--fleet", "fz", "--scenario", "paper-4", "--model-error", "freeze=4:20"]) == 2
     assert "paper-4 has 4 robots: pick a row in 0..3" in capsys.readouterr().err
+
+
+def test_a_playout_buffer_takes_the_newest_command_that_is_due_after_the_one_it_took():
+    """Hand-worked: commands 5, 6, 7, 8, 9 answer states 10, 11, 12, none (0: a BRAKE or STOP,
+    due at once) and 13, in the order they arrived."""
+    from deploy.transport import ReceivedCommand
+
+    def cmd(seq: int, state_seq: int) -> ReceivedCommand:
+        return ReceivedCommand(CmdMsg(0, 1, seq, 0, (0.0, 0.0), 100, state_seq=state_seq), 0, 0)
+
+    recent = tuple(cmd(seq, s) for seq, s in ((5, 10), (6, 11), (7, 12), (8, 0), (9, 13)))
+    due = FleetSim._due_command
+    assert due(recent[:3], (1, 4), 11).msg.seq == 6      # 5 overtaken, 7 not due yet
+    assert due(recent[:3], (1, 6), 11) is None           # holds 6
+    assert due(recent[:3], (1, 6), 12).msg.seq == 7
+    assert due(recent, (1, 6), 11).msg.seq == 8          # the one answering no state: at once
+    assert due(recent, (1, 8), 12) is None               # 7 came before 8, which overrode it
+    assert due(recent, (1, 8), 13).msg.seq == 9
+    assert due(recent, (1, 2), 9).msg.seq == 8           # the one taken is no longer kept
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True])
+def test_a_playout_that_cannot_work_is_refused_by_name(value):
+    with pytest.raises(ValueError, match="playout_ticks must be an integer >= 0"):
+        FleetSimConfig(fleet="f", scenario=make_scenario("paper-3"), transport=TransportConfig(),
+                       playout_ticks=value)

@@ -312,3 +312,16 @@ def test_bridge_runs_an_exported_policy_through_the_control_stack(tmp_path, fmt)
     assert bridge["heap_frozen"] > 50_000 and sim["heap_frozen"] > 50_000   # no ~0.1 s full collection mid-run
     assert sum(t["modes"] == ["run"] * 5 for t in sim["trace"]) >= 25
     assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+
+
+def test_with_a_playout_buffer_each_command_acts_two_ticks_after_its_state(tmp_path):
+    """fleet-sim --playout-ticks 2: every robot acts on the command answering its state of two
+    ticks before, so the bridge measures a steady two-tick round trip (100 ms of sim time in
+    lock-step, against 0 without) and predicts through two pending commands; the robots
+    never brake for want of a command after the first two ticks, and all get home untouched."""
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "160", "--playout-ticks", "2"], SCRIPTED)
+    assert bridge["round_trip_ms"]["p50"] == pytest.approx(100.0) == bridge["round_trip_ms"]["max"]
+    applied = [t["applied"] for t in sim["trace"]]
+    assert all(mode == "idle" for mode in applied[0] + applied[1])   # nothing due yet
+    assert all(mode == "run" for modes in applied[2:] for mode in modes)
+    assert_task_done(sim)
