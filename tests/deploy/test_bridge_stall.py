@@ -23,7 +23,7 @@ import pytest
 from deploy.network import free_tcp_port
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_fleet_sim_bridge import Proc  # noqa: E402
+from test_fleet_sim_bridge import Proc, finish_pair, killed_on_exit  # noqa: E402
 
 pytestmark = pytest.mark.realtime   # fleet-sim and bridge processes, a 3 s SIGSTOP
 
@@ -39,21 +39,14 @@ def frozen_run(tmp_path: Path) -> dict:
     fleet = f"stall-{tmp_path.name}"
     sim = Proc("fleet-sim", "--fleet", fleet, "--scenario", "paper-5", "--rate-hz", "20",
                "--listen", endpoint, "--ticks", str(TICKS), "--report", str(tmp_path / "sim.json"))
-    bridge = Proc("bridge", "--fleet", fleet, "--scenario", "paper-5", "--policy", "scripted",
-                  "--connect", endpoint, "--trace", "--report", str(tmp_path / "bridge.json"))
-    try:
+    with killed_on_exit([sim]) as procs:
+        procs.append(bridge := Proc("bridge", "--fleet", fleet, "--scenario", "paper-5", "--policy", "scripted",
+                                    "--connect", endpoint, "--trace", "--report", str(tmp_path / "bridge.json")))
         bridge.wait_tick(20)
         bridge.proc.send_signal(signal.SIGSTOP)
         time.sleep(FREEZE_S)
         bridge.proc.send_signal(signal.SIGCONT)
-        assert sim.finish() == 0, "".join(sim.stderr)
-        bridge.proc.send_signal(signal.SIGTERM)
-        assert bridge.finish() == 0, "".join(bridge.stderr)
-    finally:
-        for p in (sim, bridge):
-            if p.proc.poll() is None:
-                p.proc.send_signal(signal.SIGCONT)
-                p.proc.kill()
+        finish_pair(sim, bridge)
     return {"sim": json.loads((tmp_path / "sim.json").read_text()),
             "bridge": json.loads((tmp_path / "bridge.json").read_text())}
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import queue
@@ -84,6 +85,26 @@ def run_pair(tmp_path: Path, sim_args: list[str], bridge_args: list[str],
     bridge_path = tmp_path / "bridge.json"
     bridge_report = json.loads(bridge_path.read_text()) if bridge_path.exists() else None
     return sim_report, bridge_report, bridge
+
+
+@contextlib.contextmanager
+def killed_on_exit(procs: list[Proc]):
+    """Kill whatever of ``procs`` (a list that may grow inside the block) still runs at the
+    end, stopped ones included."""
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            if p.proc.poll() is None:
+                p.proc.send_signal(signal.SIGCONT)
+                p.proc.kill()
+
+
+def finish_pair(sim: Proc, bridge: Proc) -> None:
+    """fleet-sim run to its end (exit 0), then the bridge stopped the clean way (SIGTERM, exit 0)."""
+    assert sim.finish() == 0, "".join(sim.stderr)
+    bridge.proc.send_signal(signal.SIGTERM)
+    assert bridge.finish() == 0, "".join(bridge.stderr)
 
 
 def assert_task_done(report: dict) -> None:

@@ -6,7 +6,6 @@ robots one or two ticks after the state they answer. Safety filter and MEC on (t
 from __future__ import annotations
 
 import json
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,14 @@ import pytest
 
 from deploy.delay_relay import DelayRelay
 from deploy.network import free_tcp_port
-from tests.deploy.test_fleet_sim_bridge import SCRIPTED, TOUCH, Proc, silent_contacts
+from tests.deploy.test_fleet_sim_bridge import (
+    SCRIPTED,
+    TOUCH,
+    Proc,
+    finish_pair,
+    killed_on_exit,
+    silent_contacts,
+)
 
 pytestmark = pytest.mark.realtime   # real-time fleet-sim and bridge processes
 
@@ -27,19 +33,15 @@ ROBOT_GRACE = ["--brake-after-ticks", "2"]
 def run_over_relay(tmp_path: Path, sim_args: list[str], bridge_args: list[str]) -> tuple[dict, dict, DelayRelay]:
     """fleet-sim listening on a port, the bridge connecting to it through a DelayRelay."""
     port = free_tcp_port()
-    sim = Proc("fleet-sim", "--fleet", "j", "--scenario", "paper-5", "--rate-hz", "20",
-               "--listen", f"tcp/127.0.0.1:{port}", "--report", str(tmp_path / "sim.json"), *ROBOT_GRACE, *sim_args)
-    with DelayRelay(port, DELAY_S, JITTER_S) as relay:
-        bridge = Proc("bridge", "--fleet", "j", "--scenario", "paper-5", "--connect", f"tcp/127.0.0.1:{relay.port}",
-                      "--report", str(tmp_path / "bridge.json"), *bridge_args)
-        try:
-            assert sim.finish() == 0, "".join(sim.stderr)
-            bridge.proc.send_signal(signal.SIGTERM)
-            assert bridge.finish() == 0, "".join(bridge.stderr)
-        finally:
-            for p in (sim, bridge):
-                if p.proc.poll() is None:
-                    p.proc.kill()
+    with killed_on_exit([]) as procs:
+        sim = Proc("fleet-sim", "--fleet", "j", "--scenario", "paper-5", "--rate-hz", "20", "--listen",
+                   f"tcp/127.0.0.1:{port}", "--report", str(tmp_path / "sim.json"), *ROBOT_GRACE, *sim_args)
+        procs.append(sim)
+        with DelayRelay(port, DELAY_S, JITTER_S) as relay:
+            procs.append(bridge := Proc("bridge", "--fleet", "j", "--scenario", "paper-5", "--connect",
+                                        f"tcp/127.0.0.1:{relay.port}", "--report", str(tmp_path / "bridge.json"),
+                                        *bridge_args))
+            finish_pair(sim, bridge)
     return (json.loads((tmp_path / "sim.json").read_text()), json.loads((tmp_path / "bridge.json").read_text()),
             relay)
 
