@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench._common import positive_int, print_json, print_table, progress  # noqa: E402
+from deploy.bridge import BridgeConfig  # noqa: E402
 from deploy.delay_relay import DelayRelay  # noqa: E402
 from deploy.network import free_tcp_port  # noqa: E402
 from sim.scenario import make_scenario  # noqa: E402
@@ -116,9 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--playout-ticks", type=int, default=0, metavar="D",
                         help="fleet-sim's playout buffer: robots act on each command D ticks after the "
                              "state it answers (default 0: on arrival)")
-    parser.add_argument("--gather", type=float, default=0.01, metavar="S",
+    parser.add_argument("--gather", type=float, default=BridgeConfig.gather_s, metavar="S",
                         help="the bridge's --gather: how long a tick waits for the rest of a burst of "
-                             "states (default 0.01, the bridge's)")
+                             f"states (default {BridgeConfig.gather_s}, the bridge's)")
     parser.add_argument("--configs", type=config_list, default=["stack", "bare"],
                         help=f"comma-separated, of {', '.join(CONFIGS)} (default stack,bare)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")

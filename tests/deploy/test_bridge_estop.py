@@ -512,3 +512,36 @@ def test_a_leaving_robot_whose_state_names_no_sent_command_is_passed_on_uncounte
     assert bridge.link.wait_for(lambda: "r1" not in bridge.link.alive_robots, 5.0)
     _tick(bridge, links, links[:1])
     assert seen[-1].silent.ids == ("r1",) and seen[-1].silent.pending().tolist() == [-1]
+
+
+def test_a_burst_that_comes_in_pieces_is_answered_in_one_tick():
+    """r1's state reaches the bridge 15 ms after r0's, as over a link whose delay jitters: the
+    default gather (25 ms) answers both in one tick; at the former 10 ms a tick answered r0
+    alone and a second one r1, two commands to r0 in one fleet tick."""
+    for gather, ticks in ((BridgeConfig().gather_s, 1), (0.01, 2)):
+        with _fleet(BridgeConfig(stale_after_s=0.2, gather_s=gather)) as (bridge, links, seen):
+            _tick(bridge, links, links)                       # the first tick waits for everyone
+            before = bridge.stats.ticks
+
+            def late_r1():
+                time.sleep(0.015)
+                links[1].publish_state((0.7, 0.6), (0.0, 0.0))
+
+            threading.Thread(target=late_r1).start()
+            links[0].publish_state((0.3, 0.4), (0.0, 0.1))
+            for _ in range(2):
+                bridge.step(timeout_s=0.3)
+            assert bridge.stats.ticks - before == ticks, gather
+
+
+def test_a_live_robot_gone_quiet_is_not_waited_for_every_tick():
+    """With a gather of a whole second, r1 (live, its states stopped) is waited for while it
+    was heard lately, and not once it has been quiet for QUIET_PERIODS fleet periods."""
+    from deploy.bridge import QUIET_PERIODS
+
+    with _fleet(BridgeConfig(stale_after_s=0.2, estop_after_s=5.0, gather_s=1.0)) as (bridge, links, seen):
+        _tick(bridge, links, links)
+        time.sleep(QUIET_PERIODS * bridge.config.period_s + 0.05)
+        start = time.monotonic()
+        _tick(bridge, links, links[:1])
+        assert time.monotonic() - start < 0.5
