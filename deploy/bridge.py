@@ -61,9 +61,9 @@ One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up 
 for the rest of the burst: a fresh state of every live robot heard within the last
 ``QUIET_PERIODS`` fleet periods (a fleet publishes its states as a burst, so one tick answers one
 burst; a robot gone quiet is not waited for after that; the first tick waits, as long, for
-every registered robot to be live). On a link whose delay jitters a burst comes in pieces, and a tick that answered
-one piece would answer its robots twice in one fleet tick, a command the robot then skips
-(``bench/jittery_link.py``); check for a stall;
+every registered robot to be live). On a link whose delay jitters a burst comes in pieces, and
+a tick that answered one piece would answer its robots twice in one fleet tick, a command the
+robot then skips (``bench/jittery_link.py``); check for a stall;
 classify; e-stop rule; ``FleetState`` -> controller -> commands, each with ``ttl_ms`` and the
 answered ``state_seq``. N changes on the fly as robots join or leave.
 
@@ -282,7 +282,8 @@ class Bridge:
             and _key(s) != self._discard.get(robot)
 
     def _wait_burst(self, timeout_s: float) -> bool:
-        """Wait for a new state of some live robot, then up to ``gather_s`` for every live one;
+        """Wait for a new state of some live robot, then up to ``gather_s`` for every live one
+        heard within ``QUIET_PERIODS`` fleet periods;
         before the first answered tick, for every registered robot to be live with a state (the
         first burst of a fleet reaches the bridge over some milliseconds, and its robots would
         otherwise join one tick at a time). The predicates run on every arriving state, under
