@@ -58,10 +58,10 @@ robot's count (``SilentRobots.commands_pending``) adds the ticks since it was la
 controller records a braking row for it on each of them, so its count names the same commands.
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
-for the rest of the burst: a fresh state of every live robot heard within the last
-``QUIET_PERIODS`` fleet periods (a fleet publishes its states as a burst, so one tick answers one
-burst; a robot gone quiet is not waited for after that; the first tick waits, as long, for
-every registered robot to be live). On a link whose delay jitters a burst comes in pieces, and
+for the rest of the burst: a fresh state of every live robot (in real time: heard within the
+last ``QUIET_PERIODS`` fleet periods or live without a usable state yet; a fleet publishes its
+states as a burst, so one tick answers one burst; a robot gone quiet is not waited for after
+that; the first tick waits, as long, for every registered robot to be live). On a link whose delay jitters a burst comes in pieces, and
 a tick that answered one piece would answer its robots twice in one fleet tick, a command the
 robot then skips (``bench/jittery_link.py``); check for a stall;
 classify; e-stop rule; ``FleetState`` -> controller -> commands, each with ``ttl_ms`` and the
@@ -283,7 +283,7 @@ class Bridge:
 
     def _wait_burst(self, timeout_s: float) -> bool:
         """Wait for a new state of some live robot, then up to ``gather_s`` for every live one
-        heard within ``QUIET_PERIODS`` fleet periods;
+        (in real time: heard within ``QUIET_PERIODS`` fleet periods or without a usable state);
         before the first answered tick, for every registered robot to be live with a state (the
         first burst of a fleet reaches the bridge over some milliseconds, and its robots would
         otherwise join one tick at a time). The predicates run on every arriving state, under
@@ -300,9 +300,16 @@ class Bridge:
             if self.stats.ticks == 0 and not alive >= self._registered:
                 return False
             states = link.latest_states()
+            if self.stats.ticks == 0 or self.clock is not None:    # lock-step: every live robot answers
+                return all(self._unanswered(states, r) for r in alive)
             recent = link.clock_ns() - int(QUIET_PERIODS * self.config.period_s * 1e9)
-            return all(self._unanswered(states, r) for r in alive
-                       if self.stats.ticks == 0 or (r in states and states[r].receive_time_ns >= recent))
+
+            def awaited(robot: str) -> bool:     # heard lately, or live without a usable state yet (a rejoin)
+                rs = states.get(robot)
+                return (robot not in self._heard_since or rs is None or _key(rs) == self._discard.get(robot)
+                        or rs.receive_time_ns >= recent)
+
+            return all(self._unanswered(states, r) for r in alive if awaited(r))
 
         if not link.wait_for(lambda: any(unanswered(link.alive_robots)), timeout_s):
             return False
