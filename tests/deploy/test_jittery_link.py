@@ -48,10 +48,10 @@ def run_over_relay(tmp_path: Path, sim_args: list[str], bridge_args: list[str]) 
 
 def test_over_a_jittery_link_the_bridge_measures_the_delay_and_the_fleet_gets_home_untouched(tmp_path):
     """The bridge's round trips (state out, command back, acted on) read the relay's delay:
-    48.7-49.9 ms (p50-p99) without it, 55-62 / 103-108 ms with it (3 runs each), and the filter
-    plans over the larger bound. Every robot gets home with no contact: at ticks 126-181 (84
-    without the relay, 81-83 bare over it; the filter's allowance for commands whose delay
-    jitters costs the rest)."""
+    p99 49-50 ms without it, 102-108 ms with it, and the filter plans over the larger bound.
+    Every robot gets home with no contact: at ticks 103-207 (83-84 without the relay, 81-85 bare
+    over it; the filter's allowance for commands whose delay jitters costs the rest).
+    ``python bench/jittery_link.py --configs stack,bare --seeds 3``, 2026-12-06."""
     sim, bridge, relay = run_over_relay(tmp_path, ["--ticks", "300"], SCRIPTED)
     assert len(relay.delays) > 1000 and max(relay.delays) > DELAY_S + 0.5 * JITTER_S
     assert bridge["round_trip_ms"]["p99"] > 80.0 and bridge["command_delay_s"] > 0.08
