@@ -1,5 +1,5 @@
 """A publisher on a starved CPU: bursts of one message per robot, as a controller sends its
-commands or a fleet simulation its states (run by tests/deploy/test_tx_queue.py).
+commands or a fleet simulation its states (run by tests/deploy/test_data_publishers.py).
 
     python starved_publisher_proc.py PORT SETTINGS ROBOTS BURSTS CPU
 
@@ -7,7 +7,8 @@ SETTINGS ``fleet``: the fleet's own publishers (:func:`deploy.network.declare_da
 ``express``: the ones before them (express, otherwise the same). The process pins itself and the threads it
 starts to one CPU at nice 19 before it opens its session, prints ``ready`` once its publishers
 are declared, waits for ``go`` on stdin (the test then loads that CPU), publishes ``BURSTS``
-bursts of ``ROBOTS`` messages 20 ms apart and prints ``sent N``.
+bursts of ``ROBOTS`` messages 20 ms apart, prints ``sent N`` and keeps its session open
+until ``done`` on stdin.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def main(port: int, settings: str, robots: int, bursts: int, cpu: int) -> None:
         time.sleep(0.02)
     time.sleep(0.5)
     print(f"sent {sent}", flush=True)
+    sys.stdin.readline()                     # "done": the test has counted what arrived
     session.close()
 
 
