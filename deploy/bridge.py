@@ -24,7 +24,8 @@ Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic cloc
 Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
 own fresh velocity) when its state is older than ``stale_after_s`` when the command goes out
 (the controller's own time counts) or not finite, whatever the controller said; otherwise the controller's row, or BRAKE for every row when the controller
-raises, returns a wrong shape or a non-finite value (counted). A fresh row whose robot reports
+raises, returns a wrong shape or a non-finite value (counted); ``on_sent(state, braked)`` then
+tells the controller which rows got BRAKE or STOP in place of its command. A fresh row whose robot reports
 FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at rest until a
 command without STOP). A robot that leaves ``rearm_alarm_after`` re-arms in a row unanswered
 refuses its commands (:mod:`deploy.rearm_watch`: an alarm is logged): not a row but silent, an
@@ -240,7 +241,8 @@ class Bridge:
                  targets: Mapping[str, np.ndarray], object_pose: np.ndarray,
                  config: BridgeConfig = BridgeConfig(),
                  on_episode: Callable[[int], Any] | None = None,
-                 on_stall: Callable[[], Any] | None = None):
+                 on_stall: Callable[[], Any] | None = None,
+                 on_sent: Callable[[FleetState, np.ndarray], Any] | None = None):
         missing = [r for r in registry.names if r not in targets]
         if missing:
             raise ValueError(f"targets are missing for robots {missing}; give one (x, y) per robot")
@@ -273,6 +275,7 @@ class Bridge:
         self._start_ns = self.link.clock_ns()
         self.on_episode = on_episode
         self.on_stall = on_stall
+        self.on_sent = on_sent
         self.episode: int | None = None  # fleet episode of the last burst answered
 
     # ------------------------------------------------------------------ helpers
@@ -448,6 +451,20 @@ class Bridge:
             self.stats.controller_faults += 1
             return CmdFlags.BRAKE, np.zeros((n, 2)), time.perf_counter() - t0
 
+    def _report_overrides(self, state: FleetState, sent_flags: list[CmdFlags], controller_flags: CmdFlags) -> None:
+        """``on_sent(state, braked)``: the rows sent BRAKE or STOP in place of the controller's
+        command (all of them when it failed), so a controller that keeps what it sent (the
+        stack's command history) stays in step. A failing callback is logged, never raised."""
+        if self.on_sent is None:
+            return
+        braked = np.array([bool(int(f) & BRAKE_OR_STOP) for f in sent_flags], dtype=bool)
+        if not braked.any() and not int(controller_flags):
+            return
+        try:
+            self.on_sent(state, braked)
+        except Exception:
+            log.exception("on_sent failed")
+
     def _count(self, view: _View) -> None:
         s = self.stats
         for counts, value in ((s.robot_counts, len(view.rows)), (s.silent_counts, len(view.silent))):
@@ -524,6 +541,7 @@ class Bridge:
             self._sent_tick[rs.robot] = self.stats.ticks
             self._answered[rs.robot] = _key(rs)
             sent_flags.append(flags)
+        self._report_overrides(state, sent_flags, controller_flags)
         stale = tuple(rs.robot for rs, age in zip(view.rows, view.ages, strict=True)
                       if not age + late_s <= self.config.stale_after_s)
         self.stats.stale_marks += len(stale)

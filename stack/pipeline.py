@@ -51,6 +51,7 @@ every per-robot estimate is keyed by robot id)::
                    its robots' compensation is withdrawn
       -> commands  a_cmd (N, 2) numpy float64, always finite; stale rows the braking law; the
                    acceleration each robot is to achieve is recorded for the next prediction
+                   (a caller that sends BRAKE instead says so: :meth:`ControlStack.sent_braking`)
 
 Non-finite values never pass on. A non-finite policy output replaces the policy's output with
 the maximum-braking command ``clip_norm(c v - v / dt, accel_limit)`` (``v`` non-finite -> 0) and
@@ -200,6 +201,7 @@ class ControlStack:
                        if dock.enabled and dock.detour_after_s > 0 else None)
         self._last_known = LastKnown()
         self._last_prediction: Prediction | None = None   # the filter's, last tick (its fixed discs)
+        self._ticked: FleetState | None = None             # the state of the last tick that returned
         self.num_robots: int | None = None
         warm_up()                       # compile or load the kernels now, not at the first tick
 
@@ -217,6 +219,7 @@ class ControlStack:
             self.detour.reset()
         self._last_known = LastKnown()
         self._last_prediction = None
+        self._ticked = None
         reset = getattr(self.callable, "reset", None)
         if callable(reset):
             reset()
@@ -271,6 +274,7 @@ class ControlStack:
     def tick(self, state: FleetState) -> TickResult:
         """One control tick for ``state`` (see the module docstring); never returns NaN."""
         t0 = time.perf_counter_ns()
+        given, self._ticked = state, None
         n = state.num_robots
         if n != self.num_robots:
             self._resize(n)
@@ -334,6 +338,7 @@ class ControlStack:
             named = len(safe.ids)
             braking = stale if named == n else np.concatenate([stale, np.ones(named - n, dtype=bool)])
             self.predictor.record(safe.ids, safe.full(achieved)[:named], braking)
+        self._ticked = given
         return TickResult(
             a_nom=a_nom, a_safe=a_safe, a_cmd=a_cmd, policy_status=policy_status,
             safety_status=safety_status, mec_status=mec_status, safety_reason=safety_reason,
@@ -342,6 +347,29 @@ class ControlStack:
                         "mec": t_mec - t_safe, "total": t_mec - t0})
 
     __call__ = tick
+
+    def sent_braking(self, state: FleetState, braking: np.ndarray) -> None:
+        """The caller sent BRAKE to the rows ``braking`` (N,) bool of ``state`` instead of this
+        stack's commands (a deadline or fault rule of its own, or every row because :meth:`tick`
+        raised for ``state``): the command history and the compensator learn what the robots got,
+        so the counts of pending commands name the same commands. A tick that raised recorded
+        nothing: every robot gets one braking entry and the compensator starts afresh."""
+        braking = np.asarray(braking, dtype=bool)
+        if braking.shape != (state.num_robots,):
+            raise StackError(f"sent_braking: braking must have shape ({state.num_robots},), got {braking.shape}")
+        brake = self.brake(state.velocities)
+        if self._ticked is not state:
+            if self.predictor is not None:
+                self.predictor.record_braking(state.robot_ids, brake)
+            if self.mec is not None:
+                self.mec.reset()
+            return
+        if not braking.any():
+            return
+        if self.predictor is not None:
+            self.predictor.mark_braking(state.robot_ids, braking, brake)
+        if self.mec is not None and self.mec.sent is not None:
+            self.mec.replace_last_command(np.where(braking[:, None], brake, self.mec.sent[-1]))
 
     def _estimate(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, measured_at: np.ndarray,
                   stale: np.ndarray, news: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

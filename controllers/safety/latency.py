@@ -129,7 +129,7 @@ from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
 from controllers.safety.prediction import Prediction
 from controllers.safety.silent_reach import SilentPaths, silent_paths
-from sim.scenario import Dynamics
+from sim.scenario import Dynamics, clip_norm
 
 
 class LatencyConfigError(ValueError):
@@ -456,6 +456,33 @@ class LatencyPredictor:
         require_shapes("LatencyPredictor.record", accel=(accel, (n, 2)), braking=(braking, (n,)))
         latency_kernels.record_rows(accel, float(self.dynamics.accel_limit), braking, self._history,
                                     self._braked, self._recorded, self.depth)
+
+    def record_braking(self, ids: tuple[str, ...], accel: np.ndarray) -> None:
+        """A tick on which every robot was sent BRAKE and nothing else was recorded (the
+        controller failed): one braking entry for ``ids``, asked ``accel`` (N, 2) [m/s^2] (the
+        braking law at their velocity), and for every other id kept (0: it is not listening)."""
+        accel = f64(accel)
+        require_shapes("LatencyPredictor.record_braking", accel=(accel, (len(ids), 2)))
+        others = tuple(rid for rid in self._ids if rid not in set(ids))
+        self.record((*ids, *others), np.concatenate([accel, np.zeros((len(others), 2))]),
+                    np.ones(len(ids) + len(others), dtype=bool))
+
+    def mark_braking(self, ids: tuple[str, ...], braking: np.ndarray, accel: np.ndarray) -> None:
+        """Correct the newest entry: the robots ``ids[k]`` with ``braking[k]`` (N,) bool were
+        sent BRAKE instead of what :meth:`record` was told, and brake with ``accel[k]`` (N, 2)
+        [m/s^2] (the braking law at their velocity)."""
+        accel, braking = f64(accel), np.asarray(braking, dtype=bool)
+        require_shapes("LatencyPredictor.mark_braking", accel=(accel, (len(ids), 2)),
+                       braking=(braking, (len(ids),)))
+        where = {rid: k for k, rid in enumerate(self._ids)}
+        clipped = clip_norm(accel, self.dynamics.accel_limit)
+        for k in np.flatnonzero(braking):
+            i = where.get(ids[k])
+            if i is None or self._recorded[i] == 0 or self._braked[-1, i]:
+                continue
+            self._history[-1, i] = clipped[k]
+            self._braked[-1, i] = True
+            self._paths.pop(ids[k], None)
 
 
 __all__ = ["LatencyConfig", "LatencyConfigError", "LatencyPredictor", "Prediction", "horizon_ticks",

@@ -174,15 +174,37 @@ def test_a_rejoining_robots_state_that_outruns_its_liveliness_token_is_answered_
 
 
 def test_a_failing_controller_brakes_every_robot_and_is_counted(fleet):
-    bridge, links, _ = fleet
+    """... and the controller is told (``on_sent``) which rows got BRAKE in its place: none on
+    a good tick, every row on a failed one."""
+    bridge, links, seen = fleet
+    told = []
+    bridge.on_sent = lambda state, braked: told.append((state, braked.tolist()))
+    _tick(bridge, links, links)
+    assert told == []
     bridge.controller = lambda state: np.full((state.num_robots, 2), np.nan)
     _tick(bridge, links, links)
     for link in links:
-        assert link.wait_for(lambda lk=link: lk.latest_command is not None, 5.0)
-        assert link.latest_command.msg.flags & CmdFlags.BRAKE
+        assert _last_flags(link, after_seq=1) & CmdFlags.BRAKE
     bridge.controller = lambda state: np.zeros((state.num_robots + 1, 2))  # wrong shape
     _tick(bridge, links, links)
     assert bridge.stats.controller_faults == 2
+    assert [braked for _, braked in told] == [[True, True], [True, True]]
+    assert told[0][0].robot_ids == ROBOTS and told[0][0] is not seen[-1]
+
+
+def test_a_row_braked_for_its_age_is_reported_to_the_controller_and_a_failing_report_is_logged(fleet, caplog):
+    bridge, links, seen = fleet
+    told = []
+    bridge.on_sent = lambda state, braked: told.append((state, braked.tolist()))
+    _tick(bridge, links, links)
+    time.sleep(0.25)                                  # r1 falls silent past stale_after_s 0.2
+    record = _tick(bridge, links, links[:1])
+    assert record.stale == ("r1",)
+    assert len(told) == 1 and told[0][0] is seen[-1] and told[0][1] == [False, True]
+    bridge.on_sent = lambda state, braked: 1 / 0
+    time.sleep(0.02)
+    assert _tick(bridge, links, links[:1]) is not None   # the tick completes
+    assert "on_sent failed" in caplog.text
 
 
 def test_fleet_sim_obeys_the_estop(tmp_path):

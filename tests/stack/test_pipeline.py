@@ -442,3 +442,69 @@ def test_a_target_passed_by_a_robot_that_froze_is_free_for_docking_once_that_rob
     assert np.linalg.norm(state.positions[0] - target) < 0.09            # the last report: "taken"
     assert docked.index(True) == 28 and all(docked[28:])
     assert np.linalg.norm(world.true_state().positions[1] - target) < 0.03
+
+
+def _predictions_round_a_braked_tick(mode: str) -> dict[int, np.ndarray]:
+    """Robot 0 thrusts along +x from rest through a world that delays commands two ticks; on
+    tick 5 it is sent the braking law instead. ``mode``: "asked" (the policy itself asks the
+    brake), "raised" (the policy raises and the caller sends BRAKE to every row), "overridden"
+    (the tick returns thrust and the caller sends robot 0 BRAKE in its place); "...-untold":
+    the same without :meth:`ControlStack.sent_braking`. Returns the latency prediction of robot
+    0 (centre and velocity, (4,)) on ticks 6-9, where the braked tick is still in flight."""
+    sc = transport_scenario(2)
+    world = PymunkWorld(sc, ModelError(delay_ticks=2))
+    world.reset(seed=0)
+    world.set_state(np.array([[0.1, 0.85], [0.8, 0.2]]), np.zeros((2, 2)))
+    state, stack = world.read_state(), None
+
+    def policy(s: FleetState) -> np.ndarray:
+        if s.step == 5 and mode == "asked":
+            return stack.brake(s.velocities)
+        if s.step == 5 and mode.startswith("raised"):
+            raise RuntimeError("controller fault")
+        return np.array([[1.0, 0.0], [0.0, 0.0]])
+
+    stack = ControlStack(sc, policy, StackConfig(mec=False))
+    seen, predict = {}, stack.predictor.predict
+
+    def kept(*args, **kwargs):
+        p = predict(*args, **kwargs)
+        seen[state.step] = np.concatenate([p.pos[0], p.vel[0]])
+        return p
+
+    stack.predictor.predict = kept
+    for _ in range(10):
+        try:
+            command = stack.tick(state).a_cmd
+        except RuntimeError:
+            command = np.full((2, 2), np.nan)
+        braked = np.array([state.step == 5 and mode != "asked"] * 2)
+        braked[1] &= mode.startswith("raised")
+        command = np.where(braked[:, None], stack.brake(state.velocities), command)
+        if braked.any() and not mode.endswith("untold"):
+            stack.sent_braking(state, braked)
+        world.send_accelerations(command)
+        state = world.step()
+    return {k: seen[k] for k in range(6, 10)}
+
+
+@pytest.mark.parametrize("mode", ["raised", "overridden"])
+def test_a_brake_sent_in_place_of_the_stacks_command_is_what_it_predicts_through(mode):
+    """Told of the BRAKE (:meth:`ControlStack.sent_braking`), the stack predicts robot 0 through
+    its commands in flight exactly as if its policy had asked the brake; untold, its history
+    holds the thrust (or, after a tick that raised, no entry: every older command one tick
+    late) and the prediction is 5-10 mm and 0.1 m/s off for the two ticks the brake is in flight."""
+    asked = _predictions_round_a_braked_tick("asked")
+    told = _predictions_round_a_braked_tick(mode)
+    untold = _predictions_round_a_braked_tick(f"{mode}-untold")
+    for k in asked:
+        assert np.allclose(told[k], asked[k], atol=1e-12), k
+    off = [np.abs(untold[k] - asked[k]) for k in (6, 7)]
+    assert all(d[:2].max() > 0.004 and d[2:].max() > 0.09 for d in off), off
+
+
+def test_sent_braking_checks_its_mask():
+    stack = ControlStack(transport_scenario(2), lambda s: np.zeros((s.num_robots, 2)))
+    state = PymunkWorld(transport_scenario(2)).reset(seed=0)
+    with pytest.raises(StackError, match=r"braking must have shape \(2,\)"):
+        stack.sent_braking(state, np.ones(3, dtype=bool))
