@@ -9,7 +9,9 @@ drives a real fleet, or ``formation fleet-sim``, with the same metrics::
 Underneath runs a :class:`deploy.bridge.Bridge` in a thread, with every rule of the bridge (BRAKE
 for stale or non-finite rows, silent robots as obstacles, the fleet e-stop): its controller
 hands each picture to :meth:`step` and waits for the answer of :meth:`send_accelerations`
-(``answer_timeout_s``; then the bridge brakes every robot that tick, as for a failed controller).
+(``answer_timeout_s``; then the bridge brakes every robot that tick, as for a failed controller,
+and the late answer is dropped, not taken for the next picture's). :meth:`braked_in_place` says
+which rows of a picture got BRAKE in place of the answer.
 
 Episodes are the fleet's own: a fleet that resets its world every ``episode_steps`` ticks
 (``fleet-sim --episodes``) starts episode k at state ``seq`` k T + 1. :meth:`reset` waits for the
@@ -24,6 +26,8 @@ from __future__ import annotations
 import dataclasses
 import queue
 import threading
+import time
+from collections import deque
 
 import numpy as np
 
@@ -53,13 +57,16 @@ class ZenohFleet:
                                      episode_ticks=scenario.dynamics.episode_steps)
         c = scenario.object_center
         self._states: queue.Queue[tuple[FleetState, int | None]] = queue.Queue(maxsize=1)
-        self._answers: queue.Queue[np.ndarray | None] = queue.Queue(maxsize=1)
+        # each answer names the state it answers: one that comes after its deadline is dropped
+        self._answers: queue.Queue[tuple[FleetState | None, np.ndarray | None]] = queue.Queue(maxsize=1)
+        self._braked: deque[tuple[FleetState, np.ndarray]] = deque(maxlen=16)   # the bridge's on_sent
         self._state: FleetState | None = None      # the newest state, waiting for its answer
         self._state_episode: int | None = None     # the fleet episode it belongs to
         self._episode: int | None = None           # the episode being run
         self.bridge = Bridge(fleet, RobotRegistry(names), transport, self._controller,
                              targets=dict(zip(names, scenario.targets, strict=True)),
-                             object_pose=np.array([c[0], c[1], 0.0]), config=config)
+                             object_pose=np.array([c[0], c[1], 0.0]), config=config,
+                             on_sent=self._on_sent)
         self._thread = threading.Thread(target=self.bridge.run, name="ZenohFleet-bridge", daemon=True)
         self._thread.start()
 
@@ -70,10 +77,28 @@ class ZenohFleet:
     # ------------------------------------------------------------ bridge thread
     def _controller(self, state: FleetState) -> np.ndarray:
         self._states.put((state, self.bridge.episode), timeout=self.answer_timeout_s)
-        answer = self._answers.get(timeout=self.answer_timeout_s)   # raises: the bridge brakes
+        deadline = time.monotonic() + self.answer_timeout_s
+        while True:     # queue.Empty at the deadline: the bridge brakes every robot this tick
+            answered, answer = self._answers.get(timeout=max(deadline - time.monotonic(), 0.0))
+            if answered is None or answered is state:    # None: closing
+                break
         if answer is None:
             raise RuntimeError("between episodes: braking")
         return answer
+
+    def _on_sent(self, state: FleetState, braked: np.ndarray) -> None:
+        self._braked.append((state, braked.copy()))
+
+    def braked_in_place(self, state: FleetState) -> np.ndarray | None:
+        """(N,) bool: the rows of ``state`` (one this fleet handed out, after the next
+        :meth:`step`) that the bridge sent BRAKE in place of the answer (its age, or an answer
+        later than ``answer_timeout_s``: then every row), or None when it sent the answer as it
+        was. :func:`stack.episodes.run_episode` passes it to the stack
+        (:meth:`stack.pipeline.ControlStack.sent_braking`)."""
+        for braked_state, braked in list(self._braked):
+            if braked_state is state:
+                return braked
+        return None
 
     # ------------------------------------------------------------ Fleet
     def _next_state(self) -> FleetState:
@@ -95,13 +120,13 @@ class ZenohFleet:
             if self._state_episode != self._episode:    # the last step already began the next one
                 self._episode = self._state_episode
                 return self._state
-            self._answers.put(None)                     # its answer: brake
+            self._answers.put((self._state, None))      # its answer: brake
         while True:
             state = self._next_state()
             if self._episode is None or self._state_episode != self._episode:
                 self._episode = self._state_episode
                 return state
-            self._answers.put(None)
+            self._answers.put((state, None))
 
     def read_state(self) -> FleetState:
         if self._state is None:
@@ -109,7 +134,7 @@ class ZenohFleet:
         return self._state
 
     def send_accelerations(self, accelerations: np.ndarray) -> None:
-        self._answers.put(check_accelerations(accelerations, self.scenario.num_robots).copy())
+        self._answers.put((self._state, check_accelerations(accelerations, self.scenario.num_robots).copy()))
 
     def step(self) -> FleetState:
         """The fleet's next state (the one that answers the accelerations just sent)."""
@@ -118,7 +143,7 @@ class ZenohFleet:
     def close(self) -> None:
         self.bridge.stop()
         while not self._answers.full():             # release a controller call that waits
-            self._answers.put(None)
+            self._answers.put((None, None))
         self._thread.join(timeout=5.0)
         self.bridge.close()
 

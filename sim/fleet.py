@@ -179,7 +179,12 @@ class FleetState:
 
 @runtime_checkable
 class Fleet(Protocol):
-    """What a controller needs from a fleet, simulated or real."""
+    """What a controller needs from a fleet, simulated or real.
+
+    A fleet whose link may send BRAKE in place of a command (the Zenoh fleet's bridge) also has
+    ``braked_in_place(state) -> (N,) bool | None``: the rows of ``state`` that got BRAKE instead
+    of the answer, known once :meth:`step` has returned the next state.
+    """
 
     scenario: Scenario
 

@@ -136,6 +136,10 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
         predicted, _ = nominal_step(state.positions, state.velocities, tick.a_safe, scenario.dynamics)
         fleet.send_accelerations(tick.a_cmd)
         given, state = state, fleet.step()
+        braked = getattr(fleet, "braked_in_place", None)          # a fleet over a bridge
+        braked = braked(given) if braked is not None else None
+        if braked is not None:
+            stack.sent_braking(given, braked)
         tracking.append(float(np.linalg.norm(state.positions - predicted, axis=1).mean()))
         if arrival_step is None and _all_within(fleet, state, scenario.target_tolerance):
             arrival_step = step + 1

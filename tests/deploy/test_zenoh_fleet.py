@@ -55,3 +55,59 @@ def test_eval_over_zenoh_names_what_is_missing(capsys):
     assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "x", "--steps", "500",
                  "--connect", "tcp/127.0.0.1:1"]) == 2
     assert "at most 127" in capsys.readouterr().err
+
+
+def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake():
+    """A lock-stepped fleet-sim driven tick by tick through ZenohFleet; the answer to the fourth
+    picture comes 0.8 s late (``answer_timeout_s`` 0.3). The bridge brakes every robot on that
+    tick and the next (whose picture the stack answers late in turn), and every other tick's
+    command is the answer to that tick's own picture: a late answer is not taken for the next
+    (before, every later command was one picture old). The stack hears of both brakes (its
+    command history's newest entry is braking on every row)."""
+    import time
+
+    import numpy as np
+
+    from deploy.bridge import BridgeConfig
+    from deploy.network import TransportConfig
+    from deploy.zenoh_fleet import ZenohFleet
+    from sim.scenario import make_scenario
+    from stack.pipeline import ControlStack, StackConfig
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    sim = Proc("fleet-sim", "--fleet", "late", "--scenario", "paper-3", "--lockstep", "--episodes", "1",
+               "--listen", endpoint)
+    scenario = make_scenario("paper-3")
+    answers, sent = [], []
+    stack = ControlStack(scenario, lambda s: np.tile([0.1 * len(answers) + 0.05, 0.0], (s.num_robots, 1)),
+                         StackConfig(mec=False))
+    try:
+        with ZenohFleet(scenario, "late", TransportConfig(connect=(endpoint,)),
+                        BridgeConfig(lockstep=True, period_s=scenario.dynamics.dt),
+                        answer_timeout_s=0.3) as fleet:
+            send = fleet.bridge.link.send_command
+
+            def spy(robot, acceleration, *args, **kwargs):
+                if robot == "r0":
+                    sent.append(acceleration[0])
+                return send(robot, acceleration, *args, **kwargs)
+
+            fleet.bridge.link.send_command = spy
+            state = fleet.reset()
+            braked = []
+            for k in range(8):
+                command = stack.tick(state).a_cmd
+                answers.append(command[0, 0])
+                if k == 3:
+                    time.sleep(0.8)
+                fleet.send_accelerations(command)
+                given, state = state, fleet.step()
+                braked.append(fleet.braked_in_place(given))
+                if braked[-1] is not None:
+                    stack.sent_braking(given, braked[-1])
+                    assert stack.predictor._braked[-1].all()
+    finally:
+        sim.proc.kill()
+        sim.proc.wait()
+    assert [b is not None and b.all() for b in braked] == [False] * 3 + [True] * 2 + [False] * 3, braked
+    assert np.allclose(sent[:8], answers[:3] + [0.0, 0.0] + answers[5:]), (sent, answers)
