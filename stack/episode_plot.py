@@ -9,10 +9,13 @@ how far each robot was from its target.
     DETOUR     a detour drove it (controllers.detour)
     FILTER     the safety filter changed the command by more than ``tolerance`` [m/s^2]
     STALE      its state was stale or unknown: an obstacle, sent the braking law
+    LINK       the link sent it BRAKE in place of the stack's command (the bridge's age rule,
+               a failed or late answer)
     ABSENT     it had no row in the tick's state (silent: off the link)
 
 :func:`plot_episode` draws three panels: the arena with every robot's true path (segments where
-the filter changed its command drawn thick in orange, where it was stale or absent dashed grey,
+the filter changed its command drawn thick in orange, where it was stale, braked by the link or
+absent dashed grey,
 contact onsets marked, a robot frozen by the world hatched at its end); a raster of the modes,
 robots x time; and each robot's distance to the target it ended matched to (the episode's
 assignment), the target tolerance dashed.
@@ -39,11 +42,12 @@ class Mode(IntEnum):
     DETOUR = 2
     FILTER = 3
     STALE = 4
-    ABSENT = 5
+    LINK = 5
+    ABSENT = 6
 
 
 MODE_COLOURS = {Mode.POLICY: "#f2f2f2", Mode.DOCKING: "#2ca02c", Mode.DETOUR: "#9467bd",
-                Mode.FILTER: "#ff7f0e", Mode.STALE: "#7f7f7f", Mode.ABSENT: "#000000"}
+                Mode.FILTER: "#ff7f0e", Mode.STALE: "#7f7f7f", Mode.LINK: "#8c564b", Mode.ABSENT: "#000000"}
 FILTER_TOLERANCE = 0.05
 """[m/s^2] a filter answer this close to the (norm-clipped) policy command counts as unchanged."""
 
@@ -57,6 +61,7 @@ def robot_modes(record: EpisodeRecord, accel_limit: float, tolerance: float = FI
     changed = np.linalg.norm(np.nan_to_num(record.a_safe) - asked, axis=-1) > tolerance
     modes[changed & record.present] = Mode.FILTER
     modes[record.stale] = Mode.STALE
+    modes[record.link_braked] = Mode.LINK
     modes[~record.present] = Mode.ABSENT
     return modes
 
@@ -97,7 +102,7 @@ def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path,
     _draw_distances(dist, record, scenario, colours, dt)
     legend = [Patch(facecolor=MODE_COLOURS[m], edgecolor="0.5", label=m.name.lower()) for m in Mode]
     legend += [Line2D([], [], color="#ff7f0e", lw=5, alpha=0.45, label="path: filter changed the command"),
-               Line2D([], [], color="0.4", ls="--", lw=1.2, label="path: stale or absent"),
+               Line2D([], [], color="0.4", ls="--", lw=1.2, label="path: stale, link brake or absent"),
                Line2D([], [], color="red", marker="X", mfc="none", ls="none", ms=8, label="contact onset"),
                Patch(facecolor="white", edgecolor="black", hatch="xxx", label="frozen by the world")]
     fig.legend(handles=legend, loc="outside lower center", ncol=5, frameon=False, fontsize=8)

@@ -136,10 +136,6 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
         predicted, _ = nominal_step(state.positions, state.velocities, tick.a_safe, scenario.dynamics)
         fleet.send_accelerations(tick.a_cmd)
         given, state = state, fleet.step()
-        braked = getattr(fleet, "braked_in_place", None)          # a fleet over a bridge
-        braked = braked(given) if braked is not None else None
-        if braked is not None:
-            stack.sent_braking(given, braked)
         tracking.append(float(np.linalg.norm(state.positions - predicted, axis=1).mean()))
         if arrival_step is None and _all_within(fleet, state, scenario.target_tolerance):
             arrival_step = step + 1
@@ -151,6 +147,12 @@ def run_episode(fleet: Fleet, stack: ControlStack, seed: int | None, steps: int 
             prev_contact = contact
         if recorder is not None:
             recorder.tick(given, tick, fleet, state, contact if not self_judging else _contact_rows(fleet, state))
+        braked = getattr(fleet, "braked_in_place", None)          # a fleet over a bridge
+        braked = braked(given) if braked is not None else None
+        if braked is not None:
+            stack.sent_braking(given, braked)
+            if recorder is not None:
+                recorder.link_braked(given, braked, stack.brake(given.velocities))
     if self_judging:
         c = fleet.collision_counts
         counts = np.array([c.robot, c.object, c.wall])

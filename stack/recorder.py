@@ -22,6 +22,10 @@ that joined, in order of appearance; a robot missing from a tick's rows is NaN /
 ``a_cmd``                 (S, N, 2) m/s^2 what was sent (MEC included; braking for stale rows)
 ``stale``, ``docking``,   (S, N) bool     :class:`stack.tick_types.TickResult`'s row flags
 ``detour``, ``present``                   ``present``: the robot had a row in the tick's state
+``link_braked``           (S, N) bool     the link sent BRAKE in place of ``a_cmd`` (the bridge's
+                                          age rule, a failed or late answer); ``a_cmd`` then
+                                          holds the braking law at the measured velocity (a
+                                          record written before this array: all False)
 ``frozen``                (S, N) bool     the world froze the robot (pymunk ``ModelError.freeze``)
 ``contacts``              (S, N, 3) bool  robot / object / wall contact after each tick (the
                                           fleet's own, else judged on ``positions``)
@@ -47,7 +51,8 @@ from sim.files import atomic_path
 from sim.fleet import Fleet, FleetState
 
 ARRAYS = ("ids", "time", "measured", "targets", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
-          "present", "frozen", "contacts", "safety_status", "safety_reason")
+          "present", "frozen", "contacts", "safety_status", "safety_reason", "link_braked")
+LATER_ARRAYS = ("link_braked",)     # absent from older records: read as all False
 
 
 class RecordError(ValueError):
@@ -74,6 +79,7 @@ class EpisodeRecord:
     contacts: np.ndarray
     safety_status: np.ndarray
     safety_reason: np.ndarray
+    link_braked: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -110,11 +116,13 @@ def load_record(path: str | Path) -> EpisodeRecord:
     """The :class:`EpisodeRecord` saved at ``path`` (no pickled objects are read)."""
     try:
         with np.load(path, allow_pickle=False) as data:
-            missing = [name for name in (*ARRAYS, "meta") if name not in data.files]
+            missing = [name for name in (*ARRAYS, "meta") if name not in data.files and name not in LATER_ARRAYS]
             if missing:
                 raise RecordError(f"{path}: not an episode record (no {', '.join(missing)}); "
                                   "write one with formation eval --trace DIR")
-            arrays = {name: data[name] for name in ARRAYS}
+            arrays = {name: data[name] for name in ARRAYS if name in data.files}
+            for name in LATER_ARRAYS:
+                arrays.setdefault(name, np.zeros(arrays["stale"].shape, dtype=bool))
             meta = json.loads(str(data["meta"]))
     except (OSError, ValueError) as exc:
         if isinstance(exc, RecordError):
@@ -134,6 +142,7 @@ class _Tick:
     rows: dict[str, np.ndarray]                   # VECTOR_ROWS and FLAG_ROWS of the tick's rows
     safety_status: str
     safety_reason: str
+    state: FleetState | None = None              # the state given (until the next tick)
     after_ids: tuple[str, ...] | None = None     # None: the next tick's measurement tells
     positions: np.ndarray | None = None
     frozen: np.ndarray | None = None
@@ -175,14 +184,27 @@ class EpisodeRecorder:
         rows = {"measured": np.array(state.positions, dtype=float), "targets": np.array(state.targets, dtype=float),
                 **{name: np.array(getattr(result, name), dtype=float) for name in VECTOR_ROWS[2:]},
                 **{name: np.array(getattr(result, name), dtype=bool) for name in FLAG_ROWS}}
+        if self._ticks:
+            self._ticks[-1].state = None
         t = _Tick(ids=tuple(state.robot_ids), time=float(state.time), rows=rows,
-                  safety_status="" if status is None else str(status), safety_reason=result.safety_reason)
+                  safety_status="" if status is None else str(status), safety_reason=result.safety_reason,
+                  state=state)
         if after is not None:
             t.after_ids, t.positions = _where(fleet, after)
             frozen = getattr(fleet, "frozen", None)
             t.frozen = None if frozen is None else np.array(frozen, dtype=bool)
             t.contacts = None if contacts is None else np.array(contacts, dtype=bool)
         self._ticks.append(t)
+
+    def link_braked(self, state: FleetState, braked: np.ndarray, brake: np.ndarray) -> None:
+        """The link sent BRAKE to the rows ``braked`` (N,) bool of ``state`` (the last tick's)
+        in place of the stack's command; ``brake`` (N, 2): the braking law at their velocity
+        [m/s^2]. A tick not recorded (the stack raised) is left out."""
+        if not self._ticks or self._ticks[-1].state is not state:
+            return
+        rows = self._ticks[-1].rows
+        rows["link_braked"] = np.array(braked, dtype=bool)
+        rows["a_cmd"] = np.where(rows["link_braked"][:, None], brake, rows["a_cmd"])
 
     def finish(self, meta: dict[str, Any] | None = None) -> EpisodeRecord:
         """The recorded episode; ``meta`` is stored with it (with the scenario, unless ``meta``
@@ -206,7 +228,7 @@ class EpisodeRecorder:
             ids=np.array(ids, dtype=str), time=np.array([t.time for t in ticks], dtype=float),
             positions=np.full((s + 1, n, 2), np.nan),
             **{name: table((2,), float, np.nan) for name in VECTOR_ROWS},
-            **{name: table((), bool, False) for name in (*FLAG_ROWS, "present", "frozen")},
+            **{name: table((), bool, False) for name in (*FLAG_ROWS, "present", "frozen", "link_braked")},
             contacts=table((3,), bool, False),
             safety_status=np.array([t.safety_status for t in ticks], dtype=str),
             safety_reason=np.array([t.safety_reason for t in ticks], dtype=str), meta=dict(meta or {}))
@@ -265,6 +287,11 @@ class RecordedStack:
         return result
 
     __call__ = tick
+
+    def sent_braking(self, state: FleetState, braked: np.ndarray) -> None:
+        """:meth:`stack.pipeline.ControlStack.sent_braking`, and the record's row marked."""
+        self.stack.sent_braking(state, braked)
+        self._recorder.link_braked(state, braked, self.stack.brake(state.velocities))
 
     def reset(self) -> None:
         self._close_record("reset")

@@ -235,8 +235,8 @@ def run(args) -> int:
     torch.set_num_threads(1)
     try:
         scenario = make_scenario(args.scenario)
-        stack = core = build_stack(scenario, args.policy, args.safety, args.mec,
-                                   latency_config(args), args.docking)
+        stack = build_stack(scenario, args.policy, args.safety, args.mec,
+                            latency_config(args), args.docking)
         if args.record is not None:
             stack = _recorded(stack, args)
         recorder = EpisodeCounters(stack) if args.episode_ticks is not None else None
@@ -257,7 +257,7 @@ def run(args) -> int:
                         object_pose=np.array([c[0], c[1], 0.0]), config=config,
                         on_episode=recorder.start_episode if recorder else None,
                         on_stall=recorder.on_stall if recorder else stack.reset,
-                        on_sent=core.sent_braking)
+                        on_sent=stack.sent_braking)
     except (ValueError, OSError, zenoh.ZError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -145,7 +145,60 @@ def test_modes_say_which_layer_drove_each_robot():
                         stale=t.stale[None], docking=t.docking[None], detour=t.detour[None],
                         present=np.ones((1, 5), bool), frozen=np.zeros((1, 5), bool),
                         contacts=np.zeros((1, 5, 3), bool), safety_status=np.array([""]),
-                        safety_reason=np.array([""]))
+                        safety_reason=np.array([""]), link_braked=np.zeros((1, 5), bool))
     expected = [Mode.POLICY, Mode.DOCKING, Mode.DETOUR, Mode.FILTER, Mode.STALE]
     assert robot_modes(rec, accel_limit=1.0)[0].tolist() == expected
     assert robot_modes(rec, accel_limit=1.0, tolerance=0.2)[0, 3] == Mode.DOCKING
+
+
+def test_a_brake_the_link_sent_in_place_is_recorded_as_sent_and_old_records_still_load(tmp_path):
+    """Tick 1 of three: the link braked r1 in place of the stack's command (0.3, 0) while the
+    robot moved at (0.2, 0) m/s: the record holds the braking law there (-0.2 / 0.05 clipped to
+    1 m/s^2: (-1, 0)), flags it, and the figure's mode is LINK; a brake for a state that is not
+    the last tick's (one the stack raised on) is left out. A record saved before the array
+    existed loads with it all False."""
+    rec = EpisodeRecorder()
+    states = [_state(("r0", "r1"), k) for k in range(3)]
+    for k, state in enumerate(states):
+        result = _tick(2)
+        result.a_cmd[:] = [0.3, 0.0]
+        rec.tick(state, result, None, states[min(k + 1, 2)], np.zeros((2, 3), bool))
+        if k == 1:
+            rec.link_braked(state, np.array([False, True]), np.array([[0.0, 0.0], [-1.0, 0.0]]))
+            rec.link_braked(states[0], np.array([True, True]), np.zeros((2, 2)))
+    out = rec.finish()
+    np.testing.assert_array_equal(out.link_braked, [[0, 0], [0, 1], [0, 0]])
+    np.testing.assert_array_equal(out.a_cmd[:, 1], [[0.3, 0.0], [-1.0, 0.0], [0.3, 0.0]])
+    np.testing.assert_array_equal(out.a_cmd[:, 0], np.tile([0.3, 0.0], (3, 1)))
+    assert robot_modes(out, 1.0)[1].tolist() == [Mode.POLICY, Mode.LINK]
+    path = out.save(tmp_path / "new.npz")
+    with np.load(path) as data:
+        np.savez(tmp_path / "old.npz", **{k: data[k] for k in data.files if k != "link_braked"})
+    old = load_record(tmp_path / "old.npz")
+    assert old.link_braked.shape == (3, 2) and not old.link_braked.any()
+    np.testing.assert_array_equal(load_record(path).link_braked, out.link_braked)
+
+
+def test_a_recorded_stack_passes_the_brake_on_and_marks_its_record(tmp_path):
+    """formation bridge --record: the bridge's on_sent reaches the stack (its command history
+    holds the brake) and the record (the row flagged, a_cmd the braking law)."""
+    from stack.recorder import RecordedStack
+
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc)
+    state = world.reset(seed=0)
+    stack = RecordedStack(ControlStack(sc, ScriptedController(sc), StackConfig()), tmp_path)
+    for _ in range(4):
+        stack.tick(state)
+        world.send_accelerations(np.zeros((3, 2)))
+        state = world.step()
+    world.set_state(state.positions, np.array([[0.2, 0.0], [0.0, 0.0], [0.0, 0.1]]))
+    state = world.read_state()
+    stack.tick(state)
+    stack.sent_braking(state, np.array([True, False, True]))
+    assert stack.stack.predictor._braked[-1].tolist() == [True, False, True]
+    (path,) = stack.close()
+    record = load_record(path)
+    np.testing.assert_array_equal(record.link_braked[-1], [True, False, True])
+    np.testing.assert_allclose(record.a_cmd[-1, [0, 2]], [[-1.0, 0.0], [0.0, -1.0]], atol=1e-9)
+    assert not record.link_braked[:-1].any()
