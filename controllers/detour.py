@@ -41,7 +41,7 @@ The result goes through the safety filter like any command: a detour never bypas
 ``SPEED`` is 0.3 m/s: at 0.2, the traced run above brought both neighbours round the object
 only 60-180 mm short of their targets when its 12 s ended; at 0.3 they were docked, and over 40
 fleet-sim + bridge runs with a robot leaving the mean summed distance of the others left went
-from 91 to 77 mm, the same 26 runs all home, no contact (README, Detours).
+from 91 to 77 mm, the same 26 runs all home, no contact (docs/safety.md, Detours).
 """
 
 from __future__ import annotations

@@ -114,7 +114,7 @@ rest, the filter takes a few narrow discs round its branches' rest points instea
 (:meth:`SilentPaths.cover`, :attr:`Prediction.covers`), and the policy and docking are shown it
 at its disc's centre (:meth:`LatencyPredictor.dead_reckoned`), not at its last report: on the
 same condition, 600 episodes of an own-target generalist, the stack's success went from 0.413
-to 0.438 (bare 0.425), and on the robots still commanded from 0.705 to 0.763 (README, "A silent
+to 0.438 (bare 0.425), and on the robots still commanded from 0.705 to 0.763 (docs/safety.md, "A silent
 robot seen where it stopped").
 """
 
