@@ -120,13 +120,13 @@ class ZenohFleet:
             if self._state_episode != self._episode:    # the last step already began the next one
                 self._episode = self._state_episode
                 return self._state
-            self._answers.put((self._state, None))      # its answer: brake
+            self._answer(self._state, None)             # its answer: brake
         while True:
             state = self._next_state()
             if self._episode is None or self._state_episode != self._episode:
                 self._episode = self._state_episode
                 return state
-            self._answers.put((state, None))
+            self._answer(state, None)
 
     def read_state(self) -> FleetState:
         if self._state is None:
@@ -134,7 +134,22 @@ class ZenohFleet:
         return self._state
 
     def send_accelerations(self, accelerations: np.ndarray) -> None:
-        self._answers.put((self._state, check_accelerations(accelerations, self.scenario.num_robots).copy()))
+        if self._state is None:
+            raise RuntimeError("ZenohFleet.send_accelerations before reset: call reset() first")
+        self._answer(self._state, check_accelerations(accelerations, self.scenario.num_robots).copy())
+
+    def _answer(self, state: FleetState | None, answer: np.ndarray | None) -> None:
+        """Queue the answer to ``state``; one still queued is for an older picture, which the
+        bridge gave up on (it would block this call if the fleet went quiet): dropped."""
+        while True:
+            try:
+                self._answers.put_nowait((state, answer))
+                return
+            except queue.Full:
+                try:
+                    self._answers.get_nowait()
+                except queue.Empty:
+                    pass
 
     def step(self) -> FleetState:
         """The fleet's next state (the one that answers the accelerations just sent)."""

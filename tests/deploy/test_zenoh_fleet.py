@@ -63,7 +63,9 @@ def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake(
     tick and the next (whose picture the stack answers late in turn), and every other tick's
     command is the answer to that tick's own picture: a late answer is not taken for the next
     (before, every later command was one picture old). The stack hears of both brakes (its
-    command history's newest entry is braking on every row)."""
+    command history's newest entry is braking on every row). Once the fleet has gone quiet, an
+    answer nobody reads does not block the next."""
+    import threading
     import time
 
     import numpy as np
@@ -106,6 +108,17 @@ def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake(
                 if braked[-1] is not None:
                     stack.sent_braking(given, braked[-1])
                     assert stack.predictor._braked[-1].all()
+            sim.proc.kill()                     # the fleet goes quiet: answers pile up unread
+            sim.proc.wait()
+            answered = threading.Event()
+
+            def answer_thrice():       # the bridge takes the first, the second waits unread
+                for _ in range(3):
+                    fleet.send_accelerations(command)
+                answered.set()
+
+            threading.Thread(target=answer_thrice, daemon=True).start()
+            assert answered.wait(5.0), "an answer nobody reads blocked the caller"
     finally:
         sim.proc.kill()
         sim.proc.wait()
