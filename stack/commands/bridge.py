@@ -16,7 +16,9 @@ live robot silent for --estop-after raises the fleet e-stop; after a stall of th
 (frozen, starved) the old states are discarded, the stack's estimators reset and latched robots
 re-armed as their fresh states come in (deploy/bridge.py has the rules). The --report adds the
 measured command round trips ("round_trip_ms") and the delay bound given to the stack
-("command_delay_s").
+("command_delay_s"). A robot the safety filter holds in place for a second, away from every
+target, is logged with the robots not listening beside it (stack/hold_watch.py); the report
+keeps every such hold ("holds").
 SIGINT/SIGTERM stop the loop and close the Zenoh session.
 """
 
@@ -41,6 +43,7 @@ from sim.fleet import FleetState
 from sim.scenario import Scenario, make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import add_command_delay_arg, latency_config
+from stack.hold_watch import HoldWatch, WatchedStack
 
 
 class ScriptedFleetController:
@@ -239,6 +242,8 @@ def run(args) -> int:
                             latency_config(args), args.docking)
         if args.record is not None:
             stack = _recorded(stack, args)
+        watch = HoldWatch(scenario.dynamics.dt, scenario.target_tolerance, scenario.dynamics.accel_limit)
+        stack = WatchedStack(stack, watch)
         recorder = EpisodeCounters(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)
@@ -273,6 +278,7 @@ def run(args) -> int:
         if args.record is not None:
             records = stack.close()
             print(f"bridge {args.fleet}: {len(records)} record(s) in {args.record}", file=sys.stderr, flush=True)
+    summary["holds"] = watch.summary()
     if recorder is not None:
         summary["episodes"] = recorder.summary()
     if args.report:
