@@ -10,7 +10,7 @@ silent or stale robot keeps its neighbours off, for as long as it must.
 The watch logs one warning when a hold reaches ``hold_s``: the robot, how long, its distance to
 the nearest target, the robots not listening within ``NEAR_M`` of it (stale rows and silent robots,
 nearest first) and the filter's status (and reason) of that tick; and one line when the hold ends.
-`formation bridge` keeps every hold in its summary (``holds``)::
+`formation bridge` keeps the newest ``KEPT_REPORTS`` holds in its summary (``holds``)::
 
     {"robot": "r4", "from_tick": 20, "seconds": 11.0, "target_m": 0.37, "ended": false,
      "not_listening": [["r3", 0.126]], "filter": "intervened"}
@@ -31,6 +31,7 @@ from stack.tick_types import TickResult
 log = logging.getLogger(__name__)
 FILTER_TOLERANCE = 0.05   # [m/s^2] a command changed by less is the policy's own
 NEAR_M = 0.3              # [m] robots not listening reported within this distance
+KEPT_REPORTS = 1000       # the newest holds kept for the summary (a node may run for days)
 
 
 @dataclass
@@ -82,6 +83,8 @@ class HoldWatch:
                                "target_m": round(float(to_target[i]), 3), "ended": False,
                                "not_listening": self._not_listening(state, stale, pos[i], i), "filter": filt}
                 self.reports.append(hold.report)
+                if len(self.reports) > KEPT_REPORTS:
+                    del self.reports[0]
                 log.warning("%s held in place by the safety filter for %.1f s, %.3f m from the nearest "
                             "target; robots not listening nearby: %s; filter: %s", rid, hold.ticks * self.dt,
                             to_target[i], hold.report["not_listening"] or "none", filt or "-")
