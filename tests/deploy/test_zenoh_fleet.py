@@ -124,3 +124,49 @@ def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake(
         sim.proc.wait()
     assert [b is not None and b.all() for b in braked] == [False] * 3 + [True] * 2 + [False] * 3, braked
     assert np.allclose(sent[:8], answers[:3] + [0.0, 0.0] + answers[5:]), (sent, answers)
+
+
+def test_run_episode_over_zenoh_records_the_ticks_the_bridge_braked_for_a_late_answer():
+    """`formation eval --world zenoh --trace`'s path: run_episode drives a lock-stepped
+    fleet-sim through ZenohFleet with a policy that takes 0.5 s over tick 10
+    (``answer_timeout_s`` 0.3). The record flags every row of that tick (and of the next, whose
+    picture waited behind it) as braked by the link, with the braking law as the command sent,
+    and no other tick."""
+    import time
+
+    import numpy as np
+
+    from controllers.scripted import ScriptedController
+    from deploy.bridge import BridgeConfig
+    from deploy.network import TransportConfig
+    from deploy.zenoh_fleet import ZenohFleet
+    from sim.scenario import make_scenario
+    from stack.episodes import run_episode
+    from stack.pipeline import ControlStack, StackConfig
+    from stack.recorder import EpisodeRecorder
+
+    scenario = make_scenario("paper-3")
+    scripted = ScriptedController(scenario)
+
+    def slow_on_tick_10(state):
+        if state.step == 10:
+            time.sleep(0.5)
+        return scripted(state)
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    sim = Proc("fleet-sim", "--fleet", "slow", "--scenario", "paper-3", "--lockstep", "--episodes", "1",
+               "--listen", endpoint)
+    recorder = EpisodeRecorder()
+    try:
+        with ZenohFleet(scenario, "slow", TransportConfig(connect=(endpoint,)),
+                        BridgeConfig(lockstep=True, period_s=scenario.dynamics.dt), answer_timeout_s=0.3) as fleet:
+            stack = ControlStack(scenario, slow_on_tick_10, StackConfig())
+            run_episode(fleet, stack, 0, 20, recorder=recorder)
+    finally:
+        sim.proc.kill()
+        sim.proc.wait()
+    record = recorder.finish()
+    braked_ticks = np.flatnonzero(record.link_braked.any(axis=1)).tolist()
+    assert braked_ticks[0] == 10 and braked_ticks == list(range(10, 10 + len(braked_ticks)))
+    assert len(braked_ticks) <= 2 and record.link_braked[braked_ticks].all()
+    assert np.abs(record.a_cmd[braked_ticks] - record.a_safe[braked_ticks]).max() > 0.01
