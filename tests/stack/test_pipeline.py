@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from controllers.docking import DockingConfig
 from controllers.mec import MecStatus
 from controllers.policy import ActorConfig, build_actor
 from controllers.safety import SafetyStatus, braking_acceleration
@@ -508,3 +511,50 @@ def test_sent_braking_checks_its_mask():
     state = PymunkWorld(transport_scenario(2)).reset(seed=0)
     with pytest.raises(StackError, match=r"braking must have shape \(2,\)"):
         stack.sent_braking(state, np.ones(3, dtype=bool))
+
+
+_TICKS = ["ok", "override r0", "override r1", "override both", "raise"]
+
+
+@settings(max_examples=40, deadline=None)
+@given(ticks=st.lists(st.sampled_from(_TICKS), min_size=1, max_size=9),
+       speeds=st.lists(st.floats(-0.3, 0.3), min_size=4, max_size=4))
+def test_the_command_history_holds_what_was_sent_whatever_the_link_overrode(ticks, speeds):
+    """Any sequence of ticks, some answered as computed, some with rows braked in place by the
+    link, some where the stack raised and every row was braked: after each, the newest entries
+    of the stack's command history are exactly what each robot was sent (the braking law at
+    its velocity, flagged, where braked; the stack's command otherwise), tick for tick. Without
+    :meth:`ControlStack.sent_braking` the history holds the stack's own commands and skips the
+    ticks that raised."""
+    sc = transport_scenario(2)
+    pos = np.array([[0.2, 0.8], [0.8, 0.2]])
+    vel = np.array(speeds).reshape(2, 2)
+    kind = iter(ticks)
+    current = {"kind": "ok"}
+
+    def policy(s: FleetState) -> np.ndarray:
+        if current["kind"] == "raise":
+            raise RuntimeError("controller fault")
+        return np.array([[0.5, -0.2], [-0.3, 0.4]])
+
+    stack = ControlStack(sc, policy, StackConfig(mec=False, docking=DockingConfig(enabled=False)))
+    sent, flags = [], []
+    for step, current["kind"] in enumerate(kind):
+        state = FleetState(time=step * 0.05, step=step, positions=pos + step * 0.05 * vel, velocities=vel,
+                           targets=sc.targets, object_pose=np.array([*sc.object_center, 0.0]),
+                           robot_ids=("r0", "r1"), commands_pending=np.zeros(2, dtype=np.int64))
+        braked = np.array(["r0" in current["kind"] or "both" in current["kind"] or current["kind"] == "raise",
+                           "r1" in current["kind"] or "both" in current["kind"] or current["kind"] == "raise"])
+        try:
+            command = stack.tick(state).a_cmd
+        except RuntimeError:
+            command = np.zeros((2, 2))
+        brake = braking_acceleration(vel, sc.dynamics)
+        sent.append(np.where(braked[:, None], brake, clip_norm(command, sc.dynamics.accel_limit)))
+        flags.append(braked)
+        if braked.any():
+            stack.sent_braking(state, braked)
+    depth = min(len(sent), stack.predictor.depth)
+    history = stack.predictor._history[-depth:]
+    np.testing.assert_allclose(history, np.array(sent[-depth:]), atol=1e-12)
+    np.testing.assert_array_equal(stack.predictor._braked[-depth:], np.array(flags[-depth:]))
