@@ -117,15 +117,26 @@ class HoldWatch:
 
 class WatchedStack:
     """A stack (or a :class:`stack.recorder.RecordedStack`) whose ticks a :class:`HoldWatch`
-    observes; anything else is the stack's own."""
+    observes; anything else is the stack's own. With ``deferred`` the watch sees a tick only at
+    :meth:`observe_last` (the bridge calls it once the tick's commands are out, so the watch
+    does not delay them)."""
 
-    def __init__(self, stack, watch: HoldWatch):
-        self.stack, self.watch = stack, watch
+    def __init__(self, stack, watch: HoldWatch, deferred: bool = False):
+        self.stack, self.watch, self.deferred = stack, watch, deferred
+        self._last: tuple[FleetState, TickResult] | None = None
 
     def tick(self, state: FleetState) -> TickResult:
         result = self.stack.tick(state)
-        self.watch.observe(state, result)
+        self._last = (state, result)
+        if not self.deferred:
+            self.observe_last()
         return result
+
+    def observe_last(self) -> None:
+        """Let the watch see the last tick, once."""
+        last, self._last = self._last, None
+        if last is not None:
+            self.watch.observe(*last)
 
     __call__ = tick
 

@@ -229,6 +229,13 @@ def _recorded(stack, args):
                          meta={"fleet": args.fleet, "policy": args.policy, "world": "bridge"})
 
 
+def _after_tick(record, watched: WatchedStack, trace: bool) -> None:
+    """Once a tick's commands are out: the hold watch, and the --trace line."""
+    watched.observe_last()
+    if trace:
+        _print_tick(record)
+
+
 def _print_tick(record) -> None:
     print(json.dumps({"tick": record.tick, "robots": list(record.robots),
                       "stale": list(record.stale), "silent": list(record.silent)}), flush=True)
@@ -243,7 +250,7 @@ def run(args) -> int:
         if args.record is not None:
             stack = _recorded(stack, args)
         watch = HoldWatch(scenario.dynamics.dt, scenario.target_tolerance, scenario.dynamics.accel_limit)
-        stack = WatchedStack(stack, watch)
+        stack = watched = WatchedStack(stack, watch, deferred=True)
         recorder = EpisodeCounters(stack) if args.episode_ticks is not None else None
         controller = recorder or (lambda state: stack.tick(state).a_cmd)
         names = robot_names(scenario.num_robots)
@@ -272,7 +279,7 @@ def run(args) -> int:
     print(f"bridge {args.fleet}: {scenario.name}, policy {args.policy}", file=sys.stderr, flush=True)
     try:
         with bridge:
-            bridge.run(max_ticks=args.ticks, on_tick=_print_tick if args.trace else None)
+            bridge.run(max_ticks=args.ticks, on_tick=lambda record: _after_tick(record, watched, args.trace))
             summary = bridge.summary()
     finally:
         if args.record is not None:

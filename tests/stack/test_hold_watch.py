@@ -107,3 +107,24 @@ def test_the_robots_held_by_a_dropped_robot_are_reported_naming_it(detour):
         assert all(r["ended"] and r["seconds"] < 2.5 for r in reports)
     else:
         assert not any(r["ended"] for r in reports) and min(r["seconds"] for r in reports) > 10.0
+
+
+def test_a_deferred_watch_sees_each_tick_once_and_only_when_asked():
+    """`formation bridge` lets the watch look only after a tick's commands went out."""
+
+    class Stack:
+        def tick(self, state):
+            return _result([[1.0, 0.0], [0, 0]], [[0.0, 0.0], [0, 0]])
+
+    watch = HoldWatch(DT, tolerance=0.05, accel_limit=1.0, hold_s=2 * DT)
+    watched = WatchedStack(Stack(), watch, deferred=True)
+    state = _state([[0.3, 0.2], [0.8, 0.8]], [[0.5, 0.2], [0.8, 0.8]])
+    watched.tick(state)
+    watched.tick(state)
+    assert watch.summary() == []                         # two ticks, none seen yet
+    watched.observe_last()
+    watched.observe_last()                               # the same tick again: not counted
+    assert watch.summary() == []
+    watched.tick(state)
+    watched.observe_last()
+    assert [r["robot"] for r in watch.summary()] == ["r0"]
