@@ -9,7 +9,10 @@ silent or stale robot keeps its neighbours off, for as long as it must.
 
 The watch logs one warning when a hold reaches ``hold_s``: the robot, how long, its distance to
 the nearest target, the robots not listening within ``NEAR_M`` of it (stale rows and silent robots,
-nearest first) and the filter's status (and reason) of that tick; and one line when the hold ends.
+nearest first) and the filter's status (and reason) of that tick; and an info line when the
+hold ends. A robot that creeps out of its 2 cm and is held again within ``RESUME_S`` and
+``RESUME_M`` of the last hold continues that hold (one report, ``seconds`` from its start), so a
+robot edging along a bound is one warning, not one a second.
 `formation bridge` keeps the newest ``KEPT_REPORTS`` holds in its summary (``holds``)::
 
     {"robot": "r4", "from_tick": 20, "seconds": 11.0, "target_m": 0.37, "ended": false,
@@ -32,6 +35,7 @@ log = logging.getLogger(__name__)
 FILTER_TOLERANCE = 0.05   # [m/s^2] a command changed by less is the policy's own
 NEAR_M = 0.3              # [m] robots not listening reported within this distance
 KEPT_REPORTS = 1000       # the newest holds kept for the summary (a node may run for days)
+RESUME_S, RESUME_M = 2.0, 0.05   # a hold again within this long and this near continues the last
 
 
 @dataclass
@@ -53,6 +57,7 @@ class HoldWatch:
         self.dt, self.tolerance, self.accel_limit = dt, tolerance, accel_limit
         self.hold_ticks, self.radius = int(np.ceil(hold_s / dt - 1e-9)), radius
         self._holds: dict[str, _Hold] = {}
+        self._ended: dict[str, tuple[dict, int, np.ndarray]] = {}   # id -> last hold's report, end tick, anchor
         self.reports: list[dict] = []
         self._tick = 0
 
@@ -78,27 +83,47 @@ class HoldWatch:
             hold.ticks += 1
             hold.pushed += bool(changed[i])
             if hold.report is None and hold.ticks >= self.hold_ticks and 2 * hold.pushed >= hold.ticks:
-                filt = str(result.safety_status or "") + (f" ({result.safety_reason})" if result.safety_reason else "")
-                hold.report = {"robot": str(rid), "from_tick": hold.from_tick, "seconds": None,
-                               "target_m": round(float(to_target[i]), 3), "ended": False,
-                               "not_listening": self._not_listening(state, stale, pos[i], i), "filter": filt}
-                self.reports.append(hold.report)
-                if len(self.reports) > KEPT_REPORTS:
-                    del self.reports[0]
-                log.warning("%s held in place by the safety filter for %.1f s, %.3f m from the nearest "
-                            "target; robots not listening nearby: %s; filter: %s", rid, hold.ticks * self.dt,
-                            to_target[i], hold.report["not_listening"] or "none", filt or "-")
+                hold.report = self._resumed(rid, hold) or self._report(state, result, rid, i, to_target[i], stale)
             if hold.report is not None:
-                hold.report["seconds"] = round(hold.ticks * self.dt, 2)
+                hold.report["seconds"] = round((self._tick - hold.report["from_tick"] + 1) * self.dt, 2)
         for rid in set(self._holds) - set(ids):
             self._end(rid)
         self._tick += 1
+
+    def _report(self, state: FleetState, result: TickResult, rid: str, i: int, to_target: float,
+                stale: np.ndarray) -> dict:
+        """A new hold's report, logged as a warning."""
+        filt = str(result.safety_status or "") + (f" ({result.safety_reason})" if result.safety_reason else "")
+        hold = self._holds[rid]
+        report = {"robot": str(rid), "from_tick": hold.from_tick, "seconds": None,
+                  "target_m": round(float(to_target), 3), "ended": False,
+                  "not_listening": self._not_listening(state, stale, state.positions[i], i), "filter": filt}
+        self.reports.append(report)
+        if len(self.reports) > KEPT_REPORTS:
+            del self.reports[0]
+        log.warning("%s held in place by the safety filter for %.1f s, %.3f m from the nearest target; "
+                    "robots not listening nearby: %s; filter: %s", rid, hold.ticks * self.dt, to_target,
+                    report["not_listening"] or "none", filt or "-")
+        return report
+
+    def _resumed(self, rid: str, hold: _Hold) -> dict | None:
+        """The report of this robot's last hold, if it ended lately and near here (RESUME_S, RESUME_M)."""
+        last = self._ended.pop(rid, None)
+        if last is None:
+            return None
+        report, ended_tick, anchor = last
+        if (self._tick - ended_tick) * self.dt > RESUME_S or np.linalg.norm(hold.anchor - anchor) > RESUME_M:
+            return None
+        report["ended"] = False
+        log.info("%s held again", rid)
+        return report
 
     def _end(self, rid: str) -> None:
         hold = self._holds.pop(rid, None)
         if hold is not None and hold.report is not None:
             hold.report["ended"] = True
-            log.warning("%s no longer held (%.1f s)", rid, hold.ticks * self.dt)
+            self._ended[rid] = (hold.report, self._tick, hold.anchor)
+            log.info("%s no longer held (%.1f s)", rid, hold.report["seconds"])
 
     @staticmethod
     def _not_listening(state: FleetState, stale: np.ndarray, at: np.ndarray, me: int) -> list:

@@ -244,7 +244,7 @@ def test_a_robot_that_falls_silent_in_the_others_path_is_never_touched(tmp_path)
     touches, closest = silent_contacts(sim, 2)
     assert touches == 0 and closest >= TOUCH, (touches, closest)
     assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
-    # r4 stands 57 mm from its target, held off by r2's bound: the operator is told, and by whom
+    # r4 stands 58 mm from its target, held off by r2's bound: the operator is told, and by whom
     holds = bridge["holds"]
     assert holds and {h["robot"] for h in holds} == {"r4"}, holds
     assert all(h["not_listening"][0][0] == "r2" and h["target_m"] > 0.05 for h in holds)

@@ -38,7 +38,7 @@ def test_a_robot_pushed_against_the_filter_for_a_second_is_reported_once_with_wh
     held; r0 stepping 3 cm ends the hold."""
     watch = HoldWatch(DT, tolerance=0.05, accel_limit=1.0)
     targets = [[0.5, 0.2], [0.8, 0.8]]
-    with caplog.at_level(logging.WARNING, logger="stack.hold_watch"):
+    with caplog.at_level(logging.INFO, logger="stack.hold_watch"):
         for k in range(25):
             state = _state([[0.3 + 0.001 * min(k, 19), 0.2], [0.8, 0.8]], targets, silent_at=[0.39, 0.2])
             cut = k % 5 != 0 and k % 5 != 4           # 3 of every 5 ticks: 12 of the first 20
@@ -53,9 +53,34 @@ def test_a_robot_pushed_against_the_filter_for_a_second_is_reported_once_with_wh
         assert report["filter"] == ""            # no filter status in these hand-built ticks
         watch.observe(_state([[0.35, 0.2], [0.8, 0.8]], targets), _result([[1.0, 0.0], [0, 0]], [[1.0, 0.0], [0, 0]]))
     assert watch.summary()[0]["ended"] is True
-    warnings = [r.getMessage() for r in caplog.records]
-    assert len(warnings) == 2 and "r0 held in place" in warnings[0] and "r9" in warnings[0]
-    assert "r0 no longer held (1.2 s)" in warnings[1]
+    lines = [(r.levelno, r.getMessage()) for r in caplog.records]
+    assert len(lines) == 2 and lines[0][0] == logging.WARNING and lines[1][0] == logging.INFO
+    assert "r0 held in place" in lines[0][1] and "r9" in lines[0][1]
+    assert "r0 no longer held (1.2 s)" in lines[1][1]
+
+
+def test_a_robot_edging_along_a_bound_is_one_hold(caplog):
+    """r0 held for 1.5 s, steps 3 cm (the hold ends), and is held again at once for 1.5 s, 3 cm
+    from where the first began: one report from tick 0, 3.05 s long, one warning. Held again
+    only after 3 s away, it is a second report."""
+    watch = HoldWatch(DT, tolerance=0.05, accel_limit=1.0)
+    targets = [[0.8, 0.2], [0.8, 0.8]]
+
+    def hold(x: float, ticks: int) -> None:
+        for _ in range(ticks):
+            watch.observe(_state([[x, 0.2], [0.8, 0.8]], targets), _result([[1.0, 0.0], [0, 0]], [[0.0, 0.0], [0, 0]]))
+
+    with caplog.at_level(logging.WARNING, logger="stack.hold_watch"):
+        hold(0.30, 30)
+        hold(0.33, 31)
+        (report,) = watch.summary()
+        assert report["from_tick"] == 0 and report["seconds"] == 3.05 and report["ended"] is False
+        for k in range(60):                       # 3 s moving freely, far from the anchors
+            watch.observe(_state([[0.4 + 0.01 * k, 0.5], [0.8, 0.8]], targets),
+                          _result([[1.0, 0.0], [0, 0]], [[1.0, 0.0], [0, 0]]))
+        hold(0.33, 30)
+    assert [r["from_tick"] for r in watch.summary()] == [0, 121]
+    assert len(caplog.records) == 2
 
 
 @pytest.mark.parametrize("case", ["policy's own", "stale", "on target"])
