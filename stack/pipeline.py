@@ -82,7 +82,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -96,7 +95,7 @@ from controllers.jit import f64, warm_up
 from controllers.mec import ModelErrorCompensator
 from controllers.observation_kernels import fleet_tokens
 from controllers.position_estimator import PositionEstimator
-from controllers.safety import SafetyFilter, SafetyResult, braking_acceleration
+from controllers.safety import SafetyFilter, braking_acceleration
 from controllers.safety.latency import LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
 from deploy.export import ExportedPolicy
@@ -113,28 +112,10 @@ from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
 from stack.policy_io import StackError, _mask_is_optional, load_policy
 from stack.team_view import team_view
-from stack.tick_types import PolicyStatus, StackConfig, TickResult
+from stack.tick_types import PolicyStatus, SafeStage, StackConfig, TickResult
 
 PolicyLike = (nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path
               | Callable[[FleetState], np.ndarray])
-
-
-@dataclass
-class SafeStage:
-    """The safety stage of one tick: the filter's result over M >= N robots (silent ones after
-    the N commanded, then the extra discs of silent robots at rest, :meth:`Prediction.with_covers`);
-    ``ids`` names the robots, the N commanded and the silent ones."""
-
-    result: SafetyResult
-    prediction: Prediction | None
-    size: int
-    ids: tuple[str, ...]
-
-    def full(self, rows: np.ndarray) -> np.ndarray:
-        """(M, 2): the N commanded rows, then the rest of the filter's (its answer, 0)."""
-        if len(rows) == self.size:
-            return rows
-        return np.vstack([rows, self.result.a_safe[len(rows):]])
 
 
 class ControlStack:

@@ -10,8 +10,8 @@ import numpy as np
 
 from controllers.docking import DockingConfig
 from controllers.mec import MecConfig, MecStatus
-from controllers.safety import SafetyConfig, SafetyStatus
-from controllers.safety.latency import LatencyConfig
+from controllers.safety import SafetyConfig, SafetyResult, SafetyStatus
+from controllers.safety.latency import LatencyConfig, Prediction
 
 
 class PolicyStatus(StrEnum):
@@ -117,4 +117,22 @@ class StackConfig:
     docking: DockingConfig = field(default_factory=DockingConfig)
 
 
-__all__ = ["PolicyStatus", "StackConfig", "TickResult"]
+@dataclass
+class SafeStage:
+    """The safety stage of one tick: the filter's result over M >= N robots (silent ones after
+    the N commanded, then the extra discs of silent robots at rest, :meth:`Prediction.with_covers`);
+    ``ids`` names the robots, the N commanded and the silent ones."""
+
+    result: SafetyResult
+    prediction: Prediction | None
+    size: int
+    ids: tuple[str, ...]
+
+    def full(self, rows: np.ndarray) -> np.ndarray:
+        """(M, 2): the N commanded rows, then the rest of the filter's (its answer, 0)."""
+        if len(rows) == self.size:
+            return rows
+        return np.vstack([rows, self.result.a_safe[len(rows):]])
+
+
+__all__ = ["PolicyStatus", "SafeStage", "StackConfig", "TickResult"]
