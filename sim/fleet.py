@@ -90,6 +90,45 @@ class SilentRobots:
 
 
 @dataclass
+class Obstacles:
+    """Things in the arena the controller does not command, seen by something else (a tracker
+    or camera over the arena): a person, a foreign robot, a box, or a robot of the fleet that
+    stopped reporting. The safety filter keeps each one as a fixed disc grown by how far it may
+    have moved (:meth:`controllers.safety.prediction.Prediction.with_obstacles`).
+
+    Attributes:
+        ids: K names.
+        positions: (K, 2) centres when seen [m].
+        radii: (K,) radii [m], > 0.
+        age_s: (K,) seconds since each was seen [s], >= 0.
+        speed: (K,) the fastest each may move [m/s], >= 0 (0: it stands still, e.g. a box).
+    """
+
+    ids: tuple[str, ...]
+    positions: np.ndarray
+    radii: np.ndarray
+    age_s: np.ndarray
+    speed: np.ndarray
+
+    def __post_init__(self) -> None:
+        k = len(self.ids)
+        pos = np.asarray(self.positions, dtype=np.float64).reshape(-1, 2)
+        if pos.shape != (k, 2) or not np.isfinite(pos).all():
+            raise ValueError(f"Obstacles.positions must be {k} finite (x, y) centres [m], got {self.positions!r}")
+        self.positions = pos
+        for name, low, strict in (("radii", 0.0, True), ("age_s", 0.0, False), ("speed", 0.0, False)):
+            arr = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            ok = arr.shape == (k,) and np.isfinite(arr).all() and ((arr > low) if strict else (arr >= low)).all()
+            if not ok:
+                raise ValueError(f"Obstacles.{name} must be {k} finite values {'>' if strict else '>='} {low}, "
+                                 f"got {getattr(self, name)!r}")
+            setattr(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass
 class FleetState:
     """A snapshot of the fleet.
 
@@ -113,6 +152,8 @@ class FleetState:
             ``last_cmd_seq``), -1 where unknown; None: unknown for all. The safety filter then
             predicts each robot through exactly those commands, not through as many as its
             latency bound allows (which counts commands that already acted twice).
+        obstacles: what a tracker sees that the controller does not command (see
+            :class:`Obstacles`); None: nothing.
     """
 
     time: float
@@ -126,6 +167,7 @@ class FleetState:
     silent: SilentRobots | None = None
     command_delay_s: float | None = None
     commands_pending: np.ndarray | None = None
+    obstacles: Obstacles | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)

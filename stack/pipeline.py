@@ -44,6 +44,8 @@ every per-robot estimate is keyed by robot id)::
                    the command delay, through the commands in flight; discs grown by what the
                    prediction cannot know; stale and silent robots fixed obstacles with their
                    reachable disc
+      -> obstacles: FleetState.obstacles (a tracker's sightings) appended as fixed discs grown by
+                   how far each may move (Prediction.with_obstacles)
       -> safety:   controllers.safety.SafetyFilter.filter(..., prediction=) (optional)
                    => a_safe (N, 2), SafetyStatus
       -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
@@ -465,12 +467,28 @@ class ControlStack:
                 extra = prediction.pos[len(pos):]
                 pos, vel = np.vstack([pos, extra]), np.vstack([vel, np.zeros_like(extra)])
                 a_nom = np.vstack([a_nom, np.zeros_like(extra)])
+        obstacles = state.obstacles
+        if obstacles is not None and len(obstacles):
+            prediction = self._with_obstacles(prediction, obstacles, pos, vel, unknown, state.command_delay_s)
+            rest = np.zeros((len(obstacles), 2))
+            pos, vel, a_nom = np.vstack([pos, obstacles.positions]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
         self._last_prediction = prediction     # the detours of the next tick keep clear of its discs
         return SafeStage(result, prediction, len(pos), ids)
+
+    def _with_obstacles(self, prediction: Prediction | None, obstacles, pos: np.ndarray, vel: np.ndarray,
+                        unknown: np.ndarray, measured_delay_s: float | None) -> Prediction:
+        """``prediction`` (or, with the latency prediction off, the rows as measured) with the
+        tracker's obstacles appended, each reaching as far as it may move by the end of the tick
+        the new command acts in (its age, the latency bound, one tick)."""
+        prediction = prediction or Prediction.as_measured(pos, vel, unknown)
+        delay = max(self.config.latency.command_delay_s, measured_delay_s or 0.0)
+        reach = obstacles.age_s + delay + self.dynamics.dt
+        return prediction.with_obstacles(obstacles.positions, obstacles.radii, reach, obstacles.speed,
+                                         self.scenario.robot_radius)
 
     def _resize(self, n: int) -> None:
         """A new robot count: the filter builds (once) and caches its QP for N; the compensator

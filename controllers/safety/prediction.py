@@ -77,6 +77,48 @@ class Prediction:
                             else np.concatenate([self.velocity_error, extra_closing])),
             unsure=more(self.unsure, False))
 
+    @classmethod
+    def as_measured(cls, pos: np.ndarray, vel: np.ndarray, fixed: np.ndarray) -> Prediction:
+        """The rows as measured, nothing predicted or grown (the latency prediction off)."""
+        m = len(pos)
+        return cls(pos=np.asarray(pos, dtype=np.float64), vel=np.asarray(vel, dtype=np.float64), grow=np.zeros(m),
+                   closing=np.zeros(m), fixed=np.asarray(fixed, dtype=bool).copy(), horizon=np.zeros(m, dtype=np.int64))
+
+    def with_obstacles(self, centres: np.ndarray, radii: np.ndarray, reach_s: np.ndarray, speed: np.ndarray,
+                       robot_radius: float) -> Prediction:
+        """The prediction with K obstacles appended as fixed rows (:class:`sim.fleet.Obstacles`).
+
+        An obstacle of radius ``R`` seen at ``c`` moving at most ``s`` [m/s] is, ``reach_s``
+        [s] after it was seen (its age, the latency bound and the tick the command lasts),
+        within ``R + s reach_s`` of ``c``. As a row of robot radius ``r``: a fixed disc at
+        ``c`` (velocity 0) with ``grow = max(R - r, 0) + s reach_s`` [m] and ``closing = s``
+        [m/s], so the barrier counts it as approaching at ``s`` along every row's normal and the
+        post-check sweeps against its grown disc. Robots' rows with it count on their own
+        braking alone, as with any fixed row; one that the obstacle outruns (``s`` above what
+        braking can answer) is braked by the fallback and the post-check.
+
+        Args:
+            centres: (K, 2) [m]; radii, reach_s, speed: (K,) [m], [s], [m/s].
+        """
+        k = len(centres)
+        if k == 0:
+            return self
+        speed = np.asarray(speed, dtype=np.float64)
+        grow = np.maximum(np.asarray(radii, dtype=np.float64) - robot_radius, 0.0) + speed * np.asarray(reach_s)
+
+        def more(x: np.ndarray | None, rows: np.ndarray | float) -> np.ndarray | None:
+            if x is None:
+                return None
+            extra = np.broadcast_to(np.asarray(rows, dtype=x.dtype), (k, *x.shape[1:]))
+            return np.concatenate([x, extra])
+
+        return Prediction(
+            pos=more(self.pos, np.asarray(centres, dtype=np.float64)), vel=more(self.vel, 0.0),
+            grow=more(self.grow, grow), closing=more(self.closing, speed), fixed=more(self.fixed, True),
+            horizon=more(self.horizon, 0), brake_vel=more(self.brake_vel, 0.0),
+            velocity_error=more(self.velocity_error, speed), unsure=more(self.unsure, False),
+            covers=self.covers)
+
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
         return self.vel if self.brake_vel is None else self.brake_vel
