@@ -9,7 +9,7 @@ silent or stale robot keeps its neighbours off, for as long as it must.
 
 The watch logs one warning when a hold reaches ``hold_s``: the robot, how long, its distance to
 the nearest target, the robots not listening within ``NEAR_M`` of it (stale rows and silent robots,
-nearest first) and the filter's status (and reason) of that tick; and an info line when the
+and a tracker's obstacles by their edge, nearest first) and the filter's status (and reason) of that tick; and an info line when the
 hold ends. A robot that creeps out of its 2 cm and is held again within ``RESUME_S`` and
 ``RESUME_M`` of the last hold continues that hold (one report, ``seconds`` from its start), so a
 robot edging along a bound is one warning, not one a second.
@@ -127,12 +127,17 @@ class HoldWatch:
 
     @staticmethod
     def _not_listening(state: FleetState, stale: np.ndarray, at: np.ndarray, me: int) -> list:
-        """[[id, distance m], ...] of stale rows and silent robots within NEAR_M of ``at``."""
+        """[[id, distance m], ...] of stale rows, silent robots and obstacles (to their edge) within
+        NEAR_M of ``at``."""
         near = [(rid, float(np.linalg.norm(state.positions[k] - at)))
                 for k, rid in enumerate(state.robot_ids) if stale[k] and k != me]
         if state.silent is not None:
             near += [(rid, float(np.linalg.norm(p - at))) for rid, p in zip(state.silent.ids,
                                                                              state.silent.positions, strict=True)]
+        if state.obstacles is not None:          # a tracker's obstacles, by their edge
+            obs = state.obstacles
+            near += [(f"obstacle {oid}", float(np.linalg.norm(p - at) - r)) for oid, p, r in zip(
+                obs.ids, obs.positions, obs.radii, strict=True)]
         return [[str(rid), round(d, 3)] for rid, d in sorted(near, key=lambda x: x[1]) if d <= NEAR_M]
 
     def summary(self) -> list[dict]:

@@ -153,3 +153,25 @@ def test_a_deferred_watch_sees_each_tick_once_and_only_when_asked():
     watched.tick(state)
     watched.observe_last()
     assert [r["robot"] for r in watch.summary()] == ["r0"]
+
+
+def test_a_robot_held_by_a_trackers_obstacle_names_it():
+    """Scripted paper-3 with a 5 cm box on the way above the object (the case of
+    tests/stack/test_obstacles.py): the robot the filter holds behind it is reported with the
+    obstacle named, at its edge."""
+    from controllers.scripted import ScriptedController
+    from sim.fleet import Obstacles
+    from stack.pipeline import ControlStack, StackConfig
+
+    sc = make_scenario("paper-3")
+    world = PymunkWorld(sc, ModelError(delay_ticks=2))
+    state = world.reset(seed=0)
+    watch = HoldWatch(sc.dynamics.dt, sc.target_tolerance, sc.dynamics.accel_limit)
+    stack = WatchedStack(ControlStack(sc, ScriptedController(sc), StackConfig()), watch)
+    box = Obstacles(("box",), [[0.5, 0.8]], [0.05], [0.1], [0.0])
+    for _ in range(sc.dynamics.episode_steps):
+        world.send_accelerations(stack.tick(state.replaced(obstacles=box)).a_cmd)
+        state = world.step()
+    reports = watch.summary()
+    assert reports and reports[0]["not_listening"][0][0] == "obstacle box", reports
+    assert 0.04 < reports[0]["not_listening"][0][1] < 0.1
