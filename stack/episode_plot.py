@@ -29,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.scenario import Scenario, clip_norm
+from sim.scenario import Scenario
 from stack.plots import draw_scene, new_figure, robot_colours, save_figure
 from stack.recorder import EpisodeRecord
+from stack.tick_types import FILTER_TOLERANCE, filter_changed
 
 
 class Mode(IntEnum):
@@ -48,8 +49,6 @@ class Mode(IntEnum):
 
 MODE_COLOURS = {Mode.POLICY: "#f2f2f2", Mode.DOCKING: "#2ca02c", Mode.DETOUR: "#9467bd",
                 Mode.FILTER: "#ff7f0e", Mode.STALE: "#7f7f7f", Mode.LINK: "#8c564b", Mode.ABSENT: "#000000"}
-FILTER_TOLERANCE = 0.05
-"""[m/s^2] a filter answer this close to the (norm-clipped) policy command counts as unchanged."""
 
 
 def robot_modes(record: EpisodeRecord, accel_limit: float, tolerance: float = FILTER_TOLERANCE) -> np.ndarray:
@@ -57,9 +56,7 @@ def robot_modes(record: EpisodeRecord, accel_limit: float, tolerance: float = FI
     modes = np.full(record.stale.shape, Mode.POLICY, dtype=np.int64)
     modes[record.docking] = Mode.DOCKING
     modes[record.detour] = Mode.DETOUR
-    asked = clip_norm(np.nan_to_num(record.a_nom).reshape(-1, 2), accel_limit).reshape(record.a_nom.shape)
-    changed = np.linalg.norm(np.nan_to_num(record.a_safe) - asked, axis=-1) > tolerance
-    modes[changed & record.present] = Mode.FILTER
+    modes[filter_changed(record.a_nom, record.a_safe, accel_limit, tolerance) & record.present] = Mode.FILTER
     modes[record.stale] = Mode.STALE
     modes[record.link_braked] = Mode.LINK
     modes[~record.present] = Mode.ABSENT

@@ -2,7 +2,8 @@
 
 A robot is *held* once, for ``hold_s``, it has stayed within ``radius`` [m] of where the hold
 began, farther than the scenario's tolerance from every target, with the stack's filter changing
-its command (by more than ``FILTER_TOLERANCE`` [m/s^2], as :mod:`stack.episode_plot` counts it)
+its command (by more than ``FILTER_TOLERANCE`` [m/s^2]: :func:`stack.tick_types.filter_changed`, as the
+episode figure counts it)
 on at least half of those ticks; a stale row is not held (it is not listening, and is braked for
 that). A robot standing next to one that stopped listening is the usual case: the bound round a
 silent or stale robot keeps its neighbours off, for as long as it must.
@@ -29,10 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim.fleet import FleetState
-from stack.tick_types import TickResult
+from stack.tick_types import TickResult, filter_changed
 
 log = logging.getLogger(__name__)
-FILTER_TOLERANCE = 0.05   # [m/s^2] a command changed by less is the policy's own
 NEAR_M = 0.3              # [m] robots not listening reported within this distance
 KEPT_REPORTS = 1000       # the newest holds kept for the summary (a node may run for days)
 RESUME_S, RESUME_M = 2.0, 0.05   # a hold again within this long and this near continues the last
@@ -64,9 +64,7 @@ class HoldWatch:
     def observe(self, state: FleetState, result: TickResult) -> None:
         """One tick: ``state`` as the stack was given it and the stack's answer."""
         pos, ids = np.asarray(state.positions, dtype=np.float64), state.robot_ids
-        asked = np.asarray(result.a_nom, dtype=np.float64)
-        norm = np.maximum(np.linalg.norm(asked, axis=1, keepdims=True), self.accel_limit)
-        changed = np.linalg.norm(result.a_safe - asked * (self.accel_limit / norm), axis=1) > FILTER_TOLERANCE
+        changed = filter_changed(result.a_nom, result.a_safe, self.accel_limit)
         stale = np.asarray(result.stale, dtype=bool)
         targets = np.asarray(state.targets, dtype=np.float64)
         to_target = np.linalg.norm(pos[:, None] - targets[None], axis=2).min(axis=1)

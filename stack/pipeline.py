@@ -485,8 +485,7 @@ class ControlStack:
         tracker's obstacles appended, each reaching as far as it may move by the end of the tick
         the new command acts in (its age, the latency bound, one tick)."""
         prediction = prediction or Prediction.as_measured(pos, vel, unknown)
-        delay = max(self.config.latency.command_delay_s, measured_delay_s or 0.0)
-        reach = obstacles.age_s + delay + self.dynamics.dt
+        reach = obstacles.age_s + self.config.latency.delay_bound(measured_delay_s) + self.dynamics.dt
         return prediction.with_obstacles(obstacles.positions, obstacles.radii, reach, obstacles.speed,
                                          self.scenario.robot_radius)
 

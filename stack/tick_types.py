@@ -12,6 +12,19 @@ from controllers.docking import DockingConfig
 from controllers.mec import MecConfig, MecStatus
 from controllers.safety import SafetyConfig, SafetyResult, SafetyStatus
 from controllers.safety.latency import LatencyConfig, Prediction
+from sim.scenario import clip_norm
+
+FILTER_TOLERANCE = 0.05
+"""[m/s^2] a filter answer this close to the (norm-clipped) policy command counts as unchanged."""
+
+
+def filter_changed(a_nom: np.ndarray, a_safe: np.ndarray, accel_limit: float,
+                   tolerance: float = FILTER_TOLERANCE) -> np.ndarray:
+    """(...,) bool: the filter's answer ``a_safe`` (..., 2) [m/s^2] differs from the policy's
+    ``a_nom``, clipped to ``accel_limit`` in norm, by more than ``tolerance`` (non-finite
+    values read as 0)."""
+    asked = clip_norm(np.nan_to_num(np.asarray(a_nom, dtype=np.float64)), accel_limit)
+    return np.linalg.norm(np.nan_to_num(np.asarray(a_safe, dtype=np.float64)) - asked, axis=-1) > tolerance
 
 
 class PolicyStatus(StrEnum):
@@ -135,4 +148,4 @@ class SafeStage:
         return np.vstack([rows, self.result.a_safe[len(rows):]])
 
 
-__all__ = ["PolicyStatus", "SafeStage", "StackConfig", "TickResult"]
+__all__ = ["FILTER_TOLERANCE", "PolicyStatus", "SafeStage", "StackConfig", "TickResult", "filter_changed"]

@@ -176,6 +176,10 @@ class LatencyConfig:
     cover_merge: float = 0.01
     cover_discs: int = 6
 
+    def delay_bound(self, measured_s: float | None) -> float:
+        """``L`` [s]: ``command_delay_s``, or the measured bound where that is larger."""
+        return max(self.command_delay_s, measured_s or 0.0)
+
     def __post_init__(self) -> None:
         check_numbers(self, ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
                              "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight",
@@ -276,7 +280,7 @@ class LatencyPredictor:
         self._jitter_left = np.zeros(0, dtype=np.int64)    # ticks the robot still counts as jittering
 
     def _max_delay(self, measured: float | None) -> float:
-        return max(self.config.command_delay_s, measured or 0.0)
+        return self.config.delay_bound(measured)
 
     def _align(self, ids: tuple[str, ...]) -> None:
         """Re-key the rows to ``ids`` (kept for known ids; new ones: no command, any acceleration)."""
@@ -463,7 +467,8 @@ class LatencyPredictor:
         braking law at their velocity), and for every other id kept (0: it is not listening)."""
         accel = f64(accel)
         require_shapes("LatencyPredictor.record_braking", accel=(accel, (len(ids), 2)))
-        others = tuple(rid for rid in self._ids if rid not in set(ids))
+        named = set(ids)
+        others = tuple(rid for rid in self._ids if rid not in named)
         self.record((*ids, *others), np.concatenate([accel, np.zeros((len(others), 2))]),
                     np.ones(len(ids) + len(others), dtype=bool))
 

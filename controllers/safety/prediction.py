@@ -65,17 +65,12 @@ class Prediction:
         if v == 0:
             return replace(self, pos=pos, grow=grow, covers=())
 
-        def more(x: np.ndarray | None, fill) -> np.ndarray | None:
-            return None if x is None else np.concatenate([x, np.full((v, *x.shape[1:]), fill, dtype=x.dtype)])
-
         extra_closing = np.array(extra_closing)
         return Prediction(
-            pos=np.vstack([pos, np.array(extra_pos)]), vel=more(self.vel, 0.0),
+            pos=np.vstack([pos, np.array(extra_pos)]), vel=_appended(self.vel, 0.0, v),
             grow=np.concatenate([grow, np.array(extra_grow)]), closing=np.concatenate([closing, extra_closing]),
-            fixed=more(self.fixed, True), horizon=more(self.horizon, 0), brake_vel=more(self.brake_vel, 0.0),
-            velocity_error=(None if self.velocity_error is None
-                            else np.concatenate([self.velocity_error, extra_closing])),
-            unsure=more(self.unsure, False))
+            fixed=_appended(self.fixed, True, v), horizon=_appended(self.horizon, 0, v), brake_vel=_appended(self.brake_vel, 0.0, v),
+            velocity_error=_appended(self.velocity_error, extra_closing, v), unsure=_appended(self.unsure, False, v))
 
     @classmethod
     def as_measured(cls, pos: np.ndarray, vel: np.ndarray, fixed: np.ndarray) -> Prediction:
@@ -105,23 +100,23 @@ class Prediction:
             return self
         speed = np.asarray(speed, dtype=np.float64)
         grow = np.maximum(np.asarray(radii, dtype=np.float64) - robot_radius, 0.0) + speed * np.asarray(reach_s)
-
-        def more(x: np.ndarray | None, rows: np.ndarray | float) -> np.ndarray | None:
-            if x is None:
-                return None
-            extra = np.broadcast_to(np.asarray(rows, dtype=x.dtype), (k, *x.shape[1:]))
-            return np.concatenate([x, extra])
-
         return Prediction(
-            pos=more(self.pos, np.asarray(centres, dtype=np.float64)), vel=more(self.vel, 0.0),
-            grow=more(self.grow, grow), closing=more(self.closing, speed), fixed=more(self.fixed, True),
-            horizon=more(self.horizon, 0), brake_vel=more(self.brake_vel, 0.0),
-            velocity_error=more(self.velocity_error, speed), unsure=more(self.unsure, False),
+            pos=_appended(self.pos, np.asarray(centres, dtype=np.float64), k), vel=_appended(self.vel, 0.0, k),
+            grow=_appended(self.grow, grow, k), closing=_appended(self.closing, speed, k), fixed=_appended(self.fixed, True, k),
+            horizon=_appended(self.horizon, 0, k), brake_vel=_appended(self.brake_vel, 0.0, k),
+            velocity_error=_appended(self.velocity_error, speed, k), unsure=_appended(self.unsure, False, k),
             covers=self.covers)
 
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
         return self.vel if self.brake_vel is None else self.brake_vel
+
+
+def _appended(x: np.ndarray | None, rows: np.ndarray | float, k: int) -> np.ndarray | None:
+    """``x`` (M, ...) with ``k`` rows of ``rows`` (a value, or (k, ...) values) after it; None stays None."""
+    if x is None:
+        return None
+    return np.concatenate([x, np.broadcast_to(np.asarray(rows, dtype=x.dtype), (k, *x.shape[1:]))])
 
 
 __all__ = ["Prediction"]
