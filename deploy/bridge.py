@@ -19,7 +19,10 @@ Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic cloc
       only with a new state (the controller keys its estimates by robot id and resets them); a
       state of a new link (another epoch) that arrives before the rejoining robot's token is
       kept, an obstacle until the token comes and a row from then on;
-    * **unknown**: live without a usable state: sent BRAKE (``state_seq`` 0) on each tick.
+    * **unknown**: live without a usable state: sent BRAKE (``state_seq`` 0) on each tick;
+    * **obstacles**: what a tracker reports on the fleet's sightings key (:mod:`deploy.tracker`),
+      passed as ``FleetState.obstacles`` with each sighting's age, so the safety filter keeps
+      every robot clear of them; never commanded.
 
 Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
 own fresh velocity) when its state is older than ``stale_after_s`` when the command goes out
@@ -101,6 +104,7 @@ from deploy.network import TransportConfig
 from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
 from deploy.rearm_watch import RearmWatch
 from deploy.reject_log import RejectLog
+from deploy.tracker import SightingTable
 from deploy.transport import FleetLink, ReceivedState
 from deploy.wire import (
     BRAKE_OR_STOP,
@@ -162,6 +166,7 @@ class Bridge:
             shared = isinstance(transport, TransportConfig) and transport.loopback_only()
         self.link = FleetLink(fleet, registry, transport, clock_ns=time.monotonic_ns if self.clock is None else self.clock,
                               lossless=config.lossless or config.lockstep, shared_clock=bool(shared))
+        self.sightings = SightingTable.listening(self.link, uplink=self.clock is None)
         self.stats = BridgeStats()
         self.uplink = UplinkExcess()
         self.round_trips = RoundTrips(config.delay_window, config.delay_percentile)
@@ -310,7 +315,7 @@ class Bridge:
             self.stats.estops += 1
         return operator_answer(request, self.link, self._silence, self.config.estop_after_s)
 
-    def _fleet_state(self, view: _View) -> FleetState:
+    def _fleet_state(self, view: _View, now: int) -> FleetState:
         rows = [rs.msg for rs in view.rows]
         silent = None
         if view.silent:
@@ -329,7 +334,8 @@ class Bridge:
             state_age_s=np.array(view.ages), silent=silent,
             command_delay_s=self.round_trips.bound_s(),
             commands_pending=np.array([self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
-                                       for rs in view.rows], dtype=np.int64).reshape(-1))
+                                       for rs in view.rows], dtype=np.int64).reshape(-1),
+            obstacles=self.sightings.obstacles(now))
 
     def _silent_pending(self, rs: ReceivedState) -> int:
         """A silent robot's ``SilentRobots.commands_pending`` (module docstring, Command delay):
@@ -423,7 +429,7 @@ class Bridge:
         self._new_episode(view)
         for rs in view.rows:
             self.round_trips.observe(rs)
-        state = self._fleet_state(view)
+        state = self._fleet_state(view, now)
         controller_flags, commands, controller_s = self._run_controller(state)
         late_s = (self.link.clock_ns() - now) / 1e9  # the picture aged while the controller ran
         if self.clock is not None:
@@ -476,7 +482,8 @@ class Bridge:
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s, "heap_frozen": s.heap_frozen,
                 "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
                 "command_delay_s": self.round_trips.bound_s(),
-                "round_trip_ms": self.round_trips.summary(), **self.rearm.summary()}
+                "round_trip_ms": self.round_trips.summary(), **self.rearm.summary(),
+                "sightings": self.sightings.summary()}
 
     def close(self) -> None:
         self.link.close()

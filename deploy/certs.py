@@ -35,7 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from sim.files import atomic_path
 
-CONTROLLER, FLEET_SIM, ROUTER, OPERATOR = "controller", "fleet-sim", "router", "operator"
+CONTROLLER, FLEET_SIM, ROUTER, OPERATOR, TRACKER = "controller", "fleet-sim", "router", "operator", "tracker"
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_\-]{0,62}")
 
 
@@ -56,7 +56,7 @@ class NodeFiles:
         if missing:
             raise FileNotFoundError(f"certificates for {node!r} not found: {', '.join(missing)}; "
                                     f"run: formation certs --out {folder} (names: controller, "
-                                    "fleet-sim, router and the robots given with --robots)")
+                                    "fleet-sim, router, operator, tracker and the robots given with --robots)")
         return files
 
 

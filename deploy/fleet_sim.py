@@ -77,6 +77,13 @@ command's wall-clock age says nothing, so only FROM_FUTURE applies there. In rea
 also refuses a CMD answering a STATE it sent more than ``MAX_ANSWER_AGE_S`` (0.5 s) ago by its
 own clock (STALE_ANSWER, :class:`deploy.robot_link.RobotLink`): on any link, shared clock or not.
 
+Intruders (``intruders``, :class:`sim.intruders.Intruder`): discs that walk straight lines
+through the arena, restarted every episode. The fleet's simulated tracker
+(:class:`deploy.tracker.SimulatedTracker`) publishes each one as a SIGHTING on the fleet's
+sightings key before the robots' states of every tick, and GONE when it leaves; each episode's
+record (and the summary, for the last one) says how close the robots came and whether one drove
+into an intruder (``intruders``: ``min_gap_mm``, ``drive_in_ticks``, ``max_drive_in_speed``).
+
 Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
 lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
 a robot whose first event is a join starts offline; an offline robot brakes and is not
@@ -97,81 +104,16 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from deploy.network import TransportConfig
+from deploy.fleet_sim_config import FleetSimConfig, WatchdogConfig, robot_names
 from deploy.reject_log import RejectLog
 from deploy.robot_link import MAX_ANSWER_AGE_S, RobotLink
+from deploy.tracker import SightingPublisher, SimulatedTracker
 from deploy.wire import CmdFlags, RobotRegistry, StateStatus
 from sim.files import atomic_write_text
-from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import Scenario
+from sim.pymunk_world import PymunkWorld
 
 TRACE_TICKS = 12_000
 """Ticks of trace a real-time run without ``max_ticks`` keeps (10 minutes at 20 Hz)."""
-
-
-def robot_names(n: int) -> tuple[str, ...]:
-    """Robot ids of a simulated fleet: ``r0 .. r{n-1}`` (row order of the scenario)."""
-    return tuple(f"r{i}" for i in range(n))
-
-
-@dataclass(frozen=True)
-class WatchdogConfig:
-    """brake_after_ticks: brake on this many ticks in a row without a fresh command (1: on the
-    first unanswered tick; see the module docstring); stop_after_s [s]: silence before the
-    latch (brake to rest, wait for a re-arm)."""
-
-    brake_after_ticks: int = 1
-    stop_after_s: float = 0.5
-
-    def __post_init__(self) -> None:
-        if isinstance(self.brake_after_ticks, bool) or not isinstance(self.brake_after_ticks, int) \
-                or self.brake_after_ticks < 1:
-            raise ValueError(f"brake_after_ticks must be an integer >= 1, got {self.brake_after_ticks!r}")
-        if not self.stop_after_s > 0:
-            raise ValueError(f"stop_after_s must be > 0 seconds, got {self.stop_after_s!r}")
-
-
-@dataclass
-class FleetSimConfig:
-    """See the module docstring. ``rate_hz=None`` selects lock-step."""
-
-    fleet: str
-    scenario: Scenario
-    transport: TransportConfig
-    model_error: ModelError = field(default_factory=ModelError)
-    seed: int = 0
-    rate_hz: float | None = 20.0
-    lockstep_timeout_s: float = 0.25
-    start_timeout_s: float = 30.0
-    max_ticks: int | None = None
-    drop_commands: float = 0.0
-    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
-    events: tuple[tuple[int, str, str], ...] = ()
-    episodes: int | None = None
-    shared_clock: bool | None = None
-    playout_ticks: int = 0
-
-    def clock_is_shared(self) -> bool:
-        """``shared_clock``, or (None) whether every endpoint is on loopback: the controller then
-        runs on this host, and its CMDs' send times are on this clock (module docstring)."""
-        return self.transport.loopback_only() if self.shared_clock is None else bool(self.shared_clock)
-
-    def __post_init__(self) -> None:
-        if self.episodes is not None and (isinstance(self.episodes, bool)
-                                          or not isinstance(self.episodes, int) or self.episodes < 1):
-            raise ValueError(f"episodes must be a positive integer (or None), got {self.episodes!r}")
-        if self.rate_hz is not None and not self.rate_hz > 0:
-            raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
-        if isinstance(self.playout_ticks, bool) or not isinstance(self.playout_ticks, int) or self.playout_ticks < 0:
-            raise ValueError(f"playout_ticks must be an integer >= 0, got {self.playout_ticks!r}")
-        if not 0.0 <= self.drop_commands < 1.0:
-            raise ValueError(f"drop_commands must be in [0, 1), got {self.drop_commands!r}")
-        self.model_error.check_team(self.scenario)
-        names = robot_names(self.scenario.num_robots)
-        for tick, robot, kind in self.events:
-            if robot not in names or kind not in ("leave", "join") or tick < 0:
-                raise ValueError(f"event {(tick, robot, kind)!r}: write (tick >= 0, one of "
-                                 f"{names}, 'leave' | 'join')")
 
 
 @dataclass
@@ -228,6 +170,7 @@ class FleetSim:
         self.closed_link_missed = 0
         self._reject_log = RejectLog(f"fleet-sim {config.fleet}", self.rejects)
         self.session: zenoh.Session | None = None
+        self.tracker: SimulatedTracker | None = None
 
     def stop(self) -> None:
         self._stop.set()
@@ -346,6 +289,8 @@ class FleetSim:
     def _start_episode(self):
         """Reset the world for episode ``len(self.episodes)``; return its measured state."""
         state = self.world.reset(seed=self.config.seed + len(self.episodes))
+        if self.tracker is not None:
+            self.tracker.reset()
         self._episode = {"positions": [self.world.true_state().positions.round(6).tolist()],
                          "contacts": [], "round_trip_ms": [], "timeout_ticks": []}
         return state
@@ -376,6 +321,8 @@ class FleetSim:
                       "p50": float(np.percentile(rtt, 50)), "p99": float(np.percentile(rtt, 99)),
                       "max": float(rtt.max())},
                   "positions": ep["positions"], "contacts": ep["contacts"]}
+        if self.tracker is not None:
+            record["intruders"] = self.tracker.watch.summary()
         self.episodes.append(record)
         if self.on_episode is not None:
             self.on_episode(record)
@@ -421,6 +368,9 @@ class FleetSim:
         cfg = self.config
         self.session = cfg.transport.open()
         try:
+            if cfg.intruders:
+                self.tracker = SimulatedTracker(SightingPublisher(self.session, cfg.fleet, lossless=self.lossless),
+                                                cfg.intruders, cfg.scenario.robot_radius, cfg.scenario.dynamics.dt)
             first_event = {}
             for _, name, kind in sorted(cfg.events):
                 first_event.setdefault(name, kind)
@@ -440,6 +390,8 @@ class FleetSim:
                     state = self._start_episode()
                     self._timeouts_before = self.lockstep_timeouts
                 self._apply_events()
+                if self.tracker is not None:
+                    self.tracker.look(self._episode_tick())
                 now_ns = time.monotonic_ns()
                 published_ns = None
                 accels = np.zeros((len(self.robots), 2))
@@ -477,6 +429,9 @@ class FleetSim:
                 state = self.world.step()
                 self._acted = self._acted_seqs(state)
                 self.tick += 1
+                if self.tracker is not None:
+                    true = self.world.true_state()
+                    self.tracker.watch.observe(self._episode_tick(moved=True), true.positions, true.velocities)
                 self._reject_log.poll()
                 if self._episode is not None:
                     self._record_tick(round_trip_ms)
@@ -487,6 +442,13 @@ class FleetSim:
                 self._close_link(robot)
             self.session.close()
         return self.summary()
+
+    def _episode_tick(self, moved: bool = False) -> int:
+        """Tick of the current episode (of the run, without episodes) the world is at; ``moved``:
+        the world stepped and the tick is not recorded yet."""
+        if self._episode is None:
+            return self.tick
+        return len(self._episode["contacts"]) + moved
 
     def _acted_seqs(self, state) -> np.ndarray:
         """(N,) seq of the command each robot acted on in the motion ``state`` measures: the
@@ -505,6 +467,7 @@ class FleetSim:
                 "positions": true.positions.tolist(),
                 "speeds": np.linalg.norm(true.velocities, axis=1).tolist(),
                 "dropped_commands": self.dropped, "missed_commands": self.missed_commands(),
+                "intruders": None if self.tracker is None else self.tracker.watch.summary(),
                 "ignored_while_latched": self.ignored_while_latched,
                 "ignored_without_controller": self.ignored_without_controller,
                 "lockstep_timeouts": self.lockstep_timeouts, "rejects": self.rejects(),

@@ -71,6 +71,7 @@ class FleetKeys:
         self.estop = f"{self.prefix}/estop"
         self.all_states = f"{self.prefix}/robot/*/state"
         self.all_robot_alive = f"{self.prefix}/robot/*/alive"
+        self.sightings = f"{self.prefix}/tracker/sightings"   # SIGHTING messages (deploy.tracker)
 
     def state(self, robot: str) -> str:
         return f"{self.prefix}/robot/{check_name(robot)}/state"

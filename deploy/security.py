@@ -13,8 +13,10 @@ only (keys under ``formation/<fleet>/``)::
     robot <rid>    puts      robot/<rid>/state           (its own state, nothing else)
                    declares  its token robot/<rid>/alive; subscribers on robot/<rid>/cmd and
                              estop, a liveliness subscriber on ctrl/alive; queries estop
-    fleet-sim      the rights of every robot             (one process simulating the fleet)
+    fleet-sim      the rights of every robot and of the tracker (one process simulating the
+                   fleet and the intruders its tracker sees)
     operator       queries ctrl/operator                 (formation estop: engage, release, status)
+    tracker        puts      tracker/sightings           (obstacles it sees: deploy.tracker)
 
 and towards each node (egress) only what it may read: the controller everything under the fleet,
 a robot its own command, the e-stop and the controller's token. A robot's certificate can
@@ -30,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, NodeFiles
+from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, TRACKER, NodeFiles
 
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
@@ -78,15 +80,18 @@ def fleet_acl(fleet: str, robots: Iterable[str]) -> dict:
     ]
     rules += [_rule("operator-ask", "ingress", ("query",), (f"{prefix}/ctrl/operator",)),
               _rule("operator-answer", "egress", ("reply", "declare_queryable"), (f"{prefix}/ctrl/operator",))]
+    rules.append(_rule("tracker-put", "ingress", ("put",), (f"{prefix}/tracker/sightings",)))
     subjects = [{"id": CONTROLLER, "cert_common_names": [CONTROLLER]},
                 {"id": FLEET_SIM, "cert_common_names": [FLEET_SIM]},
-                {"id": OPERATOR, "cert_common_names": [OPERATOR]}]
+                {"id": OPERATOR, "cert_common_names": [OPERATOR]},
+                {"id": TRACKER, "cert_common_names": [TRACKER]}]
     policies = [{"rules": ["controller-put", "controller-declare", "controller-receive"],
                  "subjects": [CONTROLLER]},
-                {"rules": ["operator-ask", "operator-answer"], "subjects": [OPERATOR]}]
+                {"rules": ["operator-ask", "operator-answer"], "subjects": [OPERATOR]},
+                {"rules": ["tracker-put"], "subjects": [TRACKER]}]
     sim_rules = _robot_rules(prefix, "*", FLEET_SIM)
     rules += sim_rules
-    policies.append({"rules": [r["id"] for r in sim_rules], "subjects": [FLEET_SIM]})
+    policies.append({"rules": [r["id"] for r in sim_rules] + ["tracker-put"], "subjects": [FLEET_SIM]})
     for rid in robots:
         own = _robot_rules(prefix, rid, f"robot-{rid}")
         rules += own

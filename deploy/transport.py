@@ -233,6 +233,7 @@ class FleetLink(_Link):
         self._estop_engaged = False
         self._estop_order = threading.Lock()
         self.on_operator: Callable[[str], dict] | None = None
+        self.on_sighting: Callable[[bytes], None] | None = None
         self._open_or_close(queue_capacity)
 
     def _open(self, capacity: int) -> None:
@@ -243,6 +244,8 @@ class FleetLink(_Link):
         self._subscribe(s.liveliness().declare_subscriber(
             self.keys.all_robot_alive, zenoh.handlers.RingChannel(capacity), history=True),
             self._on_liveliness, "alive")
+        self._subscribe(s.declare_subscriber(self.keys.sightings, zenoh.handlers.RingChannel(capacity)),
+                        self._on_sighting, "sightings")
         self._subscribe(s.declare_queryable(self.keys.operator, zenoh.handlers.RingChannel(8)),
                         self._on_operator_query, "operator")
         self._subscribe(s.declare_queryable(self.keys.estop, zenoh.handlers.RingChannel(64)),
@@ -270,6 +273,13 @@ class FleetLink(_Link):
             if isinstance(msg, StateMsg):
                 self._states[robot] = ReceivedState(robot, msg, now)
                 self._cond.notify_all()
+
+    def _on_sighting(self, sample: zenoh.Sample) -> None:
+        """A tracker's SIGHTING, handed to ``on_sighting`` (set by the controller,
+        :class:`deploy.tracker.SightingTable`; none: not listened to)."""
+        handler = self.on_sighting
+        if handler is not None:
+            handler(sample.payload.to_bytes())
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         robot = self.keys.robot_in(str(sample.key_expr), "alive")

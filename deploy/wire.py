@@ -7,6 +7,7 @@ Every message is one 24-byte header followed by a fixed-size body chosen by the 
     STATE   <ddddII      position x, y [m], velocity x, y [m/s] (f64), last_cmd_seq, reserved
     CMD     <ddIHH       acceleration x, y [m/s^2] (f64), state_seq, ttl_ms, reserved
     ESTOP   <II          reason_code, reserved
+    SIGHTING <ddddHH     position x, y [m], radius [m], top speed [m/s] (f64), capture_age_ms, reserved
 
 ``send_time_ns`` is the sender's monotonic clock (``time.monotonic_ns()``, CLOCK_MONOTONIC). It
 is comparable with the receiver's clock only when both share it (same host) or the clocks are
@@ -42,6 +43,7 @@ HEADER = struct.Struct("<2sBBHHIIQ")
 STATE_BODY = struct.Struct("<ddddII")
 CMD_BODY = struct.Struct("<ddIHH")
 ESTOP_BODY = struct.Struct("<II")
+SIGHTING_BODY = struct.Struct("<ddddHH")
 HEADER_SIZE = HEADER.size  # 24
 
 
@@ -51,12 +53,14 @@ class MsgType(IntEnum):
     STATE = 1  # robot -> controller
     CMD = 2  # controller -> robot
     ESTOP = 3  # controller -> fleet, latched
+    SIGHTING = 4  # tracker -> controller: a disc it sees that the controller does not command
 
 
 MESSAGE_SIZE = {
     MsgType.STATE: HEADER_SIZE + STATE_BODY.size,  # 64
     MsgType.CMD: HEADER_SIZE + CMD_BODY.size,  # 48
     MsgType.ESTOP: HEADER_SIZE + ESTOP_BODY.size,  # 32
+    MsgType.SIGHTING: HEADER_SIZE + SIGHTING_BODY.size,  # 60
 }
 
 
@@ -83,15 +87,23 @@ class EstopFlags(IntFlag):
     ENGAGED = 1  # set: e-stop raised (latched); clear: e-stop released
 
 
+class SightingFlags(IntFlag):
+    """Header ``flags`` of a SIGHTING message."""
+
+    GONE = 1  # the tracker no longer sees this obstacle (left the arena): forget it
+
+
 ALLOWED_FLAGS = {
     MsgType.STATE: int(StateStatus.ESTOPPED | StateStatus.WATCHDOG_BRAKING
                        | StateStatus.CONTROLLER_LOST | StateStatus.FAULT | StateStatus.LOCKSTEP),
     MsgType.CMD: int(CmdFlags.BRAKE | CmdFlags.STOP),
     MsgType.ESTOP: int(EstopFlags.ENGAGED),
+    MsgType.SIGHTING: int(SightingFlags.GONE),
 }
 
 
 ESTOP_ENGAGED = int(EstopFlags.ENGAGED)
+GONE_BIT = int(SightingFlags.GONE)
 # The same bits as plain ints, for hot paths: ``int(flags) & BIT`` costs a tenth of ``flags & FLAG``
 # (an IntFlag operation builds a new flag value).
 FAULT_BIT = int(StateStatus.FAULT)
@@ -126,6 +138,7 @@ class Reason(IntEnum):
     FROM_FUTURE = 16  # send time ahead of the receiver's clock by more than the tolerance
     BAD_KEY = 17  # key expression does not follow the fleet layout
     STALE_ANSWER = 18  # CMD answering a STATE the robot sent longer ago than it accepts (or never)
+    BAD_VALUE = 19  # a SIGHTING's radius is not > 0 or its top speed is negative
 
 
 class Rejection(NamedTuple):
@@ -241,7 +254,28 @@ class EstopMsg:
     robot_id: int = ROBOT_ALL
 
 
-Message = StateMsg | CmdMsg | EstopMsg
+@dataclass(frozen=True, slots=True)
+class SightingMsg:
+    """Tracker -> controller: obstacle ``robot_id`` (the tracker's id for it, 0..0xFFFE; not a
+    robot) was a disc of ``radius`` [m] centred at ``position`` [m] ``capture_age_ms`` before
+    ``send_time_ns``, and moves at most ``max_speed`` [m/s]. ``gone``: no longer seen, forget it."""
+
+    TYPE: ClassVar[MsgType] = MsgType.SIGHTING
+    robot_id: int
+    epoch: int
+    seq: int
+    send_time_ns: int
+    position: tuple[float, float]
+    radius: float
+    max_speed: float
+    capture_age_ms: int = 0
+    gone: bool = False
+
+    def __post_init__(self) -> None:
+        _normalise_pairs(self, "position")
+
+
+Message = StateMsg | CmdMsg | EstopMsg | SightingMsg
 
 
 def _pair(value: object) -> object:
@@ -284,6 +318,8 @@ def _check_fields(msg: Message) -> Rejection | None:
         extras: tuple = (("last_cmd_seq", msg.last_cmd_seq, 32),)
     elif isinstance(msg, CmdMsg):
         extras = (("ttl_ms", msg.ttl_ms, 16), ("state_seq", msg.state_seq, 32))
+    elif isinstance(msg, SightingMsg):
+        extras = (("capture_age_ms", msg.capture_age_ms, 16),)
     else:
         extras = (("reason_code", msg.reason_code, 32),)
     for field, value, bits in extras:
@@ -312,6 +348,9 @@ def _check_meaning(msg: Message) -> Rejection | None:
         flags = int(msg.flags)
         if msg.ttl_ms == 0:
             return Rejection(Reason.BAD_TTL, "ttl_ms=0: a command must live 1..65535 ms")
+    elif t is MsgType.SIGHTING:
+        floats = (("position", msg.position), ("radius, max_speed", (msg.radius, msg.max_speed)))
+        flags = GONE_BIT if msg.gone else 0
     else:
         floats = ()
         flags = ESTOP_ENGAGED if msg.engaged else 0
@@ -323,6 +362,9 @@ def _check_meaning(msg: Message) -> Rejection | None:
             return Rejection(Reason.BAD_SIZE, f"{field} must have 2 components (x, y)")
         if not (math.isfinite(pair[0]) and math.isfinite(pair[1])):
             return Rejection(Reason.NON_FINITE, f"{field}={pair} contains NaN or inf")
+    if t is MsgType.SIGHTING and not (msg.radius > 0 and msg.max_speed >= 0):
+        return Rejection(Reason.BAD_VALUE, f"SIGHTING radius={msg.radius} must be > 0 m and "
+                         f"max_speed={msg.max_speed} >= 0 m/s")
     return None
 
 
@@ -342,6 +384,9 @@ def encode(msg: Message) -> bytes:
     elif isinstance(msg, CmdMsg):
         flags, body = int(msg.flags), CMD_BODY.pack(*msg.acceleration, msg.state_seq,
                                                     msg.ttl_ms, 0)
+    elif isinstance(msg, SightingMsg):
+        flags = GONE_BIT if msg.gone else 0
+        body = SIGHTING_BODY.pack(*msg.position, msg.radius, msg.max_speed, msg.capture_age_ms, 0)
     else:
         flags = ESTOP_ENGAGED if msg.engaged else 0
         body = ESTOP_BODY.pack(msg.reason_code, 0)
@@ -355,6 +400,7 @@ def decode(data: bytes | bytearray | memoryview,
 
     Checks, in this order: size >= 24, magic, version, type, ``expect`` (UNEXPECTED_TYPE),
     exact size for the type, flags, epoch/seq (BAD_SEQUENCE), robot id, ttl, finite floats,
+    a sighting's radius and speed (BAD_VALUE),
     reserved. Context checks (registry, staleness, expiry) are in :class:`WireDecoder`.
     """
     buf = memoryview(data).tobytes()  # TypeError for non-bytes-like input (a caller bug)
@@ -391,6 +437,10 @@ def decode(data: bytes | bytearray | memoryview,
         ax, ay, state_seq, ttl_ms, reserved = CMD_BODY.unpack_from(buf, HEADER_SIZE)
         msg = CmdMsg(robot_id, epoch, seq, send_time_ns, (ax, ay), ttl_ms, _CMD_FLAGS_BY_BITS[flags],
                      state_seq)
+    elif t is MsgType.SIGHTING:
+        px, py, radius, max_speed, capture_age_ms, reserved = SIGHTING_BODY.unpack_from(buf, HEADER_SIZE)
+        msg = SightingMsg(robot_id, epoch, seq, send_time_ns, (px, py), radius, max_speed, capture_age_ms,
+                          bool(flags & GONE_BIT))
     else:
         reason_code, reserved = ESTOP_BODY.unpack_from(buf, HEADER_SIZE)
         msg = EstopMsg(epoch, seq, send_time_ns, bool(flags & ESTOP_ENGAGED), reason_code,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, ROUTER, make_certs
+from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, ROUTER, TRACKER, make_certs
 from deploy.fleet_sim import robot_names
 from sim.scenario import make_scenario
 
@@ -36,7 +36,7 @@ def run(args) -> int:
     try:
         robots = (args.robots.split(",") if args.robots
                   else list(robot_names(make_scenario(args.scenario).num_robots)))
-        files = make_certs(args.out, [ROUTER, CONTROLLER, FLEET_SIM, OPERATOR, *robots], args.host, args.days)
+        files = make_certs(args.out, [ROUTER, CONTROLLER, FLEET_SIM, OPERATOR, TRACKER, *robots], args.host, args.days)
     except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -9,6 +9,10 @@ ends after K episodes; each finished episode prints one JSON line on stdout
 ({"episode": k, "success": ..., "final_distance": ..., "collisions": ...}) and the --report
 holds every episode's record (positions, contacts, round trips).
 
+With --intruder the fleet's simulated tracker reports discs crossing the arena (on the fleet's
+sightings key, which `formation bridge` listens to); each episode's line says how close the
+robots came ("intruders": min_gap_mm, drive_in_ticks).
+
 With --lockstep the robots' states are sent lossless (Zenoh congestion control BLOCK) and the
 world waits for every answer: start the bridge with --lockstep too, or a command lost on a busy
 machine stalls the tick for --lockstep-timeout.
@@ -28,6 +32,7 @@ import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
 from deploy.startup import freeze_start_up_heap
+from sim.intruders import Intruder
 from sim.scenario import make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
@@ -40,6 +45,13 @@ def _event(kind: str):
             raise argparse.ArgumentTypeError(f"expected ROBOT@TICK (e.g. r4@30), got {text!r}")
         return int(tick), robot, kind
     return parse
+
+
+def _intruder(text: str) -> Intruder:
+    try:
+        return Intruder.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def register(sub) -> None:
@@ -76,14 +88,18 @@ def register(sub) -> None:
                    metavar="ROBOT@TICK", help="close a robot's link at a tick")
     p.add_argument("--join", type=_event("join"), action="append", default=[],
                    metavar="ROBOT@TICK", help="open a robot's link at a tick")
+    p.add_argument("--intruder", type=_intruder, action="append", default=[], metavar="K=V,...",
+                   help="a disc the robots must keep clear of, reported by the fleet's simulated tracker: "
+                        "radius=R,x=X,y=Y[,vx=VX,vy=VY][,enter=TICK][,leave=TICK][,max_speed=V] in m, m/s "
+                        "and ticks of each episode (e.g. radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20); repeatable")
     argtypes.add_shared_clock_flag(p, "controller")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.set_defaults(func=run)
 
 
 def _print_episode(record: dict) -> None:
-    keys = ("episode", "ticks", "success", "final_distance", "collisions", "lockstep_timeouts")
-    print(json.dumps({k: record[k] for k in keys}), flush=True)
+    keys = ("episode", "ticks", "success", "final_distance", "collisions", "lockstep_timeouts", "intruders")
+    print(json.dumps({k: record[k] for k in keys if k in record}), flush=True)
 
 
 def run(args) -> int:
@@ -99,7 +115,7 @@ def run(args) -> int:
             start_timeout_s=args.start_timeout,
             watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
             events=tuple(args.leave + args.join), shared_clock=args.shared_clock,
-            playout_ticks=args.playout_ticks)
+            playout_ticks=args.playout_ticks, intruders=tuple(args.intruder))
     except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

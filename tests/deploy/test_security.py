@@ -22,7 +22,7 @@ K = f"formation/{FLEET}"
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
     folder = tmp_path_factory.mktemp("certs")
-    make_certs(folder, [ROUTER, CONTROLLER, "fleet-sim", "operator", *ROBOTS])
+    make_certs(folder, [ROUTER, CONTROLLER, "fleet-sim", "operator", "tracker", *ROBOTS])
     rogue = tmp_path_factory.mktemp("rogue")       # a CA of its own: a self-signed "controller"
     make_certs(rogue, [CONTROLLER])
     return folder, rogue
@@ -35,14 +35,16 @@ def client(folder, node: str, port: int) -> zenoh.Session:
 
 def exchange(folder, port: int) -> dict[str, list]:
     """The controller, r0 and an intruder holding r1's certificate, through the router: who
-    receives what. The intruder commands r0, forges r2's state and releases the e-stop."""
-    got: dict[str, list] = {"r0_cmd": [], "states": [], "estop": []}
+    receives what. The intruder commands r0, forges r2's state, releases the e-stop and reports
+    an obstacle that is not there; the tracker reports one."""
+    got: dict[str, list] = {"r0_cmd": [], "states": [], "estop": [], "sightings": []}
     with client(folder, CONTROLLER, port) as ctrl, client(folder, "r0", port) as r0, \
-            client(folder, "r1", port) as intruder:
+            client(folder, "r1", port) as intruder, client(folder, "tracker", port) as tracker:
         subs = [r0.declare_subscriber(f"{K}/robot/r0/cmd", lambda s: got["r0_cmd"].append(s.payload.to_bytes())),
                 r0.declare_subscriber(f"{K}/estop", lambda s: got["estop"].append(s.payload.to_bytes())),
                 ctrl.declare_subscriber(f"{K}/robot/*/state",
-                                        lambda s: got["states"].append((str(s.key_expr), s.payload.to_bytes())))]
+                                        lambda s: got["states"].append((str(s.key_expr), s.payload.to_bytes()))),
+                ctrl.declare_subscriber(f"{K}/tracker/sightings", lambda s: got["sightings"].append(s.payload.to_bytes()))]
         time.sleep(0.5)                              # declarations travel through the router
         ctrl.put(f"{K}/robot/r0/cmd", b"genuine")
         ctrl.put(f"{K}/estop", b"engage")
@@ -51,6 +53,9 @@ def exchange(folder, port: int) -> dict[str, list]:
         intruder.put(f"{K}/robot/r2/state", b"forged")
         intruder.put(f"{K}/estop", b"release")
         intruder.put(f"{K}/robot/r1/state", b"r1")   # its own: allowed
+        intruder.put(f"{K}/tracker/sightings", b"forged")
+        tracker.put(f"{K}/tracker/sightings", b"seen")
+        tracker.put(f"{K}/robot/r0/cmd", b"tracker")  # not its key
         time.sleep(0.5)
         del subs
     return got
@@ -65,6 +70,7 @@ def test_only_the_controller_commands_and_a_robot_speaks_only_for_itself(certs, 
     assert got["r0_cmd"] == [b"genuine"]
     assert got["estop"] == [b"engage"]
     assert sorted(got["states"]) == [(f"{K}/robot/r0/state", b"r0"), (f"{K}/robot/r1/state", b"r1")]
+    assert got["sightings"] == [b"seen"]
     # teeth: the same exchange on a router without the access control lets every forgery through
     open_acl = dict(fleet_acl(FLEET, ROBOTS), enabled=False)
     monkeypatch.setattr("deploy.router.fleet_acl", lambda *_: open_acl)
@@ -72,7 +78,8 @@ def test_only_the_controller_commands_and_a_robot_speaks_only_for_itself(certs, 
     config = RouterConfig(FLEET, ROBOTS, NodeFiles.in_dir(folder, ROUTER), (f"tls/127.0.0.1:{port}",))
     with Router(config):
         got = exchange(folder, port)
-    assert sorted(got["r0_cmd"]) == [b"forged", b"genuine"]
+    assert sorted(got["r0_cmd"]) == [b"forged", b"genuine", b"tracker"]
+    assert sorted(got["sightings"]) == [b"forged", b"seen"]
     assert sorted(got["estop"]) == [b"engage", b"release"]
     assert (f"{K}/robot/r2/state", b"forged") in got["states"]
 
@@ -140,8 +147,8 @@ def _refused_links(router, at_least: int, timeout_s: float = 5.0) -> dict:
 
 
 def test_the_router_counts_what_it_refuses_and_nothing_of_the_controller(certs):
-    """A forged command, state and e-stop from robot r1's (valid) certificate are denied and
-    counted under r1 with their keys; a self-signed "controller" and a client without a
+    """A forged command, state, e-stop and sighting from robot r1's (valid) certificate, and a
+    command from the tracker's, are denied and counted under their names with their keys; a self-signed "controller" and a client without a
     certificate are refused links, counted by reason; the genuine controller counts nothing."""
     folder, rogue = certs
     port = free_tcp_port()
@@ -165,9 +172,11 @@ def test_the_router_counts_what_it_refuses_and_nothing_of_the_controller(certs):
     assert got["r0_cmd"] == [b"genuine"]
     assert before["refused_links"] == {}
     assert after["denied"] == before["denied"]            # a refused link sends no message
-    assert set(after["denied"]) == {"r1"}                 # nothing of the controller, nor of r0
+    assert set(after["denied"]) == {"r1", "tracker"}      # nothing of the controller, nor of r0
     assert after["denied"]["r1"]["Put formation/sec/robot/r0/cmd"] == 1
     assert after["denied"]["r1"]["Put formation/sec/estop"] == 1
+    assert after["denied"]["r1"]["Put formation/sec/tracker/sightings"] == 1
+    assert after["denied"]["tracker"] == {"Put formation/sec/robot/r0/cmd": 1}
     assert after["withheld"] == {}
     assert sum(after["refused_links"].values()) == 3        # one line each, by reason
     assert after["refused_links"].get("invalid peer certificate: BadSignature") == 1

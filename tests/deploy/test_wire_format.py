@@ -24,6 +24,7 @@ from deploy.wire import (
     Reason,
     Rejection,
     RobotRegistry,
+    SightingMsg,
     StateMsg,
     StateStatus,
     check_name,
@@ -43,11 +44,16 @@ states = st.builds(StateMsg, robot_ids, u32_pos, u32_pos, u64, pairs, pairs,
 cmds = st.builds(CmdMsg, robot_ids, u32_pos, u32_pos, u64, pairs, st.integers(1, 0xFFFF),
                  st.sampled_from(range(4)).map(CmdFlags), u32)
 estops = st.builds(EstopMsg, u32_pos, u32_pos, u64, st.booleans(), u32)
-messages = st.one_of(states, cmds, estops)
+sightings = st.builds(SightingMsg, robot_ids, u32_pos, u32_pos, u64, pairs,
+                      st.floats(min_value=1e-9, max_value=1e3), st.floats(min_value=0.0, max_value=1e3),
+                      st.integers(0, 0xFFFF), st.booleans())
+messages = st.one_of(states, cmds, estops, sightings)
 
 # (message type -> byte offsets of its f64 fields, offset and format of its reserved field)
-FLOAT_OFFSETS = {MsgType.STATE: (24, 32, 40, 48), MsgType.CMD: (24, 32), MsgType.ESTOP: ()}
-RESERVED = {MsgType.STATE: (60, "<I"), MsgType.CMD: (46, "<H"), MsgType.ESTOP: (28, "<I")}
+FLOAT_OFFSETS = {MsgType.STATE: (24, 32, 40, 48), MsgType.CMD: (24, 32), MsgType.ESTOP: (),
+                 MsgType.SIGHTING: (24, 32, 40, 48)}
+RESERVED = {MsgType.STATE: (60, "<I"), MsgType.CMD: (46, "<H"), MsgType.ESTOP: (28, "<I"),
+            MsgType.SIGHTING: (58, "<H")}
 
 
 def patch(data: bytes, offset: int, fmt: str, value) -> bytes:
@@ -82,7 +88,7 @@ def test_state_and_estop_bytes_match_the_documented_layout():
     assert encode(estop) == bytes.fromhex(
         "4653" "02" "03" "ffff" "0100" "09000000" "02000000" "0500000000000000"
         "2a000000" "00000000")
-    assert [MESSAGE_SIZE[t] for t in MsgType] == [64, 48, 32]
+    assert [MESSAGE_SIZE[t] for t in MsgType] == [64, 48, 32, 60]
 
 
 @settings(max_examples=300, deadline=None)
@@ -98,7 +104,7 @@ def test_round_trip_is_identity(msg):
 @given(st.binary(max_size=96))
 def test_random_bytes_never_raise(data):
     result = decode(data)
-    assert isinstance(result, Rejection | StateMsg | CmdMsg | EstopMsg)
+    assert isinstance(result, Rejection | StateMsg | CmdMsg | EstopMsg | SightingMsg)
     decoder = WireDecoder(RobotRegistry(["r0", "r1"]), clock_ns=lambda: 10**12)
     decoder.decode(data, MsgType.CMD, robot_id=1)
 
@@ -118,6 +124,8 @@ def test_random_bodies_behind_a_valid_prefix_never_raise_and_accepted_ones_are_c
 def _float_pairs(msg):
     if isinstance(msg, StateMsg):
         return [msg.position, msg.velocity]
+    if isinstance(msg, SightingMsg):
+        return [msg.position, (msg.radius, msg.max_speed)]
     return [msg.acceleration] if isinstance(msg, CmdMsg) else []
 
 
@@ -130,7 +138,7 @@ def test_every_header_corruption_is_rejected_for_its_reason(msg, data):
     assert reason_of(decode(patch(good, 0, "2s", bad_magic))) is Reason.BAD_MAGIC
     version = data.draw(st.integers(0, 255).filter(lambda v: v not in ACCEPTED_VERSIONS))
     assert reason_of(decode(patch(good, 2, "B", version))) is Reason.BAD_VERSION
-    unknown = data.draw(st.integers(0, 255).filter(lambda v: v not in (1, 2, 3)))
+    unknown = data.draw(st.integers(0, 255).filter(lambda v: v not in (1, 2, 3, 4)))
     assert reason_of(decode(patch(good, 3, "B", unknown))) is Reason.UNKNOWN_TYPE
     other = data.draw(st.sampled_from([m for m in MsgType if m is not t]))
     assert reason_of(decode(patch(good, 3, "B", int(other)), expect=t)) is Reason.UNEXPECTED_TYPE
@@ -139,7 +147,7 @@ def test_every_header_corruption_is_rejected_for_its_reason(msg, data):
     assert reason_of(decode(good[:cut])) is Reason.BAD_SIZE
     extra = data.draw(st.binary(min_size=1, max_size=16))
     assert reason_of(decode(good + extra)) is Reason.BAD_SIZE
-    allowed = {MsgType.STATE: 0x1F, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1}[t]  # 0x10: LOCKSTEP, v2
+    allowed = {MsgType.STATE: 0x1F, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1, MsgType.SIGHTING: 0x1}[t]  # 0x10: LOCKSTEP, v2
     flags = data.draw(st.integers(0, 0xFFFF).filter(lambda f: f & ~allowed))
     assert reason_of(decode(patch(good, 6, "<H", flags))) is Reason.BAD_FLAGS
     assert reason_of(decode(patch(good, 8, "<I", 0))) is Reason.BAD_SEQUENCE  # epoch
@@ -167,6 +175,31 @@ def test_every_body_corruption_is_rejected_for_its_reason(msg, data):
     assert reason_of(decode(patch(good, offset, fmt, junk))) is Reason.BAD_RESERVED
     if t is MsgType.CMD:
         assert reason_of(decode(patch(good, 44, "<H", 0))) is Reason.BAD_TTL
+    if t is MsgType.SIGHTING:
+        radius = data.draw(st.floats(max_value=0.0, allow_nan=False, allow_infinity=False))
+        assert reason_of(decode(patch(good, 40, "<d", radius))) is Reason.BAD_VALUE
+        speed = data.draw(st.floats(max_value=-1e-300, allow_nan=False, allow_infinity=False))
+        assert reason_of(decode(patch(good, 48, "<d", speed))) is Reason.BAD_VALUE
+
+
+def test_sighting_bytes_match_the_documented_layout_and_name_an_obstacle_not_a_robot():
+    """docs/wire-format.md's SIGHTING example: obstacle 3 at (0.5, 0.25), radius 0.0625 m, at
+    most 0.5 m/s, seen 12 ms before sending. The decoder takes it whatever the robot registry
+    (its id names an obstacle), and still checks its stream."""
+    msg = SightingMsg(robot_id=3, epoch=7, seq=1, send_time_ns=123, position=(0.5, 0.25), radius=0.0625,
+                      max_speed=0.5, capture_age_ms=12)
+    expected = bytes.fromhex(
+        "4653" "02" "04" "0300" "0000" "07000000" "01000000" "7b00000000000000"
+        "000000000000e03f" "000000000000d03f" "000000000000b03f" "000000000000e03f" "0c00" "0000")
+    assert encode(msg) == expected
+    assert encode(dataclasses.replace(msg, gone=True))[6:8] == b"\x01\x00"
+    decoder = WireDecoder(RobotRegistry(["r0"]))
+    assert decoder.decode(expected, MsgType.SIGHTING) == msg
+    assert reason_of(decoder.decode(expected, MsgType.SIGHTING)) is Reason.STALE
+    state = encode(StateMsg(3, 7, 1, 123, (0.0, 0.0), (0.0, 0.0)))
+    assert reason_of(decoder.decode(state, MsgType.STATE)) is Reason.UNKNOWN_ROBOT
+    with pytest.raises(ValueError, match="radius=0.0 must be > 0"):
+        encode(dataclasses.replace(msg, radius=0.0))
 
 
 def test_decoder_context_checks_and_counts():

@@ -1,0 +1,147 @@
+"""Intruders: discs in the arena that the controller does not command (a person crossing, a
+foreign robot), for the simulated fleet (``formation fleet-sim --intruder``) and the tracker it
+simulates (:mod:`deploy.tracker`).
+
+An intruder walks a straight line at a constant velocity: at tick k of an episode
+(``enter_tick <= k < leave_tick``) its centre is ``start + velocity * (k - enter_tick) * dt``.
+It is not a pymunk body: it passes through robots and walls, so that what is measured is what
+the robots did, not what a push did to them (:class:`IntruderWatch`): how close any robot came
+(the gap between the discs, negative when they overlap) and how fast a robot overlapping it
+moved towards its centre. A robot that drives into an intruder shows as an overlap with a
+speed towards it; one an intruder walks into while braked shows as an overlap at no speed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+DRIVE_IN_SPEED = 0.01
+"""[m/s] a robot overlapping an intruder and moving towards its centre faster than this drove into it."""
+
+_FIELDS = {"radius", "x", "y", "vx", "vy", "enter", "leave", "max_speed"}
+
+
+@dataclass(frozen=True)
+class Intruder:
+    """radius [m] (> 0); start (x, y) [m]: its centre on ``enter_tick``; velocity [m/s];
+    enter_tick / leave_tick: ticks of each episode it is in the arena, ``[enter, leave)``
+    (leave None: to the episode's end); max_speed [m/s]: the top speed a tracker reports for it
+    (None: the length of ``velocity``; it may not be less)."""
+
+    radius: float
+    start: tuple[float, float]
+    velocity: tuple[float, float] = (0.0, 0.0)
+    enter_tick: int = 0
+    leave_tick: int | None = None
+    max_speed: float | None = None
+
+    def __post_init__(self) -> None:
+        start = tuple(float(v) for v in self.start)
+        velocity = tuple(float(v) for v in self.velocity)
+        if len(start) != 2 or not all(map(math.isfinite, start)):
+            raise ValueError(f"intruder start must be a finite (x, y) [m], got {self.start!r}")
+        if len(velocity) != 2 or not all(map(math.isfinite, velocity)):
+            raise ValueError(f"intruder velocity must be a finite (vx, vy) [m/s], got {self.velocity!r}")
+        object.__setattr__(self, "start", start)
+        object.__setattr__(self, "velocity", velocity)
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"intruder radius must be > 0 m, got {self.radius!r}")
+        if isinstance(self.enter_tick, bool) or not isinstance(self.enter_tick, int) or self.enter_tick < 0:
+            raise ValueError(f"intruder enter must be a tick >= 0, got {self.enter_tick!r}")
+        if self.leave_tick is not None and (not isinstance(self.leave_tick, int) or self.leave_tick <= self.enter_tick):
+            raise ValueError(f"intruder leave must be a tick after enter ({self.enter_tick}), got {self.leave_tick!r}")
+        if self.max_speed is not None and not (math.isfinite(self.max_speed) and self.max_speed >= self.speed):
+            raise ValueError(f"intruder max_speed must be >= its speed {self.speed:.3f} m/s, got {self.max_speed!r}")
+
+    @property
+    def speed(self) -> float:
+        return math.hypot(*self.velocity)
+
+    @property
+    def reported_speed(self) -> float:
+        """The top speed a tracker reports [m/s]."""
+        return self.speed if self.max_speed is None else float(self.max_speed)
+
+    def present(self, tick: int) -> bool:
+        return self.enter_tick <= tick and (self.leave_tick is None or tick < self.leave_tick)
+
+    def centre(self, tick: int, dt: float) -> np.ndarray:
+        """(2,) centre at ``tick`` [m] (where it would be, present or not)."""
+        return np.asarray(self.start) + np.asarray(self.velocity) * (tick - self.enter_tick) * dt
+
+    @classmethod
+    def parse(cls, text: str) -> Intruder:
+        """``radius=0.06,x=0.5,y=1.1,vx=0,vy=-0.2,enter=20,leave=120,max_speed=0.3`` (radius, x and
+        y required) -> Intruder; ValueError naming the field otherwise."""
+        values: dict[str, float] = {}
+        for item in (part.strip() for part in text.split(",") if part.strip()):
+            key, sep, raw = item.partition("=")
+            if not sep or key.strip() not in _FIELDS:
+                raise ValueError(f"{item!r} is not FIELD=VALUE with FIELD one of {sorted(_FIELDS)}")
+            try:
+                values[key.strip()] = float(raw)
+            except ValueError:
+                raise ValueError(f"{key.strip()}={raw!r} is not a number") from None
+        return cls.from_mapping(values)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, float]) -> Intruder:
+        """The fields of :meth:`parse` as a mapping -> Intruder (ValueError naming the field)."""
+        missing = sorted({"radius", "x", "y"} - set(values))
+        if missing:
+            raise ValueError(f"{', '.join(missing)} missing (e.g. radius=0.06,x=0.5,y=1.1,vy=-0.2)")
+        ticks = {}
+        for key in ("enter", "leave"):
+            if key in values:
+                if not float(values[key]).is_integer():
+                    raise ValueError(f"{key}={values[key]!r} must be a whole tick")
+                ticks[key] = int(values[key])
+        return cls(float(values["radius"]), (values["x"], values["y"]),
+                   (values.get("vx", 0.0), values.get("vy", 0.0)), ticks.get("enter", 0), ticks.get("leave"),
+                   None if "max_speed" not in values else float(values["max_speed"]))
+
+
+class IntruderWatch:
+    """What the robots did near the intruders over one episode (module docstring)."""
+
+    def __init__(self, intruders: Sequence[Intruder], robot_radius: float, dt: float):
+        self.intruders = tuple(intruders)
+        self.robot_radius = robot_radius
+        self.dt = dt
+        self.reset()
+
+    def reset(self) -> None:
+        self.min_gap = math.inf
+        self.drive_in_ticks = 0
+        self.max_drive_in_speed = 0.0
+
+    def observe(self, tick: int, positions: np.ndarray, velocities: np.ndarray) -> None:
+        """The robots' true (N, 2) positions [m] and velocities [m/s] at ``tick``."""
+        for intruder in self.intruders:
+            if not intruder.present(tick):
+                continue
+            offset = intruder.centre(tick, self.dt) - positions
+            dist = np.linalg.norm(offset, axis=1)
+            gap = dist - intruder.radius - self.robot_radius
+            self.min_gap = min(self.min_gap, float(gap.min()))
+            touching = np.flatnonzero(gap < 0)
+            if touching.size:
+                towards = np.einsum("ij,ij->i", velocities[touching], offset[touching]) / np.maximum(dist[touching], 1e-12)
+                fastest = float(towards.max())
+                self.max_drive_in_speed = max(self.max_drive_in_speed, fastest)
+                self.drive_in_ticks += fastest > DRIVE_IN_SPEED
+
+    def summary(self) -> dict[str, float | int | None]:
+        """``min_gap_mm`` (None: no intruder was in the arena), ``drive_in_ticks`` (ticks in which
+        some robot overlapping an intruder moved towards it faster than DRIVE_IN_SPEED) and the
+        fastest such speed [m/s]."""
+        return {"min_gap_mm": None if math.isinf(self.min_gap) else round(1e3 * self.min_gap, 3),
+                "drive_in_ticks": self.drive_in_ticks,
+                "max_drive_in_speed": round(self.max_drive_in_speed, 4)}
+
+
+__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderWatch"]
