@@ -1,5 +1,5 @@
 """`formation certs`: a fleet CA and one certificate per node (controller, fleet-sim, router,
-operator, each robot), for mutual TLS through `formation router`. See deploy/certs.py and
+operator, tracker, each robot), for mutual TLS through `formation router`. See deploy/certs.py and
 deploy/security.py.
 
     formation certs --out certs --scenario paper-5 --host 10.0.0.1
