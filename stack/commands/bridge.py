@@ -18,7 +18,9 @@ re-armed as their fresh states come in (deploy/bridge.py has the rules). The --r
 measured command round trips ("round_trip_ms") and the delay bound given to the stack
 ("command_delay_s"). A robot the safety filter holds in place for a second, away from every
 target, is logged with the robots not listening beside it (stack/hold_watch.py); the report
-keeps every such hold ("holds").
+keeps every such hold ("holds"). What a tracker reports on formation/<fleet>/tracker/sightings
+(deploy/tracker.py; fleet-sim --intruder simulates one) is kept clear of by the safety filter
+until the tracker says it is gone; the report counts it ("sightings").
 SIGINT/SIGTERM stop the loop and close the Zenoh session.
 """
 
