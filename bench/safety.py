@@ -35,13 +35,19 @@ same answers; run both to compare their latency.
     with ``--condition-episodes`` adversarial episodes, default stack against bare, plus the
     scripted controller (and ``--policy``) and the MEC's tracking error; see
     :mod:`_safety_conditions`.
+(e) intruders: ``--intruder-episodes`` paper-3/4/5 episodes per link condition of
+    ``--intruder-conditions`` with one to three random walkers and boxes that a tracker reports
+    two ticks late, the scripted controller (and ``--policy``) through the default stack against
+    bare: episodes in which a robot drove into an intruder, contacts, success, closest approach;
+    see :mod:`_safety_intruders`.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
 "latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}, "npz": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, "arrival_scripted": {...}, ...}, ...},
-"stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the ``StackConfig`` the
+"intruders": {"delay2": {"scripted": {"episodes", "drive_in_episodes", "drive_in_episodes_bare",
+"contact_episodes", "success", "min_gap_mm", ...}, "policy": {...}}, ...}, "stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the ``StackConfig`` the
 "filter + MEC" columns of (d) ran, resolved (filter, latency and MEC settings): the default,
 which covers 150 ms of command delay, unless ``--command-delay-ms`` narrows its latency bound as a
 user who knows their link would (``formation eval --command-delay-ms``); (a)-(c) run the default.
@@ -76,6 +82,7 @@ from _common import (  # noqa: E402
     set_threads,
 )
 from _safety_conditions import CONDITIONS, OPEN_LOOP, run_conditions  # noqa: E402
+from _safety_intruders import run_intruders  # noqa: E402
 from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -310,8 +317,12 @@ def _parser() -> argparse.ArgumentParser:
                         help="adversarial episodes per condition for (d) (300)")
     parser.add_argument("--task-episodes", type=positive_int, default=30,
                         help="scripted (and --policy) paper-3/4/5 episodes per condition for (d) (30)")
+    parser.add_argument("--intruder-conditions", type=condition_list, default=["clean", "delay2", "noise"],
+                        help="link conditions for (e), comma-separated (default clean,delay2,noise)")
+    parser.add_argument("--intruder-episodes", type=positive_int, default=300,
+                        help="episodes per condition and controller for (e) (300)")
     add_command_delay_arg(parser)
-    parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions"], default=None,
+    parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions", "intruders"], default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
     return parser
@@ -353,6 +364,10 @@ def main(argv: list[str] | None = None) -> int:
         doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.steps,
                                            args.task_episodes, args.mec_episodes, args.workers,
                                            args.seed, args.policy, stack_config)
+    if args.only in (None, "intruders"):
+        progress(f"(e) intruders under {args.intruder_conditions}, {args.intruder_episodes} episodes each")
+        doc["intruders"] = run_intruders(args.intruder_conditions, args.intruder_episodes, args.workers,
+                                         args.seed, args.policy, stack_config)
     doc.update(threads=threads, wall_s=time.perf_counter() - start,
                stack_config=dataclasses.asdict(stack_config))
     if args.json:
@@ -408,6 +423,16 @@ def _print_tables(doc: dict) -> None:
                         [[name, tag, f"{c[f'success_{tag}_commanded']:.3f}", f"{c[f'success_{tag}_commanded_bare']:.3f}",
                           *(c[f"success_{tag}_commanded_pairs"][k] for k in ("stack_only", "bare_only", "sign_test_p"))]
                          for name, tag, c in commanded])
+        print()
+    if "intruders" in doc:
+        print_table(["condition (intruders)", "controller", "episodes", "drove in, filter+MEC", "bare",
+                     "contact", "bare", "success", "bare", "closest [mm]", "bare", "median closest", "bare"],
+                    [[name, tag, r["episodes"], r["drive_in_episodes"], r["drive_in_episodes_bare"],
+                      r["contact_episodes"], r["contact_episodes_bare"], f"{r['success']:.2f}",
+                      f"{r['success_bare']:.2f}", *(_tick(r[k]) for k in ("min_gap_mm", "min_gap_mm_bare",
+                                                                          "median_min_gap_mm",
+                                                                          "median_min_gap_mm_bare"))]
+                     for name, by in doc["intruders"].items() for tag, r in by.items()])
         print()
     if "latency_ms" in doc:
         print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",

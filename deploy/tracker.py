@@ -34,15 +34,10 @@ from deploy.network import FleetKeys
 from deploy.streams import Stamper, WireDecoder
 from deploy.transport import FleetLink, ReceivedState
 from deploy.wire import ROBOT_ALL, MsgType, SightingMsg, encode
-from sim.fleet import Obstacles
+from sim.fleet import Obstacles, obstacle_name
 from sim.intruders import Intruder, IntruderWatch
 
 MAX_CAPTURE_AGE_MS = 0xFFFF
-
-
-def obstacle_name(obstacle_id: int) -> str:
-    """The name an obstacle has in ``FleetState.obstacles`` and in the bridge's logs: ``#3``."""
-    return f"#{obstacle_id}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,4 +191,4 @@ class SimulatedTracker:
                 self._in_view.discard(i)
 
 
-__all__ = ["SightingPublisher", "SightingTable", "SimulatedTracker", "obstacle_name"]
+__all__ = ["SightingPublisher", "SightingTable", "SimulatedTracker"]

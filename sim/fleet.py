@@ -89,6 +89,11 @@ class SilentRobots:
         return len(self.ids)
 
 
+def obstacle_name(obstacle_id: int) -> str:
+    """The name of a tracker's obstacle ``obstacle_id`` in :class:`Obstacles` and in logs: ``#3``."""
+    return f"#{obstacle_id}"
+
+
 @dataclass
 class Obstacles:
     """Things in the arena the controller does not command, seen by something else (a tracker

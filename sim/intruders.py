@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sim.fleet import FleetState, Obstacles, obstacle_name
+
 DRIVE_IN_SPEED = 0.01
 """[m/s] a robot overlapping an intruder and moving towards its centre faster than this drove into it."""
 
@@ -144,4 +146,54 @@ class IntruderWatch:
                 "max_drive_in_speed": round(self.max_drive_in_speed, 4)}
 
 
-__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderWatch"]
+class IntruderFleet:
+    """A :class:`sim.fleet.Fleet` (``world``, e.g. a :class:`sim.pymunk_world.PymunkWorld`) with
+    intruders, seen by a tracker: every state it returns carries the intruders in the arena as
+    ``FleetState.obstacles``, where they were ``sighting_delay_ticks`` ticks before (with that
+    age), at their reported top speed. :attr:`watch` holds the episode's :class:`IntruderWatch`
+    (reset with the world). Anything else is the world's."""
+
+    def __init__(self, world, intruders: Sequence[Intruder], sighting_delay_ticks: int = 0):
+        if isinstance(sighting_delay_ticks, bool) or not isinstance(sighting_delay_ticks, int) \
+                or sighting_delay_ticks < 0:
+            raise ValueError(f"sighting_delay_ticks must be an integer >= 0, got {sighting_delay_ticks!r}")
+        self.world = world
+        self.intruders = tuple(intruders)
+        self.delay = sighting_delay_ticks
+        self.watch = IntruderWatch(self.intruders, world.scenario.robot_radius, world.dt)
+        self.tick = 0
+
+    def __getattr__(self, name: str):
+        return getattr(self.world, name)
+
+    def reset(self, seed: int | None = None) -> FleetState:
+        self.tick = 0
+        self.watch.reset()
+        return self._seen(self.world.reset(seed))
+
+    def read_state(self) -> FleetState:
+        return self._seen(self.world.read_state())
+
+    def send_accelerations(self, accelerations: np.ndarray) -> None:
+        self.world.send_accelerations(accelerations)
+
+    def step(self) -> FleetState:
+        state = self.world.step()
+        self.tick += 1
+        true = self.world.true_state()
+        self.watch.observe(self.tick, true.positions, true.velocities)
+        return self._seen(state)
+
+    def _seen(self, state: FleetState) -> FleetState:
+        seen = max(self.tick - self.delay, 0)
+        here = [(i, x) for i, x in enumerate(self.intruders) if x.present(seen)]
+        if not here:
+            return state
+        dt = self.world.dt
+        obstacles = Obstacles(tuple(obstacle_name(i) for i, _ in here), np.array([x.centre(seen, dt) for _, x in here]),
+                              [x.radius for _, x in here], [(self.tick - seen) * dt] * len(here),
+                              [x.reported_speed for _, x in here])
+        return state.replaced(obstacles=obstacles)
+
+
+__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch"]

@@ -42,6 +42,27 @@ def int_list(text: str) -> list[int]:
     return values
 
 
+INTRUDER_HELP = ("a disc the robots must keep clear of, seen by a tracker: radius=R,x=X,y=Y[,vx=VX,vy=VY]"
+                 "[,enter=TICK][,leave=TICK][,max_speed=V] in m, m/s and ticks of each episode "
+                 "(e.g. radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20: walks down from above the arena); "
+                 "repeatable (sim.intruders.Intruder)")
+
+
+def add_intruder_flag(parser: argparse.ArgumentParser, where: str = "") -> None:
+    """``--intruder K=V,...`` (repeatable) -> ``args.intruder``: a list of sim.intruders.Intruder."""
+    parser.add_argument("--intruder", type=_intruder, action="append", default=[], metavar="K=V,...",
+                        help=INTRUDER_HELP + where)
+
+
+def _intruder(text: str):
+    from sim.intruders import Intruder
+
+    try:
+        return Intruder.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where: str = "") -> None:
     """``--safety/--no-safety``, ``--mec/--no-mec`` and ``--docking/--no-docking``, the one
     spelling every command uses;

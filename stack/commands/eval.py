@@ -9,7 +9,10 @@
   ``arrival_rate``, the fraction of episodes in which every robot stood within tolerance of its
   target at some tick, and ``arrival_tick``, the mean first such tick over those episodes
   (:attr:`stack.pipeline.EpisodeMetrics.arrival_step`; None when none arrived): how much a
-  layer slows a team down, which the final success does not show.
+  layer slows a team down, which the final success does not show. With ``--intruder`` the world
+  carries discs that cross it, seen exactly by a tracker (:class:`sim.intruders.IntruderFleet`),
+  and the result adds how close any robot came to one (``intruder_min_gap_mm``) and the fraction
+  of episodes in which one drove into one (``intruder_drive_in_rate``).
 * ``--world zenoh``: the same stack and episodes driving a fleet over Zenoh
   (:class:`deploy.zenoh_fleet.ZenohFleet`: a real one, or ``formation fleet-sim --episodes``),
   judged on the states it reports; the episodes and seeds are the fleet's own. A fleet publishes
@@ -32,6 +35,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from sim.intruders import IntruderFleet
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
 from stack.commands import argtypes
@@ -65,6 +69,7 @@ def register(sub) -> None:
     p.add_argument("--model-error", default=None, metavar="K=V,...",
                    help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)
+    argtypes.add_intruder_flag(p, "; --world pymunk (a fleet over Zenoh has its own: fleet-sim --intruder)")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
     p.add_argument("--trace", type=Path, default=None, metavar="DIR",
                    help="--world pymunk or zenoh: record every episode into DIR as episode_SEED.npz "
@@ -111,6 +116,8 @@ def evaluate_from_args(args) -> dict:
                                 "or exported policy file, or --policy scripted")
     notes = []
     if args.world == "batched":
+        if args.intruder:
+            raise EvalArgumentError("--intruder needs --world pymunk: the batched world has no tracker")
         ignored = [flag for flag, value in (("--safety", args.safety), ("--mec", args.mec),
                                             ("--docking", args.docking), ("--model-error", args.model_error))
                    if value is not None]
@@ -187,6 +194,8 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
         world = PymunkWorld(scenario, model_error, seed=args.seed)
     except ValueError as exc:
         raise EvalArgumentError(str(exc)) from None
+    if args.intruder:
+        world = IntruderFleet(world, args.intruder)
     out, traced = _episodes(args, world, stack, safety=safety, mec=mec)
     _draw_traces(traced, scenario)
     out["model_error"] = dataclasses.asdict(model_error)
@@ -237,8 +246,9 @@ def _zenoh_fleet(args, scenario):
 
     if not args.fleet:
         raise EvalArgumentError("--world zenoh needs --fleet NAME and the fleet's endpoint (--connect)")
-    if args.model_error is not None:
-        raise EvalArgumentError("--model-error applies to --world pymunk: a fleet over Zenoh has its own")
+    if args.model_error is not None or args.intruder:
+        raise EvalArgumentError("--model-error and --intruder apply to --world pymunk: a fleet over Zenoh has "
+                                "its own (formation fleet-sim --model-error, --intruder)")
     try:
         transport = argtypes.transport_config(args)
         config = BridgeConfig(lockstep=args.lockstep, period_s=scenario.dynamics.dt)
@@ -254,10 +264,12 @@ def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> tuple[dict, lis
 
     torch.set_num_threads(1)
     trace = getattr(args, "trace", None)
-    rows, traced = [], []
+    rows, traced, near = [], [], []
     for k in tqdm(range(args.episodes), desc="eval", unit="ep", file=sys.stderr, leave=False):
         recorder = EpisodeRecorder() if trace is not None else None
         rows.append(run_episode(fleet, stack, args.seed + k, args.steps, recorder=recorder))
+        if isinstance(fleet, IntruderFleet):
+            near.append(fleet.watch.summary())
         if recorder is not None:
             traced.append(_trace(args, stack, args.seed + k, recorder, rows[-1]))
 
@@ -275,7 +287,18 @@ def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> tuple[dict, lis
             "tracking_error_m": mean("tracking_error"),
             "tick_p50_ms": float(np.median([r.p50_tick_ms for r in rows])),
             "tick_p99_ms": float(np.max([r.p99_tick_ms for r in rows])),
-            "safety": safety, "mec": mec}, traced
+            "safety": safety, "mec": mec, **_intruder_metrics(near)}, traced
+
+
+def _intruder_metrics(episodes: list[dict]) -> dict:
+    """With intruders: the closest any robot came to one over the episodes [mm] (None: none was
+    in the arena), and the fraction of episodes in which a robot drove into one
+    (:class:`sim.intruders.IntruderWatch`)."""
+    if not episodes:
+        return {}
+    gaps = [e["min_gap_mm"] for e in episodes if e["min_gap_mm"] is not None]
+    return {"intruder_min_gap_mm": min(gaps) if gaps else None,
+            "intruder_drive_in_rate": float(np.mean([e["drive_in_ticks"] > 0 for e in episodes]))}
 
 
 def print_result(result: dict) -> None:

@@ -32,7 +32,6 @@ import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
 from deploy.startup import freeze_start_up_heap
-from sim.intruders import Intruder
 from sim.scenario import make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
@@ -45,13 +44,6 @@ def _event(kind: str):
             raise argparse.ArgumentTypeError(f"expected ROBOT@TICK (e.g. r4@30), got {text!r}")
         return int(tick), robot, kind
     return parse
-
-
-def _intruder(text: str) -> Intruder:
-    try:
-        return Intruder.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def register(sub) -> None:
@@ -88,10 +80,7 @@ def register(sub) -> None:
                    metavar="ROBOT@TICK", help="close a robot's link at a tick")
     p.add_argument("--join", type=_event("join"), action="append", default=[],
                    metavar="ROBOT@TICK", help="open a robot's link at a tick")
-    p.add_argument("--intruder", type=_intruder, action="append", default=[], metavar="K=V,...",
-                   help="a disc the robots must keep clear of, reported by the fleet's simulated tracker: "
-                        "radius=R,x=X,y=Y[,vx=VX,vy=VY][,enter=TICK][,leave=TICK][,max_speed=V] in m, m/s "
-                        "and ticks of each episode (e.g. radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20); repeatable")
+    argtypes.add_intruder_flag(p, "; the fleet's simulated tracker publishes it on the sightings key")
     argtypes.add_shared_clock_flag(p, "controller")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.set_defaults(func=run)

@@ -81,6 +81,41 @@ def test_safety_bench_narrows_the_latency_bound_of_the_stack_columns_as_asked():
     assert bad.returncode == 2 and "--command-delay-ms" in bad.stderr
 
 
+def test_safety_bench_intruders_part_runs_both_stacks_on_the_same_intruders():
+    """Three seeds (paper-3, -4, -5) of the delay2 condition: the document's shape, and the
+    stack keeping clear of what the bare run drives into on the same seeds."""
+    out = subprocess.run(
+        [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--only", "intruders",
+         "--intruder-conditions", "delay2", "--intruder-episodes", "3", "--workers", "1", "--seed", "3"],
+        cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
+    doc = json.loads(out.stdout)
+    row = doc["intruders"]["delay2"]["scripted"]
+    assert row["episodes"] == 3 and row["sighting_delay_ticks"] == 2
+    assert row["drive_in_episodes"] == 0 and row["contact_episodes"] == 0
+    assert row["drive_in_episodes_bare"] >= 1 and row["min_gap_mm_bare"] < 0 < row["min_gap_mm"]
+
+
+def test_random_intruders_cross_the_arena_or_stand_clear_of_every_slot():
+    sys.path.insert(0, str(REPO / "bench"))
+    import numpy as np
+    from _safety_intruders import random_intruders
+
+    from sim.scenario import make_scenario
+
+    sc = make_scenario("paper-5")
+    drawn = [x for seed in range(40) for x in random_intruders(np.random.default_rng(seed), sc)]
+    walkers = [x for x in drawn if x.speed > 0]
+    boxes = [x for x in drawn if x.speed == 0]
+    assert walkers and boxes and all(0.03 <= x.radius <= 0.08 for x in drawn)
+    for x in walkers:       # it enters from outside and is outside again when it leaves
+        inside = [bool(((c > 0) & (c < 1)).all()) for c in (x.centre(x.enter_tick, sc.dynamics.dt),
+                                                           x.centre(x.leave_tick, sc.dynamics.dt))]
+        assert inside == [False, False], x
+    slots = np.concatenate([sc.starts, sc.targets])
+    for x in boxes:
+        assert np.linalg.norm(slots - x.start, axis=1).min() > x.radius + sc.robot_radius + 0.02
+
+
 def test_safety_bench_rejects_a_missing_policy():
     out = subprocess.run([sys.executable, str(REPO / "bench" / "safety.py"), "--policy", "/no/such.pt"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.intruders import Intruder, IntruderWatch
+from sim.intruders import Intruder, IntruderFleet, IntruderWatch
 
 
 def test_an_intruder_walks_its_line_between_its_ticks():
@@ -46,3 +46,29 @@ def test_the_watch_tells_driving_in_from_being_walked_into():
     gone = IntruderWatch([Intruder(0.05, (0.5, 0.5), leave_tick=1)], 0.04, 0.05)
     gone.observe(1, np.array([[0.5, 0.5]]), np.array([[0.0, 0.0]]))
     assert gone.summary()["min_gap_mm"] is None
+
+
+def test_a_fleet_with_intruders_shows_them_as_a_late_tracker_would():
+    """A walker entering on tick 2 at (0.5, 0.9), 0.2 m/s down, sighted two ticks late: no
+    obstacle before tick 4; on tick 5 the state shows it where it was on tick 3 (0.9 - 0.2 x
+    0.05), 0.1 s old, at its reported top speed; a reset starts the walk and the watch over."""
+    from sim.pymunk_world import PymunkWorld
+    from sim.scenario import make_scenario
+
+    sc = make_scenario("paper-3")
+    fleet = IntruderFleet(PymunkWorld(sc), [Intruder(0.05, (0.5, 0.9), (0.0, -0.2), enter_tick=2, max_speed=0.3)],
+                          sighting_delay_ticks=2)
+    seen = [fleet.reset(seed=0).obstacles]
+    for _ in range(5):
+        fleet.send_accelerations(np.zeros((3, 2)))
+        seen.append(fleet.step().obstacles)
+    assert [s is None for s in seen] == [True, True, True, True, False, False]
+    obs = seen[5]
+    assert obs.ids == ("#0",)
+    np.testing.assert_allclose(obs.positions, [[0.5, 0.9 - 0.2 * 0.05]])
+    np.testing.assert_allclose(obs.age_s, [0.1])
+    np.testing.assert_allclose(obs.speed, [0.3])
+    assert fleet.watch.min_gap < np.inf and fleet.outcome() is not None     # the world's own calls pass through
+    assert fleet.reset(seed=1).obstacles is None and fleet.watch.min_gap == np.inf
+    with pytest.raises(ValueError, match="sighting_delay_ticks"):
+        IntruderFleet(PymunkWorld(sc), [], sighting_delay_ticks=-1)
