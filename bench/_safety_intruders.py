@@ -7,8 +7,13 @@ tick and cross the arena at 0.05-0.3 m/s, and boxes that stand on the floor from
 of radius 0.03-0.08 m, reported by a tracker that sees them exactly, two ticks late
 (:class:`sim.intruders.IntruderFleet`). The scripted controller (and ``--policy``) runs once
 through the default stack and once bare (filter off, MEC off) on the same seed. Per condition:
-episodes in which a robot drove into an intruder (:class:`sim.intruders.IntruderWatch`), contact
-episodes among robots, object and walls, success, and how close robots came to intruders.
+episodes in which a robot drove into an intruder (:class:`sim.intruders.IntruderWatch`) and the
+fastest it did, contact episodes among robots, object and walls, success (``success_clear``:
+and no robot drove into an intruder), and how close robots came to intruders.
+
+A walker enters where the tracker first sees it, at the arena's edge, so it may step in beside
+a robot closer than that robot's braking distance (0.08 m from the 0.4 m/s speed limit, plus two
+ticks of sighting age): such a robot brakes and still moves towards it for a few ticks.
 """
 
 from __future__ import annotations
@@ -84,6 +89,7 @@ def intruder_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
         out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
         out[f"drove_in_{key}"] = near["drive_in_ticks"] > 0
         out[f"min_gap_mm_{key}"] = near["min_gap_mm"]
+        out[f"drive_in_speed_{key}"] = near["max_drive_in_speed"]
     return out
 
 
@@ -117,6 +123,10 @@ def _summary(rows: list[dict]) -> dict:
             "contact_episodes_bare": sum(r["collided_off"] for r in rows),
             "success": float(np.mean([r["success_on"] for r in rows])),
             "success_bare": float(np.mean([r["success_off"] for r in rows])),
+            "success_clear": float(np.mean([r["success_on"] and not r["drove_in_on"] for r in rows])),
+            "success_clear_bare": float(np.mean([r["success_off"] and not r["drove_in_off"] for r in rows])),
+            "max_drive_in_speed": max(r["drive_in_speed_on"] for r in rows),
+            "max_drive_in_speed_bare": max(r["drive_in_speed_off"] for r in rows),
             "min_gap_mm": min(on) if on else None, "min_gap_mm_bare": min(off) if off else None,
             "median_min_gap_mm": float(np.median(on)) if on else None,
             "median_min_gap_mm_bare": float(np.median(off)) if off else None}

@@ -426,10 +426,13 @@ def _print_tables(doc: dict) -> None:
         print()
     if "intruders" in doc:
         print_table(["condition (intruders)", "controller", "episodes", "drove in, filter+MEC", "bare",
-                     "contact", "bare", "success", "bare", "closest [mm]", "bare", "median closest", "bare"],
+                     "fastest [m/s]", "bare", "contact", "bare", "success", "bare", "success, none driven into",
+                     "bare", "closest [mm]", "bare", "median closest", "bare"],
                     [[name, tag, r["episodes"], r["drive_in_episodes"], r["drive_in_episodes_bare"],
+                      f"{r['max_drive_in_speed']:.3f}", f"{r['max_drive_in_speed_bare']:.3f}",
                       r["contact_episodes"], r["contact_episodes_bare"], f"{r['success']:.2f}",
-                      f"{r['success_bare']:.2f}", *(_tick(r[k]) for k in ("min_gap_mm", "min_gap_mm_bare",
+                      f"{r['success_bare']:.2f}", f"{r['success_clear']:.2f}", f"{r['success_clear_bare']:.2f}",
+                      *(_tick(r[k]) for k in ("min_gap_mm", "min_gap_mm_bare",
                                                                           "median_min_gap_mm",
                                                                           "median_min_gap_mm_bare"))]
                      for name, by in doc["intruders"].items() for tag, r in by.items()])
