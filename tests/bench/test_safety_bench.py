@@ -17,9 +17,11 @@ def test_safety_bench_json_shape():
     out = subprocess.run(
         [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--steps", "15",
          "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5",
-         "--conditions", "delay2,frozen_robot", "--condition-episodes", "2", "--task-episodes", "1"],
+         "--conditions", "delay2,frozen_robot", "--condition-episodes", "2", "--task-episodes", "1",
+         "--intruder-conditions", "clean", "--intruder-episodes", "1"],
         cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
     doc = json.loads(out.stdout)   # stdout holds the document alone; progress is on stderr
+    assert list(doc["intruders"]) == ["clean"] and doc["intruders"]["clean"]["scripted"]["episodes"] == 1
     inv = doc["invariance"]
     assert inv["episodes"] == 4
     assert inv["collisions_filter_on"] <= inv["collisions_filter_off"] <= 4
