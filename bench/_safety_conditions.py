@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -45,7 +46,7 @@ from _common import map_episodes
 from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
-from sim.fleet import FleetState
+from sim.fleet import Fleet, FleetState
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
@@ -112,17 +113,26 @@ def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
     return out
 
 
+def paired_task_runs(name: str, seed: int, policy: str | None, stack_config: StackConfig,
+                     wrap: Callable[[PymunkWorld, int], Fleet] = lambda world, seed: world):
+    """Episode ``seed`` of paper-3, -4 or -5 (by ``seed % 3``) under condition ``name``, run with
+    the scripted controller (or ``policy``) through ``stack_config`` and bare on the same draw of
+    model error; ``wrap(world, seed)`` may put the world in another fleet. Yields ("on" | "off",
+    the fleet, its EpisodeMetrics)."""
+    torch.set_num_threads(1)
+    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
+    for key, config in (("on", stack_config), ("off", BARE)):
+        rng = np.random.default_rng(seed)
+        fleet = wrap(PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps)), seed)
+        source = _network(policy) if policy is not None else ScriptedController(sc)
+        yield key, fleet, run_episode(fleet, ControlStack(sc, source, config), seed)
+
+
 def task_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
     """One paper-3/4/5 episode of the scripted controller (or a policy), the stack and bare."""
     name, seed, policy, stack_config = task
-    torch.set_num_threads(1)
-    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
     out = {"condition": name, "seed": seed, "policy": policy or "scripted"}
-    for key, config in (("on", stack_config), ("off", BARE)):
-        rng = np.random.default_rng(seed)
-        world = PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps))
-        source = _network(policy) if policy is not None else ScriptedController(sc)
-        m = run_episode(world, ControlStack(sc, source, config), seed)
+    for key, world, m in paired_task_runs(name, seed, policy, stack_config):
         out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
         out[f"arrival_{key}"] = m.arrival_step
         if world.model_error.freeze is not None:

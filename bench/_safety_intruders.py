@@ -19,15 +19,12 @@ ticks of sighting age): such a robot brakes and still moves towards it for a few
 from __future__ import annotations
 
 import numpy as np
-import torch
 from _common import map_episodes
-from _safety_conditions import BARE, CONDITIONS, _network, model_error
+from _safety_conditions import CONDITIONS, paired_task_runs
 
-from controllers.scripted import ScriptedController
 from sim.intruders import Intruder, IntruderFleet
-from sim.pymunk_world import PymunkWorld
-from sim.scenario import Scenario, make_scenario
-from stack.pipeline import ControlStack, StackConfig, run_episode
+from sim.scenario import Scenario
+from stack.pipeline import StackConfig
 
 SIGHTING_DELAY_TICKS = 2
 
@@ -75,16 +72,13 @@ def random_intruders(rng: np.random.Generator, sc: Scenario) -> list[Intruder]:
 def intruder_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
     """One seed of a link condition with random intruders, the stack and bare."""
     name, seed, policy, stack_config = task
-    torch.set_num_threads(1)
-    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
     out = {"condition": name, "seed": seed, "policy": policy or "scripted"}
-    for key, config in (("on", stack_config), ("off", BARE)):
-        rng = np.random.default_rng(seed)
-        me = model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps)
-        fleet = IntruderFleet(PymunkWorld(sc, me), random_intruders(np.random.default_rng([seed, 1]), sc),
-                              SIGHTING_DELAY_TICKS)
-        source = _network(policy) if policy is not None else ScriptedController(sc)
-        m = run_episode(fleet, ControlStack(sc, source, config), seed)
+
+    def with_intruders(world, seed: int) -> IntruderFleet:
+        return IntruderFleet(world, random_intruders(np.random.default_rng([seed, 1]), world.scenario),
+                             SIGHTING_DELAY_TICKS)
+
+    for key, fleet, m in paired_task_runs(name, seed, policy, stack_config, with_intruders):
         near = fleet.watch.summary()
         out[f"success_{key}"], out[f"collided_{key}"] = m.success, m.collided
         out[f"drove_in_{key}"] = near["drive_in_ticks"] > 0
