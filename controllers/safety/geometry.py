@@ -52,7 +52,6 @@ WALL_NORMALS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
 
 _PRISM_HALF_HEIGHT = 1.0
 _WALL_THICKNESS = 1.0
-_VERTEX_TOL = 1e-6
 
 
 @dataclass
@@ -340,7 +339,7 @@ class CollisionScene:
         normal, centre_dist = _unit(pos[pi] - pos[pj])
         # GJK's witness points on the object are good to ~1e-5 m only: keep FCL's choice of the
         # nearest edge and its inside/outside verdict, and project the centre onto that edge.
-        obj_pts[:, 1] = self._snap_to_edge(pos, obj_pts[:, 1])
+        obj_pts[:, 1], at_end = self._snap_to_edge(pos, obj_pts[:, 1])
         # Object normal: from the nearest object point towards the centre, flipped when the centre
         # is inside the object (then the nearest boundary point lies ahead of the centre).
         towards = pos - obj_pts[:, 1]
@@ -351,8 +350,7 @@ class CollisionScene:
         if np.any(on_boundary):
             obj_normal[on_boundary] = _unit(pos[on_boundary] - self.object_pose[:2])[0]
         obj_pts[:, 0] = pos - r * obj_normal
-        vertex_gap = np.linalg.norm(obj_pts[:, 1, None, :] - self.polygon[None], axis=-1).min(axis=1)
-        at_vertex = (vertex_gap < _VERTEX_TOL) & ~inside
+        at_vertex = at_end & ~inside
         return SceneDistances(
             pair_i=pi, pair_j=pj, pair_distance=pair_d, pair_normal=normal, pair_points=pair_pts,
             pair_curvature=1.0 / np.maximum(centre_dist, 1e-9),
@@ -361,21 +359,24 @@ class CollisionScene:
             wall_distance=wall_d, wall_normal=WALL_NORMALS.copy(),
         )
 
-    def _snap_to_edge(self, centres: np.ndarray, near: np.ndarray) -> np.ndarray:
-        """Exact nearest points on the polygon edges that pass within 1e-4 m of FCL's (N, 2) points."""
+    def _snap_to_edge(self, centres: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact nearest points on the polygon edges that pass within 1e-4 m of FCL's (N, 2)
+        points, and whether each is an end of its edge (the projection was clamped: a vertex, as
+        :func:`point_polygon` decides it)."""
         a = self.polygon[None]
         e = np.roll(self.polygon, -1, axis=0)[None] - a                  # (1, M, 2)
         len2 = np.sum(e * e, -1)
 
-        def project(points: np.ndarray) -> np.ndarray:                     # (N, M, 2)
-            t = np.clip(np.sum((points[:, None] - a) * e, -1) / len2, 0.0, 1.0)
-            return a + t[..., None] * e
+        def project(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # (N, M, 2), (N, M)
+            t = np.sum((points[:, None] - a) * e, -1) / len2
+            return a + np.clip(t, 0.0, 1.0)[..., None] * e, (t <= 0.0) | (t >= 1.0)
 
-        fcl_gap = np.linalg.norm(near[:, None] - project(near), axis=-1)   # (N, M)
+        fcl_gap = np.linalg.norm(near[:, None] - project(near)[0], axis=-1)   # (N, M)
         candidate = fcl_gap <= fcl_gap.min(axis=1, keepdims=True) + 1e-4
-        onto = project(centres)
+        onto, clamped = project(centres)
         centre_gap = np.where(candidate, np.linalg.norm(centres[:, None] - onto, axis=-1), np.inf)
-        return onto[np.arange(len(centres)), np.argmin(centre_gap, axis=1)]
+        rows, best = np.arange(len(centres)), np.argmin(centre_gap, axis=1)
+        return onto[rows, best], clamped[rows, best]
 
     def _signed(self, a: fcl.CollisionObject, b: fcl.CollisionObject,
                 spheres: bool = False) -> tuple[float, np.ndarray]:

@@ -125,6 +125,7 @@ def test_rotated_object_takes_the_polygon_path_and_still_matches_fcl(seed, n, th
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(1, 6))
+@example(seed=6445, n=1)    # 0.56 um off the line of a vertex's edge: FCL's path took the vertex
 def test_non_convex_object_matches_the_exact_closed_form_and_fcl_outside(seed, n):
     """The crossing-number path: equal to the analytic rows everywhere, to FCL outside the object
     (FCL's depth inside a non-convex object is only that of the deepest ear-clipped triangle)."""
