@@ -230,7 +230,8 @@ class Bridge:
         return True
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:
-        uplink_ns = 0 if self.clock is not None else self.uplink.excess_ns(rs)
+        uplink_ns = 0 if self.clock is not None else self.uplink.excess_ns(rs.robot, rs.msg.epoch, rs.msg.send_time_ns,
+                                                                            rs.receive_time_ns)
         return max(0.0, now - rs.receive_time_ns + uplink_ns) / 1e9
 
     def stop(self) -> None:

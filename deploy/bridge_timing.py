@@ -61,14 +61,15 @@ class UplinkExcess:
     def __init__(self) -> None:
         self._floor: dict[str, tuple[int, float, int]] = {}  # robot -> (epoch, floor, when)
 
-    def excess_ns(self, rs: ReceivedState) -> float:
-        offset = rs.receive_time_ns - rs.msg.send_time_ns
-        prev = self._floor.get(rs.robot)
-        if prev is None or prev[0] != rs.msg.epoch:
+    def excess_ns(self, sender: str, epoch: int, send_time_ns: int, receive_time_ns: int) -> float:
+        """How much longer this message of ``sender`` (a robot, or a tracker) took than its fastest."""
+        offset = receive_time_ns - send_time_ns
+        prev = self._floor.get(sender)
+        if prev is None or prev[0] != epoch:
             floor = float(offset)
         else:
-            floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, rs.receive_time_ns - prev[2]), offset)
-        self._floor[rs.robot] = (rs.msg.epoch, floor, rs.receive_time_ns)
+            floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, receive_time_ns - prev[2]), offset)
+        self._floor[sender] = (epoch, floor, receive_time_ns)
         return offset - floor
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import zenoh
@@ -32,19 +31,12 @@ import zenoh
 from deploy.bridge_timing import UplinkExcess
 from deploy.network import FleetKeys
 from deploy.streams import Stamper, WireDecoder
-from deploy.transport import FleetLink, ReceivedState
+from deploy.transport import FleetLink
 from deploy.wire import ROBOT_ALL, MsgType, SightingMsg, encode
 from sim.fleet import Obstacles, obstacle_name
-from sim.intruders import Intruder, IntruderWatch
+from sim.intruders import Intruder, IntruderWatch, in_arena
 
 MAX_CAPTURE_AGE_MS = 0xFFFF
-
-
-@dataclass(frozen=True, slots=True)
-class _Seen:
-    msg: SightingMsg
-    receive_time_ns: int
-    excess_ns: float
 
 
 class SightingTable:
@@ -55,7 +47,7 @@ class SightingTable:
         self.decoder = decoder
         self.clock_ns = clock_ns
         self.uplink = UplinkExcess() if uplink else None
-        self._seen: dict[int, _Seen] = {}
+        self._seen: dict[int, tuple[SightingMsg, float]] = {}   # id -> (newest, when it was taken [ns])
         self._lock = threading.Lock()
         self.accepted = 0
         self.gone = 0
@@ -82,8 +74,8 @@ class SightingTable:
                 return
             excess = 0.0
             if self.uplink is not None:  # one clock per tracker: keyed by the tracker, not the obstacle
-                excess = self.uplink.excess_ns(ReceivedState("tracker", msg, now))  # type: ignore[arg-type]
-            self._seen[msg.robot_id] = _Seen(msg, now, excess)
+                excess = self.uplink.excess_ns("tracker", msg.epoch, msg.send_time_ns, now)
+            self._seen[msg.robot_id] = (msg, now - excess - msg.capture_age_ms * 1e6)
 
     def obstacles(self, now_ns: int) -> Obstacles | None:
         """What the filter keeps clear at ``now_ns`` (the link's clock); None when nothing is in view."""
@@ -91,12 +83,11 @@ class SightingTable:
             seen = sorted(self._seen.items())
         if not seen:
             return None
-        ages = [max(0.0, now_ns - s.receive_time_ns + s.excess_ns) / 1e9 + s.msg.capture_age_ms / 1e3
-                for _, s in seen]
-        return Obstacles(tuple(obstacle_name(i) for i, _ in seen),
-                         np.array([s.msg.position for _, s in seen]),
-                         np.array([s.msg.radius for _, s in seen]), np.array(ages),
-                         np.array([s.msg.max_speed for _, s in seen]))
+        msgs = [msg for _, (msg, _) in seen]
+        return Obstacles(tuple(obstacle_name(i) for i, _ in seen), np.array([m.position for m in msgs]),
+                         np.array([m.radius for m in msgs]),
+                         np.array([max(0.0, now_ns - taken) / 1e9 for _, (_, taken) in seen]),
+                         np.array([m.max_speed for m in msgs]))
 
     def in_view(self) -> tuple[str, ...]:
         with self._lock:
@@ -182,13 +173,13 @@ class SimulatedTracker:
     def look(self, tick: int) -> None:
         """Publish what is in the arena at ``tick`` of the episode (before the robots' states of
         that tick, so a lock-stepped controller has it when it answers them)."""
-        for i, intruder in enumerate(self.intruders):
-            if intruder.present(tick):
-                self.publisher.publish(i, intruder.centre(tick, self.dt), intruder.radius, intruder.reported_speed)
-                self._in_view.add(i)
-            elif i in self._in_view:
-                self.publisher.gone(i)
-                self._in_view.discard(i)
+        here = in_arena(self.intruders, tick, self.dt)
+        for i, intruder, centre in here:
+            self.publisher.publish(i, centre, intruder.radius, intruder.reported_speed)
+        now = {i for i, _, _ in here}
+        for i in sorted(self._in_view - now):
+            self.publisher.gone(i)
+        self._in_view = now
 
 
 __all__ = ["SightingPublisher", "SightingTable", "SimulatedTracker"]

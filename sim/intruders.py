@@ -107,6 +107,12 @@ class Intruder:
                    None if "max_speed" not in values else float(values["max_speed"]))
 
 
+def in_arena(intruders: Sequence[Intruder], tick: int, dt: float) -> list[tuple[int, Intruder, np.ndarray]]:
+    """``(index, intruder, centre (2,) [m])`` of each intruder in the arena at ``tick``: what a
+    tracker that sees them exactly reports (:class:`IntruderFleet`, deploy.tracker.SimulatedTracker)."""
+    return [(i, x, x.centre(tick, dt)) for i, x in enumerate(intruders) if x.present(tick)]
+
+
 class IntruderWatch:
     """What the robots did near the intruders over one episode (module docstring)."""
 
@@ -186,14 +192,13 @@ class IntruderFleet:
 
     def _seen(self, state: FleetState) -> FleetState:
         seen = max(self.tick - self.delay, 0)
-        here = [(i, x) for i, x in enumerate(self.intruders) if x.present(seen)]
+        here = in_arena(self.intruders, seen, self.world.dt)
         if not here:
             return state
-        dt = self.world.dt
-        obstacles = Obstacles(tuple(obstacle_name(i) for i, _ in here), np.array([x.centre(seen, dt) for _, x in here]),
-                              [x.radius for _, x in here], [(self.tick - seen) * dt] * len(here),
-                              [x.reported_speed for _, x in here])
+        obstacles = Obstacles(tuple(obstacle_name(i) for i, _, _ in here), np.array([c for _, _, c in here]),
+                              [x.radius for _, x, _ in here], [(self.tick - seen) * self.world.dt] * len(here),
+                              [x.reported_speed for _, x, _ in here])
         return state.replaced(obstacles=obstacles)
 
 
-__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch"]
+__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "in_arena"]
