@@ -7,7 +7,9 @@ arrived; robots with a 3-tick playout buffer, ``ModelError.playout_ticks``, whic
 exactly 3; and robots with an adaptive one, ``ModelError.adaptive_playout``, which settles at
 the largest delay seen); measurement noise (1 cm on positions, 2 cm/s on velocities); 20 % of
 the states lost on the way; a robot that freezes mid-episode (silent and deaf, its own watchdog
-brakes it after two ticks); gain 0.7 with two ticks of delay; and the randomised
+brakes it after two ticks), and the same with a tracker over the arena that sees every robot
+(``frozen_robot_tracked``: motion capture one tick late, within 5 mm and 2 cm/s, identifying
+each robot, :func:`tracked`); gain 0.7 with two ticks of delay; and the randomised
 gain/lag/friction/disturbance model error of part (a). Per condition, on the same seeds:
 
 * ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
@@ -47,6 +49,7 @@ from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
 from controllers.scripted import ScriptedController
 from sim.fleet import Fleet, FleetState
+from sim.intruders import IntruderFleet, RobotSightings
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
@@ -62,10 +65,12 @@ CONDITIONS: dict[str, dict] = {
     "noise": {"position_noise_std": 0.01, "velocity_noise_std": 0.02},
     "drops": {"state_drop": 0.2},
     "frozen_robot": {"freeze": "random"},
+    "frozen_robot_tracked": {"freeze": "random", "tracked": True},
     "gain0.7_delay2": {"gain": 0.7, "delay_ticks": 2},
     "model": {"model": "random"},
 }
-"""Condition name -> ModelError fields ("random": drawn per episode, see :func:`model_error`)."""
+"""Condition name -> ModelError fields ("random": drawn per episode, see :func:`model_error`;
+"tracked": a tracker over the arena also sees the robots, :func:`tracked`)."""
 
 BARE = StackConfig(safety=False, mec=False)
 OPEN_LOOP = StackConfig(safety=False, mec=False, docking=DockingConfig(enabled=False))
@@ -76,6 +81,7 @@ _NETWORKS: dict = {}
 def model_error(name: str, rng: np.random.Generator, num_robots: int, steps: int) -> ModelError:
     """The condition's ModelError for one episode (freeze: a random robot at a random tick)."""
     fields = dict(CONDITIONS[name])
+    fields.pop("tracked", None)
     if fields.get("freeze") == "random":
         fields["freeze"] = (int(rng.integers(num_robots)), int(rng.integers(5, max(6, steps // 2))))
     if fields.pop("model", None) == "random":
@@ -84,6 +90,14 @@ def model_error(name: str, rng: np.random.Generator, num_robots: int, steps: int
                   "floor_friction": float(rng.uniform(0, 0.1)), "disturbance_std": 0.02,
                   "disturbance": tuple(float(rng.uniform(0, 0.05)) * np.array([np.cos(angle), np.sin(angle)]))}
     return ModelError(**fields)
+
+
+def tracked(name: str, world: PymunkWorld, seed: int) -> Fleet:
+    """The world, under a ``tracked`` condition seen by a tracker over the arena that identifies
+    the robots (:class:`sim.intruders.RobotSightings` defaults: 5 mm, 2 cm/s), one tick late."""
+    if not CONDITIONS[name].get("tracked"):
+        return world
+    return IntruderFleet(world, (), sighting_delay_ticks=1, robots=RobotSightings(seed=seed))
 
 
 def _network(path: str | None):
@@ -104,7 +118,7 @@ def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
         rng = np.random.default_rng(seed)
         n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
         sc = transport_scenario(n)
-        world = PymunkWorld(sc, model_error(name, rng, n, steps))
+        world = tracked(name, PymunkWorld(sc, model_error(name, rng, n, steps)), seed)
         stack = ControlStack(sc, AdversarialPolicy(sc, rng), config)
         barrier = SafetyFilter(sc)
         m = run_episode(world, stack, seed, steps, start=lambda w, b=barrier, g=rng: random_start(w, b, g))
@@ -123,7 +137,8 @@ def paired_task_runs(name: str, seed: int, policy: str | None, stack_config: Sta
     sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
     for key, config in (("on", stack_config), ("off", BARE)):
         rng = np.random.default_rng(seed)
-        fleet = wrap(PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps)), seed)
+        world = PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps))
+        fleet = wrap(tracked(name, world, seed), seed)
         source = _network(policy) if policy is not None else ScriptedController(sc)
         yield key, fleet, run_episode(fleet, ControlStack(sc, source, config), seed)
 

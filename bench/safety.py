@@ -31,7 +31,8 @@ of :mod:`controllers.safety.fused`) or the reference ``fcl`` / ``analytic`` path
 same answers; run both to compare their latency.
 
 (d) conditions: the imperfections of a real link, one by one (delay 1-3 ticks, jittering delay,
-    noise, dropped states, a frozen robot, gain 0.7 with delay, the model error of (a)), each
+    noise, dropped states, a frozen robot, the same seen by a tracker that identifies robots,
+    gain 0.7 with delay, the model error of (a)), each
     with ``--condition-episodes`` adversarial episodes, default stack against bare, plus the
     scripted controller (and ``--policy``) and the MEC's tracking error; see
     :mod:`_safety_conditions`.

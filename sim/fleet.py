@@ -15,6 +15,7 @@ Arrays at this edge are numpy float64.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -107,6 +108,11 @@ class Obstacles:
         radii: (K,) radii [m], > 0.
         age_s: (K,) seconds since each was seen [s], >= 0.
         speed: (K,) the fastest each may move [m/s], >= 0 (0: it stands still, e.g. a box).
+        robots: K names of the fleet's robots each one is, None where it is none of them (a
+            tracker that identifies robots, e.g. motion capture); ``()``: none is. A robot's own
+            sighting never holds it: the filter takes it in place of a silent robot's own bound
+            once that robot is at rest (:mod:`controllers.safety.silent_reach`, Seen at rest)
+            and ignores it else.
     """
 
     ids: tuple[str, ...]
@@ -114,6 +120,7 @@ class Obstacles:
     radii: np.ndarray
     age_s: np.ndarray
     speed: np.ndarray
+    robots: tuple[str | None, ...] = ()
 
     def __post_init__(self) -> None:
         k = len(self.ids)
@@ -128,9 +135,27 @@ class Obstacles:
                 raise ValueError(f"Obstacles.{name} must be {k} finite values {'>' if strict else '>='} {low}, "
                                  f"got {getattr(self, name)!r}")
             setattr(self, name, arr)
+        self.robots = tuple(self.robots)
+        if self.robots and len(self.robots) != k:
+            raise ValueError(f"Obstacles.robots must name {k} robots (None: not a robot) or be (), "
+                             f"got {self.robots!r}")
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def split(self, robot_ids: Sequence[str]) -> tuple[dict[str, int], Obstacles | None]:
+        """``(row of each sighted robot of robot_ids, by name -> index here; the rest)``: the
+        obstacles that are none of ``robot_ids`` (None if no obstacle is left)."""
+        names = set(robot_ids)
+        seen = {name: k for k, name in enumerate(self.robots) if name is not None and name in names}
+        if not seen:
+            return {}, self
+        keep = np.array([k not in seen.values() for k in range(len(self))])
+        if not keep.any():
+            return seen, None
+        robots = tuple(r for r, kept in zip(self.robots, keep, strict=True) if kept)
+        return seen, Obstacles(tuple(i for i, kept in zip(self.ids, keep, strict=True) if kept),
+                               self.positions[keep], self.radii[keep], self.age_s[keep], self.speed[keep], robots)
 
 
 @dataclass

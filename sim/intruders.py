@@ -152,22 +152,55 @@ class IntruderWatch:
                 "max_drive_in_speed": round(self.max_drive_in_speed, 4)}
 
 
+@dataclass(frozen=True)
+class RobotSightings:
+    """How a tracker that identifies the fleet's robots (motion capture) reports each of them:
+    its centre drawn uniformly within ``position_error`` [m] of the true one, as a disc of the
+    robot's radius plus ``position_error`` (so it holds the robot), with a top speed of its true
+    speed plus ``speed_margin`` [m/s]; ``seed`` draws the errors."""
+
+    position_error: float = 0.005
+    speed_margin: float = 0.02
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("position_error", "speed_margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"RobotSightings.{name} must be a finite number >= 0, got {value!r}")
+
+    def report(self, rng: np.random.Generator, positions: np.ndarray, velocities: np.ndarray,
+               robot_radius: float) -> tuple[np.ndarray, float, np.ndarray]:
+        """What the tracker reports of N robots at their true (N, 2) ``positions`` [m] and
+        ``velocities`` [m/s]: ``(centres (N, 2) [m], radius [m], top speeds (N,) [m/s])``."""
+        n = len(positions)
+        angle, dist = rng.uniform(0.0, 2.0 * np.pi, n), self.position_error * np.sqrt(rng.uniform(size=n))
+        centres = positions + dist[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        return centres, robot_radius + self.position_error, np.hypot(*velocities.T) + self.speed_margin
+
+
 class IntruderFleet:
     """A :class:`sim.fleet.Fleet` (``world``, e.g. a :class:`sim.pymunk_world.PymunkWorld`) with
     intruders, seen by a tracker: every state it returns carries the intruders in the arena as
     ``FleetState.obstacles``, where they were ``sighting_delay_ticks`` ticks before (with that
-    age), at their reported top speed. :attr:`watch` holds the episode's :class:`IntruderWatch`
-    (reset with the world). Anything else is the world's."""
+    age), at their reported top speed; with ``robots``, the fleet's own robots too, as that
+    tracker reports them (:class:`RobotSightings`, identified by ``Obstacles.robots``).
+    :attr:`watch` holds the episode's :class:`IntruderWatch` (reset with the world). Anything
+    else is the world's."""
 
-    def __init__(self, world, intruders: Sequence[Intruder], sighting_delay_ticks: int = 0):
+    def __init__(self, world, intruders: Sequence[Intruder], sighting_delay_ticks: int = 0,
+                 robots: RobotSightings | None = None):
         if isinstance(sighting_delay_ticks, bool) or not isinstance(sighting_delay_ticks, int) \
                 or sighting_delay_ticks < 0:
             raise ValueError(f"sighting_delay_ticks must be an integer >= 0, got {sighting_delay_ticks!r}")
         self.world = world
         self.intruders = tuple(intruders)
         self.delay = sighting_delay_ticks
+        self.robots = robots
         self.watch = IntruderWatch(self.intruders, world.scenario.robot_radius, world.dt)
         self.tick = 0
+        self._true: list[FleetState] = []        # the last delay + 1 true states, oldest first
+        self._rng = np.random.default_rng(None if robots is None else robots.seed)
 
     def __getattr__(self, name: str):
         return getattr(self.world, name)
@@ -175,9 +208,15 @@ class IntruderFleet:
     def reset(self, seed: int | None = None) -> FleetState:
         self.tick = 0
         self.watch.reset()
-        return self._seen(self.world.reset(seed))
+        state = self.world.reset(seed)
+        self._true = [self.world.true_state()]
+        if self.robots is not None:
+            self._rng = np.random.default_rng([self.robots.seed, 0 if seed is None else seed])
+        return self._seen(state)
 
     def read_state(self) -> FleetState:
+        if self.tick == 0:              # placed after the reset (a bench's random start)
+            self._true = [self.world.true_state()]
         return self._seen(self.world.read_state())
 
     def send_accelerations(self, accelerations: np.ndarray) -> None:
@@ -188,17 +227,32 @@ class IntruderFleet:
         self.tick += 1
         true = self.world.true_state()
         self.watch.observe(self.tick, true.positions, true.velocities)
+        self._true = (self._true + [true])[-(self.delay + 1):]
         return self._seen(state)
 
     def _seen(self, state: FleetState) -> FleetState:
         seen = max(self.tick - self.delay, 0)
+        age = (self.tick - seen) * self.world.dt
         here = in_arena(self.intruders, seen, self.world.dt)
-        if not here:
+        ids = [obstacle_name(i) for i, _, _ in here]
+        centres = [c for _, _, c in here]
+        radii = [x.radius for _, x, _ in here]
+        speeds = [x.reported_speed for _, x, _ in here]
+        robots: list[str | None] = [None] * len(here)
+        if self.robots is not None:
+            true = self._true[0]
+            seen_at, radius, speed = self.robots.report(self._rng, true.positions, true.velocities,
+                                                        self.world.scenario.robot_radius)
+            ids += [f"#{name}" for name in true.robot_ids]
+            centres += list(seen_at)
+            radii += [radius] * len(seen_at)
+            speeds += list(speed)
+            robots += list(true.robot_ids)
+        if not ids:
             return state
-        obstacles = Obstacles(tuple(obstacle_name(i) for i, _, _ in here), np.array([c for _, _, c in here]),
-                              [x.radius for _, x, _ in here], [(self.tick - seen) * self.world.dt] * len(here),
-                              [x.reported_speed for _, x, _ in here])
+        obstacles = Obstacles(tuple(ids), np.array(centres), radii, [age] * len(ids), speeds,
+                              tuple(robots) if self.robots is not None else ())
         return state.replaced(obstacles=obstacles)
 
 
-__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "in_arena"]
+__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "RobotSightings", "in_arena"]

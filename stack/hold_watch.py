@@ -132,10 +132,11 @@ class HoldWatch:
         if state.silent is not None:
             near += [(rid, float(np.linalg.norm(p - at))) for rid, p in zip(state.silent.ids,
                                                                              state.silent.positions, strict=True)]
-        if state.obstacles is not None:          # a tracker's obstacles, by their edge
+        if state.obstacles is not None:          # a tracker's obstacles, by their edge (robots listed above)
             obs = state.obstacles
-            near += [(f"obstacle {oid}", float(np.linalg.norm(p - at) - r)) for oid, p, r in zip(
-                obs.ids, obs.positions, obs.radii, strict=True)]
+            robots = obs.robots or (None,) * len(obs)
+            near += [(f"obstacle {oid}", float(np.linalg.norm(p - at) - r)) for oid, p, r, robot in zip(
+                obs.ids, obs.positions, obs.radii, robots, strict=True) if robot is None]
         return [[str(rid), round(d, 3)] for rid, d in sorted(near, key=lambda x: x[1]) if d <= NEAR_M]
 
     def summary(self) -> list[dict]:

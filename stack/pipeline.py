@@ -44,8 +44,9 @@ every per-robot estimate is keyed by robot id)::
                    the command delay, through the commands in flight; discs grown by what the
                    prediction cannot know; stale and silent robots fixed obstacles with their
                    reachable disc
-      -> obstacles: FleetState.obstacles (a tracker's sightings) appended as fixed discs grown by
-                   how far each may move (Prediction.with_obstacles)
+      -> obstacles: FleetState.obstacles (a tracker's sightings, stack.seen) appended as fixed
+                   discs grown by how far each may move (Prediction.with_obstacles); a sighting
+                   of one of the robots bounds it only once it is silent and at rest
       -> safety:   controllers.safety.SafetyFilter.filter(..., prediction=) (optional)
                    => a_safe (N, 2), SafetyStatus
       -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
@@ -113,6 +114,7 @@ from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
 from stack.policy_io import StackError, _mask_is_optional, load_policy
+from stack.seen import robot_sightings, with_obstacles
 from stack.team_view import team_view
 from stack.tick_types import PolicyStatus, SafeStage, StackConfig, TickResult
 
@@ -453,7 +455,10 @@ class ControlStack:
                 position_std = np.concatenate([position_std, np.zeros(len(silent))])
             if velocity_std is not None:
                 velocity_std = np.concatenate([velocity_std, np.zeros(len(silent))])
-        prediction = None
+        prediction, seen, obstacles = None, None, state.obstacles if state.obstacles else None
+        reach = self.config.latency.delay_bound(state.command_delay_s) + self.dynamics.dt
+        if obstacles is not None:
+            seen, obstacles = robot_sightings(obstacles, ids, state.time, reach, self.scenario.robot_radius)
         if self.predictor is not None:
             pending = state.pending()
             if silent is not None:
@@ -461,15 +466,14 @@ class ControlStack:
             nominal = clip_norm_rows(f64(a_nom), self.dynamics.accel_limit)
             prediction = self.predictor.predict(ids, pos, vel, ages, nominal, state.command_delay_s,
                                                 fixed=unknown, pending=pending, position_noise=position_std,
-                                                velocity_noise=velocity_std, now=state.time)
+                                                velocity_noise=velocity_std, now=state.time, seen=seen)
             if prediction.covers:
                 prediction = prediction.with_covers()
                 extra = prediction.pos[len(pos):]
                 pos, vel = np.vstack([pos, extra]), np.vstack([vel, np.zeros_like(extra)])
                 a_nom = np.vstack([a_nom, np.zeros_like(extra)])
-        obstacles = state.obstacles
-        if obstacles is not None and len(obstacles):
-            prediction = self._with_obstacles(prediction, obstacles, pos, vel, unknown, state.command_delay_s)
+        if obstacles is not None:
+            prediction = with_obstacles(prediction, obstacles, pos, vel, unknown, reach, self.scenario.robot_radius)
             rest = np.zeros((len(obstacles), 2))
             pos, vel, a_nom = np.vstack([pos, obstacles.positions]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
         pose = state.object_pose
@@ -478,16 +482,6 @@ class ControlStack:
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
         self._last_prediction = prediction     # the detours of the next tick keep clear of its discs
         return SafeStage(result, prediction, len(pos), ids)
-
-    def _with_obstacles(self, prediction: Prediction | None, obstacles, pos: np.ndarray, vel: np.ndarray,
-                        unknown: np.ndarray, measured_delay_s: float | None) -> Prediction:
-        """``prediction`` (or, with the latency prediction off, the rows as measured) with the
-        tracker's obstacles appended, each reaching as far as it may move by the end of the tick
-        the new command acts in (its age, the latency bound, one tick)."""
-        prediction = prediction or Prediction.as_measured(pos, vel, unknown)
-        reach = obstacles.age_s + self.config.latency.delay_bound(measured_delay_s) + self.dynamics.dt
-        return prediction.with_obstacles(obstacles.positions, obstacles.radii, reach, obstacles.speed,
-                                         self.scenario.robot_radius)
 
     def _resize(self, n: int) -> None:
         """A new robot count: the filter builds (once) and caches its QP for N; the compensator

@@ -115,11 +115,13 @@ rest, the filter takes a few narrow discs round its branches' rest points instea
 at its disc's centre (:meth:`LatencyPredictor.dead_reckoned`), not at its last report: on the
 same condition, 600 episodes of an own-target generalist, the stack's success went from 0.413
 to 0.438 (bare 0.425), and on the robots still commanded from 0.705 to 0.763 (docs/safety.md, "A silent
-robot seen where it stopped").
+robot seen where it stopped"). A tracker's sighting of such a robot taken once it is at rest
+narrows that (``predict(seen=)``; silent_reach, Seen at rest).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,7 +130,7 @@ from controllers.checks import check_numbers
 from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
 from controllers.safety.prediction import Prediction
-from controllers.safety.silent_reach import SilentPaths, silent_paths
+from controllers.safety.silent_reach import Sighting, SilentPaths, narrowed, silent_paths
 from sim.scenario import Dynamics, clip_norm
 
 
@@ -320,7 +322,8 @@ class LatencyPredictor:
                 a_nom: np.ndarray, measured_delay_s: float | None = None,
                 fixed: np.ndarray | None = None, pending: np.ndarray | None = None,
                 position_noise: np.ndarray | None = None,
-                velocity_noise: np.ndarray | None = None, now: float | None = None) -> Prediction:
+                velocity_noise: np.ndarray | None = None, now: float | None = None,
+                seen: Mapping[int, Sighting] | None = None) -> Prediction:
         """Prediction of (N, 2) measured states of ``ages`` (N,) [s] (module docstring).
 
         ``a_nom`` (N, 2) joins the window whose spread bounds the unknown order of commands;
@@ -333,7 +336,9 @@ class LatencyPredictor:
         of each robot's velocity measurement (the compensator's), for
         :attr:`Prediction.velocity_error`. ``now`` [s]: the state's time; with it, a robot that is
         stale by age or given ``fixed`` is bounded by the branches of the commands it was sent
-        (:mod:`controllers.safety.silent_reach`), else by :func:`reach`.
+        (:mod:`controllers.safety.silent_reach`), else by :func:`reach`. ``seen``: a tracker's
+        sightings by row, which narrow such a robot's bound once its branches are at rest
+        (:func:`~controllers.safety.silent_reach.narrowed`).
         """
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
@@ -363,13 +368,18 @@ class LatencyPredictor:
                                                delay, unsure_weight[i])
                     if paths is None:
                         continue
+                    by_ball[i] = False
                     p[i], v[i], radius, rate = paths.disc(ages[i] + delay)
                     grow[i], closing[i] = radius + sigma[i], rate + cfg.velocity_noise
-                    by_ball[i] = False
                     cover = (None if cfg.cover_discs == 1
                              else paths.cover(ages[i] + delay, cfg.cover_merge, cfg.cover_discs))
-                    if cover is not None:
-                        covers.append((int(i), cover[0], cover[1] + sigma[i]))
+                    cover = cover and (cover[0], cover[1] + sigma[i])
+                    sighting = seen.get(int(i)) if seen else None
+                    if sighting is not None and paths.seen_at_rest(sighting.taken_at):
+                        cover, slower = narrowed(cover or (p[i][None], grow[i:i + 1]), sighting)
+                        p[i], v[i], grow[i], closing[i] = cover[0][0], 0.0, cover[1][0], min(closing[i], slower)
+                    if cover is not None and len(cover[1]) > 1:
+                        covers.append((int(i), *cover))
             if by_ball.any():
                 brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
                 centre, centre_vel, radius, rate = reach(pos[by_ball], vel[by_ball], ages[by_ball] + delay,

@@ -58,6 +58,17 @@ them as fixed obstacles (:meth:`controllers.safety.prediction.Prediction.with_co
 the frozen-robot condition: rest points 86 mm along the heading and 5 mm across, a 56 mm disc
 round a robot 8 mm from its centre, which held a neighbour off the way to its own target.
 
+**Seen at rest.** A tracker over the arena that identifies robots (motion capture) may report
+a silent robot as a disc (:class:`Sighting`). Its word alone bounds where the robot was, not
+where it goes: a tracker reports how fast it saw a robot move, not how fast a robot that still
+acts on commands may move next. Once every branch is at rest (:attr:`SilentPaths.settled_s`)
+the robot's contract says it stays at rest, so a sighting taken from then on
+(:meth:`SilentPaths.seen_at_rest`) holds it for good. The robot then lies in both the cover
+and the sighting's disc, so in the cover's discs that meet the sighting's (:func:`narrowed`):
+the near end of the branches, where the robot would be had it stopped at once, is no longer
+kept free of neighbours when the tracker sees it at the far end. Where the sighting's one disc
+is smaller than what is left of the cover (by area), it is the bound instead.
+
 Measured on the frozen-robot condition (a robot that goes silent and deaf mid-episode, its
 watchdog braking it two ticks later), 80 episodes of a 3-5 robot policy: the ball's radius at
 the end of an episode was 7-283 mm for robots whose true centre lay 0.5-44 mm from the ball's
@@ -108,6 +119,20 @@ def branch_paths(pos0: np.ndarray, vel0: np.ndarray, commands: np.ndarray, braki
 
 
 @dataclass(frozen=True)
+class Sighting:
+    """A tracker's sighting of one robot as a fixed filter row: ``centre`` (2,) [m], ``grow``
+    [m] and ``closing`` [m/s] as in :class:`controllers.safety.prediction.Prediction` (the
+    tracker's radius beyond the robot's and its speed bound over the reach, as an obstacle's:
+    :meth:`~controllers.safety.prediction.Prediction.with_obstacles`), ``taken_at`` [s] on the
+    states' clock."""
+
+    centre: np.ndarray
+    grow: float
+    closing: float
+    taken_at: float
+
+
+@dataclass(frozen=True)
 class SilentPaths:
     """The branches of one robot from one last state (module docstring).
 
@@ -149,6 +174,12 @@ class SilentPaths:
         """[s] after the last state from which the robot is at rest whatever its branch: every
         branch stopped (``T`` ticks) and ``e(n)`` at its final value (``K + S`` ticks)."""
         return max(self.points.shape[1] - 1, self.acting_ticks + self.stop_ticks) * self.dt
+
+    def seen_at_rest(self, taken_at: float) -> bool:
+        """Whether a picture taken at ``taken_at`` [s] (the states' clock) saw the robot at
+        rest for good: no earlier than :attr:`settled_s` after its last state (module
+        docstring, Seen at rest)."""
+        return taken_at + 1e-9 >= self.measured_at + self.settled_s
 
     def cover(self, t: float, merge: float, most: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Discs whose union holds the robot ``t`` seconds after the last state, once it is
@@ -195,6 +226,24 @@ class SilentPaths:
         return centre, (ahead - centre) / self.dt, radius, max(radius_ahead - radius, 0.0) / self.dt
 
 
+def narrowed(cover: tuple[np.ndarray, np.ndarray], sighting: Sighting
+             ) -> tuple[tuple[np.ndarray, np.ndarray], float]:
+    """``((centres (C, 2), grow (C,)), closing)``: the discs that hold a robot at rest that lies
+    both in ``cover`` (centres (K, 2) [m], grow (K,) [m]) and in the sighting's disc, and the
+    speed [m/s] its row closes at (module docstring, Seen at rest): the cover's discs that meet
+    the sighting's, or the sighting's disc where its area is the smaller (closing: the
+    sighting's speed; else inf, the caller's). Where no cover disc meets it, one of the two
+    pictures is wrong: both are kept."""
+    centres, radii = cover
+    meet = np.linalg.norm(centres - sighting.centre, axis=1) <= radii + sighting.grow
+    own = (sighting.centre[None], np.array([sighting.grow]))
+    if not meet.any():
+        return (np.vstack([centres, own[0]]), np.concatenate([radii, own[1]])), np.inf
+    if sighting.grow ** 2 <= (radii[meet] ** 2).sum():
+        return own, sighting.closing
+    return (centres[meet], radii[meet]), np.inf
+
+
 def _box_disc(points: np.ndarray) -> tuple[np.ndarray, float]:
     """The centre of the bounding box of (K, 2) points [m] and the largest distance of a point
     from it [m]: a disc holding them all."""
@@ -219,4 +268,4 @@ def silent_paths(pos0: np.ndarray, vel0: np.ndarray, sequences: list[tuple[np.nd
                        brake_error=brake_error, acting_ticks=acting, stop_ticks=stop, dt=dynamics.dt)
 
 
-__all__ = ["SilentPaths", "branch_paths", "silent_paths"]
+__all__ = ["Sighting", "SilentPaths", "branch_paths", "narrowed", "silent_paths"]

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from sim.intruders import IntruderFleet
+from sim.intruders import IntruderFleet, RobotSightings
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
 from stack.commands import argtypes
@@ -70,6 +70,10 @@ def register(sub) -> None:
                    help=MODEL_ERROR_HELP + "; freeze=2:40: robot 2 goes silent at tick 40")
     add_command_delay_arg(p)
     argtypes.add_intruder_flag(p, "; --world pymunk (a fleet over Zenoh has its own: fleet-sim --intruder)")
+    p.add_argument("--track-robots", action="store_true",
+                   help="--world pymunk: a tracker over the arena also sees every robot, one tick late, "
+                        "within 5 mm and 2 cm/s (motion capture; sim.intruders.RobotSightings): a silent "
+                        "robot it sees at rest is bounded by that sighting")
     p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
     p.add_argument("--trace", type=Path, default=None, metavar="DIR",
                    help="--world pymunk or zenoh: record every episode into DIR as episode_SEED.npz "
@@ -116,8 +120,9 @@ def evaluate_from_args(args) -> dict:
                                 "or exported policy file, or --policy scripted")
     notes = []
     if args.world == "batched":
-        if args.intruder:
-            raise EvalArgumentError("--intruder needs --world pymunk: the batched world has no tracker")
+        if args.intruder or args.track_robots:
+            raise EvalArgumentError("--intruder and --track-robots need --world pymunk: the batched world has "
+                                    "no tracker")
         ignored = [flag for flag, value in (("--safety", args.safety), ("--mec", args.mec),
                                             ("--docking", args.docking), ("--model-error", args.model_error))
                    if value is not None]
@@ -194,8 +199,9 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
         world = PymunkWorld(scenario, model_error, seed=args.seed)
     except ValueError as exc:
         raise EvalArgumentError(str(exc)) from None
-    if args.intruder:
-        world = IntruderFleet(world, args.intruder)
+    if args.intruder or args.track_robots:
+        world = IntruderFleet(world, args.intruder, sighting_delay_ticks=int(args.track_robots),
+                              robots=RobotSightings(seed=args.seed) if args.track_robots else None)
     out, traced = _episodes(args, world, stack, safety=safety, mec=mec)
     _draw_traces(traced, scenario)
     out["model_error"] = dataclasses.asdict(model_error)
@@ -246,9 +252,9 @@ def _zenoh_fleet(args, scenario):
 
     if not args.fleet:
         raise EvalArgumentError("--world zenoh needs --fleet NAME and the fleet's endpoint (--connect)")
-    if args.model_error is not None or args.intruder:
-        raise EvalArgumentError("--model-error and --intruder apply to --world pymunk: a fleet over Zenoh has "
-                                "its own (formation fleet-sim --model-error, --intruder)")
+    if args.model_error is not None or args.intruder or args.track_robots:
+        raise EvalArgumentError("--model-error, --intruder and --track-robots apply to --world pymunk: a fleet "
+                                "over Zenoh has its own (formation fleet-sim --model-error, --intruder)")
     try:
         transport = argtypes.transport_config(args)
         config = BridgeConfig(lockstep=args.lockstep, period_s=scenario.dynamics.dt)
@@ -268,7 +274,7 @@ def _episodes(args, fleet, stack, *, safety: bool, mec: bool) -> tuple[dict, lis
     for k in tqdm(range(args.episodes), desc="eval", unit="ep", file=sys.stderr, leave=False):
         recorder = EpisodeRecorder() if trace is not None else None
         rows.append(run_episode(fleet, stack, args.seed + k, args.steps, recorder=recorder))
-        if isinstance(fleet, IntruderFleet):
+        if isinstance(fleet, IntruderFleet) and fleet.intruders:
             near.append(fleet.watch.summary())
         if recorder is not None:
             traced.append(_trace(args, stack, args.seed + k, recorder, rows[-1]))

@@ -104,7 +104,8 @@ def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
     (["eval", "--policy", "scripted", "--world", "pymunk", "--command-delay-ms", "-5"], "--command-delay-ms"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--model-error", "freeze=4:20"],
      "paper-4 has 4 robots: pick a row in 0..3"),
-    (["eval", "--policy", "scripted", "--intruder", "radius=0.05,x=0.5,y=0.8"], "--intruder needs --world pymunk"),
+    (["eval", "--policy", "scripted", "--intruder", "radius=0.05,x=0.5,y=0.8"], "--intruder and --track-robots need --world pymunk"),
+    (["eval", "--policy", "scripted", "--track-robots"], "--intruder and --track-robots need --world pymunk"),
     (["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "f", "--intruder", "radius=0.05,x=0.5,y=0.8"],
      "fleet-sim --model-error, --intruder"),
 ])
@@ -125,6 +126,20 @@ def test_intruders_are_kept_clear_of_in_eval_and_driven_into_without_the_filter(
         rows[bool(flags)] = json.loads(out.read_text())
     assert rows[False]["intruder_drive_in_rate"] == 0.0 and rows[False]["intruder_min_gap_mm"] > 5.0
     assert rows[True]["intruder_drive_in_rate"] == 1.0 and rows[True]["intruder_min_gap_mm"] < -30.0
+
+
+def test_a_tracker_that_sees_the_robots_changes_nothing_while_they_all_report(tmp_path):
+    """--track-robots on paper-4 with a tick of delay: each robot's own sighting never holds it,
+    so the episodes are the ones without a tracker, to the last digit."""
+    rows = []
+    for flags in ([], ["--track-robots"]):
+        out = tmp_path / f"eval{len(rows)}.json"
+        assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--episodes", "2",
+                     "--model-error", "delay_ticks=1", *flags, "--json", str(out)]) == 0
+        rows.append(json.loads(out.read_text()))
+    keys = ("success_rate", "final_distance", "arrival_tick", "interventions_per_episode")
+    assert [rows[0][k] for k in keys] == [rows[1][k] for k in keys]
+    assert rows[0]["success_rate"] == 1.0 and "intruder_min_gap_mm" not in rows[1]
 
 
 def test_a_negative_seed_is_refused_by_argparse(capsys):

@@ -168,10 +168,13 @@ def test_a_robot_held_by_a_trackers_obstacle_names_it():
     state = world.reset(seed=0)
     watch = HoldWatch(sc.dynamics.dt, sc.target_tolerance, sc.dynamics.accel_limit)
     stack = WatchedStack(ControlStack(sc, ScriptedController(sc), StackConfig()), watch)
-    box = Obstacles(("box",), [[0.5, 0.8]], [0.05], [0.1], [0.0])
     for _ in range(sc.dynamics.episode_steps):
+        seen = world.true_state()       # and a tracker's sighting of each robot, on itself
+        box = Obstacles(("box", "#r0", "#r1", "#r2"), [[0.5, 0.8], *seen.positions], [0.05, *[0.045] * 3],
+                        [0.1, 0.0, 0.0, 0.0], [0.0, *[0.02] * 3], (None, "r0", "r1", "r2"))
         world.send_accelerations(stack.tick(state.replaced(obstacles=box)).a_cmd)
         state = world.step()
     reports = watch.summary()
     assert reports and reports[0]["not_listening"][0][0] == "obstacle box", reports
+    assert [name for name, _ in reports[0]["not_listening"]] == ["obstacle box"]   # not a robot's own sighting
     assert 0.04 < reports[0]["not_listening"][0][1] < 0.1
