@@ -83,6 +83,8 @@ through the arena, restarted every episode. The fleet's simulated tracker
 sightings key before the robots' states of every tick, and GONE when it leaves; each episode's
 record (and the summary, for the last one) says how close the robots came and whether one drove
 into an intruder (``intruders``: ``min_gap_mm``, ``drive_in_ticks``, ``max_drive_in_speed``).
+With ``track_robots`` (:class:`sim.intruders.RobotSightings`) the tracker identifies the robots
+too, online or not, every tick (flag ROBOT, :mod:`deploy.tracker`).
 
 Test knobs: ``drop_commands`` (probability that a newly arrived command is discarded, as if
 lost) and ``events`` (``(tick, robot, "leave" | "join")``: the robot's link closes or opens;
@@ -368,9 +370,10 @@ class FleetSim:
         cfg = self.config
         self.session = cfg.transport.open()
         try:
-            if cfg.intruders:
+            if cfg.intruders or cfg.track_robots is not None:
                 self.tracker = SimulatedTracker(SightingPublisher(self.session, cfg.fleet, lossless=self.lossless),
-                                                cfg.intruders, cfg.scenario.robot_radius, cfg.scenario.dynamics.dt)
+                                                cfg.intruders, cfg.scenario.robot_radius, cfg.scenario.dynamics.dt,
+                                                cfg.track_robots, self.registry)
             first_event = {}
             for _, name, kind in sorted(cfg.events):
                 first_event.setdefault(name, kind)
@@ -391,7 +394,7 @@ class FleetSim:
                     self._timeouts_before = self.lockstep_timeouts
                 self._apply_events()
                 if self.tracker is not None:
-                    self.tracker.look(self._episode_tick())
+                    self.tracker.look(self._episode_tick(), self.world.true_state())
                 now_ns = time.monotonic_ns()
                 published_ns = None
                 accels = np.zeros((len(self.robots), 2))

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from deploy.network import TransportConfig
-from sim.intruders import Intruder
+from sim.intruders import Intruder, RobotSightings
 from sim.pymunk_world import ModelError
 from sim.scenario import Scenario
 
@@ -53,6 +53,7 @@ class FleetSimConfig:
     shared_clock: bool | None = None
     playout_ticks: int = 0
     intruders: tuple[Intruder, ...] = ()
+    track_robots: RobotSightings | None = None
 
     def clock_is_shared(self) -> bool:
         """``shared_clock``, or (None) whether every endpoint is on loopback: the controller then

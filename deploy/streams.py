@@ -93,8 +93,9 @@ class WireDecoder:
     """Full receive-side validation: :func:`decode` plus registry, sequence and clock checks.
 
     Args:
-        registry: known robots; ids not in it are UNKNOWN_ROBOT (not for SIGHTING, whose id
-            is the tracker's obstacle id). None skips the check.
+        registry: known robots; ids not in it are UNKNOWN_ROBOT (a SIGHTING's header id is the
+            tracker's obstacle id: only the robot it names, flag ROBOT, is checked). None skips
+            the check.
         clock_ns: the receiver's clock, only if it is the same clock as the senders'
             (``time.monotonic_ns`` on one host): enables EXPIRED (CMD older than ttl_ms) and
             FROM_FUTURE (any message sent more than ``max_future_ms`` ahead of now).
@@ -130,6 +131,9 @@ class WireDecoder:
         if (self.registry is not None and msg.robot_id != ROBOT_ALL and msg.TYPE is not MsgType.SIGHTING
                 and self.registry.name_of(msg.robot_id) is None):   # a sighting's id names an obstacle
             return self.reject(Reason.UNKNOWN_ROBOT, f"robot id {msg.robot_id} is not registered")
+        if (self.registry is not None and msg.TYPE is MsgType.SIGHTING and msg.robot is not None
+                and self.registry.name_of(msg.robot) is None):
+            return self.reject(Reason.UNKNOWN_ROBOT, f"sighting of robot id {msg.robot}, which is not registered")
         if robot_id is not None and msg.robot_id != robot_id:
             return self.reject(Reason.ROBOT_MISMATCH,
                                f"robot id {msg.robot_id} on the key of robot id {robot_id}")

@@ -7,7 +7,11 @@ Wire (``docs/wire-format.md``, SIGHTING): one 60-byte message per obstacle per l
 obstacle (0..0xFFFE, not a robot), each obstacle its own stream (epoch, seq). The body holds
 the centre [m], the radius [m], the fastest the obstacle may move [m/s] and how long before
 ``send_time_ns`` the picture was taken (``capture_age_ms``). Flag GONE: the tracker no longer
-sees the obstacle (it left the arena); the controller forgets it.
+sees the obstacle (it left the arena); the controller forgets it. Flag ROBOT: the disc is one of
+the fleet's robots, named by its registry id in the body (a tracker that identifies robots,
+e.g. motion capture); the stack then uses it only to bound that robot once it went silent and
+came to rest (:mod:`controllers.safety.silent_reach`, Seen at rest), never as an obstacle of the
+robot itself.
 
 Controller side (:class:`SightingTable`, in :class:`deploy.transport.FleetLink`): the newest
 sighting of each obstacle, until GONE. Its age at a tick is counted as a robot state's is
@@ -32,9 +36,9 @@ from deploy.bridge_timing import UplinkExcess
 from deploy.network import FleetKeys
 from deploy.streams import Stamper, WireDecoder
 from deploy.transport import FleetLink
-from deploy.wire import ROBOT_ALL, MsgType, SightingMsg, encode
-from sim.fleet import Obstacles, obstacle_name
-from sim.intruders import Intruder, IntruderWatch, in_arena
+from deploy.wire import ROBOT_ALL, MsgType, Reason, RobotRegistry, SightingMsg, encode
+from sim.fleet import FleetState, Obstacles, obstacle_name
+from sim.intruders import Intruder, IntruderWatch, RobotSightings, in_arena
 
 MAX_CAPTURE_AGE_MS = 0xFFFF
 
@@ -56,17 +60,21 @@ class SightingTable:
     def listening(cls, link: FleetLink, uplink: bool = True) -> SightingTable:
         """A table fed by ``link``'s sightings subscriber, on its clock, counting its rejections
         in ``link.rejects`` (FROM_FUTURE checked as the link checks its states)."""
-        table = cls(WireDecoder(None, link.decoder.clock_ns, counter=link.rejects), link.clock_ns, uplink)
+        table = cls(WireDecoder(link.registry, link.decoder.clock_ns, counter=link.rejects), link.clock_ns, uplink)
         link.on_sighting = table.receive
         return table
 
     def receive(self, payload: bytes) -> None:
         """One SIGHTING payload: kept when valid and newer than the last of its obstacle;
-        rejections are counted in the decoder's counter (the link's ``rejects``)."""
+        rejections are counted in the decoder's counter (the link's ``rejects``); a robot's
+        sighting needs the decoder's registry (UNKNOWN_ROBOT without one)."""
         now = self.clock_ns()
         with self._lock:
             msg = self.decoder.decode(payload, MsgType.SIGHTING)
             if not isinstance(msg, SightingMsg):
+                return
+            if msg.robot is not None and self.decoder.registry is None:
+                self.decoder.reject(Reason.UNKNOWN_ROBOT, f"sighting of robot id {msg.robot} without a registry")
                 return
             self.accepted += 1
             if msg.gone:
@@ -84,10 +92,12 @@ class SightingTable:
         if not seen:
             return None
         msgs = [msg for _, (msg, _) in seen]
+        registry = self.decoder.registry
+        robots = tuple(None if m.robot is None else registry.name_of(m.robot) for m in msgs)
         return Obstacles(tuple(obstacle_name(i) for i, _ in seen), np.array([m.position for m in msgs]),
                          np.array([m.radius for m in msgs]),
                          np.array([max(0.0, now_ns - taken) / 1e9 for _, (_, taken) in seen]),
-                         np.array([m.max_speed for m in msgs]))
+                         np.array([m.max_speed for m in msgs]), robots if any(robots) else ())
 
     def in_view(self) -> tuple[str, ...]:
         with self._lock:
@@ -126,15 +136,16 @@ class SightingPublisher:
         return self._stampers[obstacle_id].next()
 
     def publish(self, obstacle_id: int, position: Sequence[float], radius: float, max_speed: float,
-                capture_age_s: float = 0.0) -> SightingMsg:
+                capture_age_s: float = 0.0, robot: int | None = None) -> SightingMsg:
         """Report obstacle ``obstacle_id``: a disc of ``radius`` [m] at ``position`` [m], seen
-        ``capture_age_s`` [s] ago, moving at most ``max_speed`` [m/s]. Raises ValueError (nothing
-        is sent) on a bad field, naming it."""
+        ``capture_age_s`` [s] ago, moving at most ``max_speed`` [m/s]; ``robot``: the registry id
+        of the fleet robot it is (None: none). Raises ValueError (nothing is sent) on a bad
+        field, naming it."""
         if not 0.0 <= capture_age_s <= MAX_CAPTURE_AGE_MS / 1e3:
             raise ValueError(f"capture_age_s must be in [0, {MAX_CAPTURE_AGE_MS / 1e3}] s, got {capture_age_s!r}")
         epoch, seq, now = self._stamp(obstacle_id)
         msg = SightingMsg(obstacle_id, epoch, seq, now, tuple(position), float(radius), float(max_speed),
-                          int(np.ceil(capture_age_s * 1e3)))
+                          int(np.ceil(capture_age_s * 1e3)), robot=robot)
         self._publisher.put(encode(msg))
         return msg
 
@@ -153,13 +164,20 @@ class SimulatedTracker:
     """The tracker of a simulated fleet (:mod:`deploy.fleet_sim`): it sees each
     :class:`sim.intruders.Intruder` exactly, publishes it as obstacle ``i`` (its index) while it
     is in the arena and GONE on the tick it leaves, and watches what the robots did near it
-    (:class:`sim.intruders.IntruderWatch`)."""
+    (:class:`sim.intruders.IntruderWatch`). With ``robots`` (and the fleet's ``registry``) it
+    identifies the fleet's robots too, as :class:`sim.intruders.RobotSightings` says, each as
+    obstacle ``len(intruders) + k`` with flag ROBOT."""
 
     def __init__(self, publisher: SightingPublisher, intruders: Sequence[Intruder], robot_radius: float,
-                 dt: float):
+                 dt: float, robots: RobotSightings | None = None, registry: RobotRegistry | None = None):
+        if robots is not None and registry is None:
+            raise ValueError("a tracker that identifies robots needs the fleet's registry")
         self.publisher = publisher
         self.intruders = tuple(intruders)
         self.dt = dt
+        self.robot_radius = robot_radius
+        self.robots, self.registry = robots, registry
+        self._rng = np.random.default_rng(None if robots is None else robots.seed)
         self.watch = IntruderWatch(self.intruders, robot_radius, dt)
         self._in_view: set[int] = set()
 
@@ -170,12 +188,19 @@ class SimulatedTracker:
         self._in_view.clear()
         self.watch.reset()
 
-    def look(self, tick: int) -> None:
+    def look(self, tick: int, robots: FleetState | None = None) -> None:
         """Publish what is in the arena at ``tick`` of the episode (before the robots' states of
-        that tick, so a lock-stepped controller has it when it answers them)."""
+        that tick, so a lock-stepped controller has it when it answers them); ``robots``: their
+        true state, when the tracker identifies them."""
         here = in_arena(self.intruders, tick, self.dt)
         for i, intruder, centre in here:
             self.publisher.publish(i, centre, intruder.radius, intruder.reported_speed)
+        if self.robots is not None and robots is not None:
+            centres, radius, speeds = self.robots.report(self._rng, robots.positions, robots.velocities,
+                                                         self.robot_radius)
+            for k, name in enumerate(robots.robot_ids):
+                self.publisher.publish(len(self.intruders) + k, centres[k], radius, float(speeds[k]),
+                                       robot=self.registry.id_of(name))
         now = {i for i, _, _ in here}
         for i in sorted(self._in_view - now):
             self.publisher.gone(i)

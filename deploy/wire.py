@@ -7,7 +7,8 @@ Every message is one 24-byte header followed by a fixed-size body chosen by the 
     STATE   <ddddII      position x, y [m], velocity x, y [m/s] (f64), last_cmd_seq, reserved
     CMD     <ddIHH       acceleration x, y [m/s^2] (f64), state_seq, ttl_ms, reserved
     ESTOP   <II          reason_code, reserved
-    SIGHTING <ddddHH     position x, y [m], radius [m], top speed [m/s] (f64), capture_age_ms, reserved
+    SIGHTING <ddddHH     position x, y [m], radius [m], top speed [m/s] (f64), capture_age_ms,
+                         fleet robot id (flag ROBOT; else reserved, 0)
 
 ``send_time_ns`` is the sender's monotonic clock (``time.monotonic_ns()``, CLOCK_MONOTONIC). It
 is comparable with the receiver's clock only when both share it (same host) or the clocks are
@@ -91,6 +92,7 @@ class SightingFlags(IntFlag):
     """Header ``flags`` of a SIGHTING message."""
 
     GONE = 1  # the tracker no longer sees this obstacle (left the arena): forget it
+    ROBOT = 2  # the disc is one of the fleet's robots: the body's last field is its registry id
 
 
 ALLOWED_FLAGS = {
@@ -98,12 +100,13 @@ ALLOWED_FLAGS = {
                        | StateStatus.CONTROLLER_LOST | StateStatus.FAULT | StateStatus.LOCKSTEP),
     MsgType.CMD: int(CmdFlags.BRAKE | CmdFlags.STOP),
     MsgType.ESTOP: int(EstopFlags.ENGAGED),
-    MsgType.SIGHTING: int(SightingFlags.GONE),
+    MsgType.SIGHTING: int(SightingFlags.GONE | SightingFlags.ROBOT),
 }
 
 
 ESTOP_ENGAGED = int(EstopFlags.ENGAGED)
 GONE_BIT = int(SightingFlags.GONE)
+SEEN_ROBOT_BIT = int(SightingFlags.ROBOT)
 # The same bits as plain ints, for hot paths: ``int(flags) & BIT`` costs a tenth of ``flags & FLAG``
 # (an IntFlag operation builds a new flag value).
 FAULT_BIT = int(StateStatus.FAULT)
@@ -257,8 +260,10 @@ class EstopMsg:
 @dataclass(frozen=True, slots=True)
 class SightingMsg:
     """Tracker -> controller: obstacle ``robot_id`` (the tracker's id for it, 0..0xFFFE; not a
-    robot) was a disc of ``radius`` [m] centred at ``position`` [m] ``capture_age_ms`` before
-    ``send_time_ns``, and moves at most ``max_speed`` [m/s]. ``gone``: no longer seen, forget it."""
+    robot's registry id) was a disc of ``radius`` [m] centred at ``position`` [m]
+    ``capture_age_ms`` before ``send_time_ns``, and moves at most ``max_speed`` [m/s]. ``gone``:
+    no longer seen, forget it. ``robot``: the registry id of the fleet robot the disc is (flag
+    ROBOT; 0..0xFFFE), None: something the controller does not command."""
 
     TYPE: ClassVar[MsgType] = MsgType.SIGHTING
     robot_id: int
@@ -270,6 +275,7 @@ class SightingMsg:
     max_speed: float
     capture_age_ms: int = 0
     gone: bool = False
+    robot: int | None = None
 
     def __post_init__(self) -> None:
         _normalise_pairs(self, "position")
@@ -320,6 +326,8 @@ def _check_fields(msg: Message) -> Rejection | None:
         extras = (("ttl_ms", msg.ttl_ms, 16), ("state_seq", msg.state_seq, 32))
     elif isinstance(msg, SightingMsg):
         extras = (("capture_age_ms", msg.capture_age_ms, 16),)
+        if msg.robot is not None:
+            extras += (("robot", msg.robot, 16),)
     else:
         extras = (("reason_code", msg.reason_code, 32),)
     for field, value, bits in extras:
@@ -350,7 +358,9 @@ def _check_meaning(msg: Message) -> Rejection | None:
             return Rejection(Reason.BAD_TTL, "ttl_ms=0: a command must live 1..65535 ms")
     elif t is MsgType.SIGHTING:
         floats = (("position", msg.position), ("radius, max_speed", (msg.radius, msg.max_speed)))
-        flags = GONE_BIT if msg.gone else 0
+        flags = _sighting_flags(msg)
+        if msg.robot == ROBOT_ALL:
+            return Rejection(Reason.BAD_ROBOT_ID, "SIGHTING robot=0xFFFF is reserved for fleet-wide messages")
     else:
         floats = ()
         flags = ESTOP_ENGAGED if msg.engaged else 0
@@ -366,6 +376,10 @@ def _check_meaning(msg: Message) -> Rejection | None:
         return Rejection(Reason.BAD_VALUE, f"SIGHTING radius={msg.radius} must be > 0 m and "
                          f"max_speed={msg.max_speed} >= 0 m/s")
     return None
+
+
+def _sighting_flags(msg: SightingMsg) -> int:
+    return (GONE_BIT if msg.gone else 0) | (SEEN_ROBOT_BIT if msg.robot is not None else 0)
 
 
 def encode(msg: Message) -> bytes:
@@ -385,8 +399,8 @@ def encode(msg: Message) -> bytes:
         flags, body = int(msg.flags), CMD_BODY.pack(*msg.acceleration, msg.state_seq,
                                                     msg.ttl_ms, 0)
     elif isinstance(msg, SightingMsg):
-        flags = GONE_BIT if msg.gone else 0
-        body = SIGHTING_BODY.pack(*msg.position, msg.radius, msg.max_speed, msg.capture_age_ms, 0)
+        flags = _sighting_flags(msg)
+        body = SIGHTING_BODY.pack(*msg.position, msg.radius, msg.max_speed, msg.capture_age_ms, msg.robot or 0)
     else:
         flags = ESTOP_ENGAGED if msg.engaged else 0
         body = ESTOP_BODY.pack(msg.reason_code, 0)
@@ -439,8 +453,11 @@ def decode(data: bytes | bytearray | memoryview,
                      state_seq)
     elif t is MsgType.SIGHTING:
         px, py, radius, max_speed, capture_age_ms, reserved = SIGHTING_BODY.unpack_from(buf, HEADER_SIZE)
+        robot = None
+        if flags & SEEN_ROBOT_BIT:     # the last field is the robot's id, not reserved
+            robot, reserved = reserved, 0
         msg = SightingMsg(robot_id, epoch, seq, send_time_ns, (px, py), radius, max_speed, capture_age_ms,
-                          bool(flags & GONE_BIT))
+                          bool(flags & GONE_BIT), robot)
     else:
         reason_code, reserved = ESTOP_BODY.unpack_from(buf, HEADER_SIZE)
         msg = EstopMsg(epoch, seq, send_time_ns, bool(flags & ESTOP_ENGAGED), reason_code,

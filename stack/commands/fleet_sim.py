@@ -32,6 +32,7 @@ import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig, WatchdogConfig, write_json
 from deploy.startup import freeze_start_up_heap
+from sim.intruders import RobotSightings
 from sim.scenario import make_scenario
 from stack.commands import argtypes
 from stack.commands.latency_args import MODEL_ERROR_HELP, parse_model_error
@@ -81,6 +82,10 @@ def register(sub) -> None:
     p.add_argument("--join", type=_event("join"), action="append", default=[],
                    metavar="ROBOT@TICK", help="open a robot's link at a tick")
     argtypes.add_intruder_flag(p, "; the fleet's simulated tracker publishes it on the sightings key")
+    p.add_argument("--track-robots", action="store_true",
+                   help="the simulated tracker also identifies every robot, online or not, each tick, within "
+                        "5 mm and 2 cm/s (motion capture; sim.intruders.RobotSightings): the controller bounds a "
+                        "silent robot it sees at rest by that sighting")
     argtypes.add_shared_clock_flag(p, "controller")
     p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
     p.set_defaults(func=run)
@@ -104,7 +109,8 @@ def run(args) -> int:
             start_timeout_s=args.start_timeout,
             watchdog=WatchdogConfig(args.brake_after_ticks, args.stop_after),
             events=tuple(args.leave + args.join), shared_clock=args.shared_clock,
-            playout_ticks=args.playout_ticks, intruders=tuple(args.intruder))
+            playout_ticks=args.playout_ticks, intruders=tuple(args.intruder),
+            track_robots=RobotSightings(seed=args.seed) if args.track_robots else None)
     except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -250,6 +250,24 @@ def test_a_robot_that_falls_silent_in_the_others_path_is_never_touched(tmp_path)
     assert all(h["not_listening"][0][0] == "r2" and h["target_m"] > 0.05 for h in holds)
 
 
+def test_a_tracker_that_identifies_the_robots_never_holds_them_and_a_silent_one_stays_untouched(tmp_path):
+    """fleet-sim's tracker identifying every robot (flag ROBOT over Zenoh, 5 mm, 2 cm/s): while
+    all report, the lock-stepped run is the one without a tracker, tick for tick (a robot's own
+    sighting never holds it; taken for an obstacle, it would); with r2 silent in the others'
+    path, its sightings bound it once at rest and nobody touches it."""
+    runs = []
+    for k, extra in enumerate(([], ["--track-robots"])):
+        (tmp_path / str(k)).mkdir()
+        runs.append(run_pair(tmp_path / str(k), ["--ticks", "80", *extra], SCRIPTED))
+    assert [e["positions"] for e in runs[0][0]["trace"]] == [e["positions"] for e in runs[1][0]["trace"]]
+    assert runs[1][1]["sightings"]["accepted"] == 5 * 80 and runs[1][1]["rejects"] == {}
+    sim, bridge, _ = run_pair(tmp_path, ["--ticks", "200", *SILENT_IN_THE_WAY, "--track-robots"], SCRIPTED)
+    assert [m for _, m in bridge["silent_counts"]] == [1]
+    touches, closest = silent_contacts(sim, 2)
+    assert touches == 0 and closest >= TOUCH, (touches, closest)
+    assert sim["collisions"] == {"robot": 0, "object": 0, "wall": 0}
+
+
 def test_without_the_filter_the_others_do_run_into_the_silent_robot(tmp_path):
     """The comparison that gives the test above its teeth: the same run, unfiltered."""
     sim, _, _ = run_pair(tmp_path, ["--ticks", "200", *SILENT_IN_THE_WAY],

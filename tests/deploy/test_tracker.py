@@ -26,8 +26,8 @@ class Clock:
 
 
 def sighting(obstacle: int, seq: int, sent_ns: int, position=(0.5, 0.6), radius=0.05, speed=0.3,
-             capture_ms=0, gone=False) -> bytes:
-    return encode(SightingMsg(obstacle, 9, seq, sent_ns, position, radius, speed, capture_ms, gone))
+             capture_ms=0, gone=False, robot=None) -> bytes:
+    return encode(SightingMsg(obstacle, 9, seq, sent_ns, position, radius, speed, capture_ms, gone, robot))
 
 
 def test_the_table_ages_each_sighting_and_forgets_it_only_when_told():
@@ -58,6 +58,23 @@ def test_the_table_ages_each_sighting_and_forgets_it_only_when_told():
     assert table.decoder.rejects.snapshot() == {"UNEXPECTED_TYPE": 1, "STALE": 1}
 
 
+def test_a_robots_sighting_is_named_by_the_registry_and_refused_without_one():
+    """Obstacle 5 is robot id 1 (r1 in the registry {r0: 0, r1: 1}); obstacle 6 is nobody. The
+    obstacles name r1 beside #5 and None beside #6; a robot id the registry lacks, or a table
+    with no registry to name it, is UNKNOWN_ROBOT and not kept."""
+    clock = Clock(1000 * MS)
+    table = SightingTable(WireDecoder(RobotRegistry(["r0", "r1"])), clock, uplink=False)
+    table.receive(sighting(5, 1, 1000 * MS, robot=1))
+    table.receive(sighting(6, 1, 1000 * MS))
+    table.receive(sighting(8, 1, 1000 * MS, robot=7))
+    obs = table.obstacles(1000 * MS)
+    assert obs.ids == ("#5", "#6") and obs.robots == ("r1", None)
+    blind = SightingTable(WireDecoder(), clock, uplink=False)
+    blind.receive(sighting(5, 1, 1000 * MS, robot=1))
+    assert blind.obstacles(1000 * MS) is None
+    assert table.decoder.rejects.snapshot() == blind.decoder.rejects.snapshot() == {"UNKNOWN_ROBOT": 1}
+
+
 def test_a_publisher_refuses_bad_fields_by_name():
     port = free_tcp_port()
     with TransportConfig(listen=(f"tcp/127.0.0.1:{port}",)).open() as session:
@@ -80,10 +97,10 @@ def test_sightings_reach_the_controller_over_zenoh_until_gone():
         table = SightingTable.listening(link)
         publisher = SightingPublisher(session, "t")
         time.sleep(0.5)                       # the subscriber's declaration reaches the publisher
-        publisher.publish(4, (0.25, 0.75), 0.06, 0.2, capture_age_s=0.02)
+        publisher.publish(4, (0.25, 0.75), 0.06, 0.2, capture_age_s=0.02, robot=0)
         assert link.wait_for(lambda: table.obstacles(link.clock_ns()) is not None, 5.0)
         obs = table.obstacles(link.clock_ns())
-        assert obs.ids == ("#4",) and obs.positions.tolist() == [[0.25, 0.75]]
+        assert obs.ids == ("#4",) and obs.positions.tolist() == [[0.25, 0.75]] and obs.robots == ("r0",)
         assert 0.02 <= obs.age_s[0] < 0.5
         publisher.gone(4)
         deadline = time.monotonic() + 5.0

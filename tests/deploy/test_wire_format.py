@@ -46,7 +46,7 @@ cmds = st.builds(CmdMsg, robot_ids, u32_pos, u32_pos, u64, pairs, st.integers(1,
 estops = st.builds(EstopMsg, u32_pos, u32_pos, u64, st.booleans(), u32)
 sightings = st.builds(SightingMsg, robot_ids, u32_pos, u32_pos, u64, pairs,
                       st.floats(min_value=1e-9, max_value=1e3), st.floats(min_value=0.0, max_value=1e3),
-                      st.integers(0, 0xFFFF), st.booleans())
+                      st.integers(0, 0xFFFF), st.booleans(), st.one_of(st.none(), robot_ids))
 messages = st.one_of(states, cmds, estops, sightings)
 
 # (message type -> byte offsets of its f64 fields, offset and format of its reserved field)
@@ -147,7 +147,7 @@ def test_every_header_corruption_is_rejected_for_its_reason(msg, data):
     assert reason_of(decode(good[:cut])) is Reason.BAD_SIZE
     extra = data.draw(st.binary(min_size=1, max_size=16))
     assert reason_of(decode(good + extra)) is Reason.BAD_SIZE
-    allowed = {MsgType.STATE: 0x1F, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1, MsgType.SIGHTING: 0x1}[t]  # 0x10: LOCKSTEP, v2
+    allowed = {MsgType.STATE: 0x1F, MsgType.CMD: 0x3, MsgType.ESTOP: 0x1, MsgType.SIGHTING: 0x3}[t]  # 0x10: LOCKSTEP, v2
     flags = data.draw(st.integers(0, 0xFFFF).filter(lambda f: f & ~allowed))
     assert reason_of(decode(patch(good, 6, "<H", flags))) is Reason.BAD_FLAGS
     assert reason_of(decode(patch(good, 8, "<I", 0))) is Reason.BAD_SEQUENCE  # epoch
@@ -172,7 +172,10 @@ def test_every_body_corruption_is_rejected_for_its_reason(msg, data):
         assert reason_of(decode(patch(good, offset, "<Q", bits))) is Reason.NON_FINITE
     offset, fmt = RESERVED[t]
     junk = data.draw(st.integers(1, 0xFFFF))
-    assert reason_of(decode(patch(good, offset, fmt, junk))) is Reason.BAD_RESERVED
+    if getattr(msg, "robot", None) is None:
+        assert reason_of(decode(patch(good, offset, fmt, junk))) is Reason.BAD_RESERVED
+    else:               # flag ROBOT: the field names the robot, 0xFFFF none
+        assert reason_of(decode(patch(good, offset, fmt, ROBOT_ALL))) is Reason.BAD_ROBOT_ID
     if t is MsgType.CMD:
         assert reason_of(decode(patch(good, 44, "<H", 0))) is Reason.BAD_TTL
     if t is MsgType.SIGHTING:
@@ -198,6 +201,21 @@ def test_sighting_bytes_match_the_documented_layout_and_name_an_obstacle_not_a_r
     assert reason_of(decoder.decode(expected, MsgType.SIGHTING)) is Reason.STALE
     state = encode(StateMsg(3, 7, 1, 123, (0.0, 0.0), (0.0, 0.0)))
     assert reason_of(decoder.decode(state, MsgType.STATE)) is Reason.UNKNOWN_ROBOT
+
+
+def test_a_sighting_of_a_robot_carries_its_registry_id_under_flag_robot():
+    """docs/wire-format.md: the same sighting as the example, of robot id 2 (r2): flag ROBOT
+    (0x0002) and the body's last field 2. The decoder checks that robot against the registry."""
+    msg = SightingMsg(robot_id=3, epoch=7, seq=1, send_time_ns=123, position=(0.5, 0.25), radius=0.0625,
+                      max_speed=0.5, capture_age_ms=12, robot=2)
+    raw = encode(msg)
+    assert raw[6:8] == b"\x02\x00" and raw[58:60] == b"\x02\x00"
+    assert encode(dataclasses.replace(msg, gone=True))[6:8] == b"\x03\x00"
+    assert decode(raw) == msg
+    assert WireDecoder(RobotRegistry({"r0": 0, "r1": 1, "r2": 2})).decode(raw, MsgType.SIGHTING) == msg
+    assert reason_of(WireDecoder(RobotRegistry(["r0"])).decode(raw, MsgType.SIGHTING)) is Reason.UNKNOWN_ROBOT
+    with pytest.raises(ValueError, match="robot=0xFFFF"):
+        encode(dataclasses.replace(msg, robot=ROBOT_ALL))
     with pytest.raises(ValueError, match="radius=0.0 must be > 0"):
         encode(dataclasses.replace(msg, radius=0.0))
 
