@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controllers.safety.latency import LatencyConfig, LatencyPredictor
-from controllers.safety.silent_reach import branch_paths, silent_paths
+from controllers.safety.silent_reach import Sighting, branch_paths, narrowed, silent_paths
 from controllers.scripted import ScriptedController
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import Dynamics, clip_norm, make_scenario, transport_scenario
@@ -222,3 +222,36 @@ def test_a_neighbour_comes_closer_beside_a_frozen_robot_under_its_cover_than_its
     far, gap_one = _beside_a_frozen_robot(1)
     assert near < 0.025 and far > 0.04
     assert gap > 0.03 and gap_one > 0.03
+
+
+def test_a_sighting_narrows_a_cover_hand_worked():
+    """Cover discs of grow 10 mm at x = 0, 20, 40 mm. A sighting at x = 40 mm of grow 8 mm meets
+    only the last (20 mm apart > 10 + 8) and is the smaller (64 < 100 mm^2): the sighting's disc,
+    closing at its speed. One of grow 30 mm at x = 45 mm meets the last two (not the first, 45 >
+    40 mm away), whose 200 mm^2 beat its 900: those two, the row's own closing (inf). One at
+    x = 100 mm meets none: both pictures kept."""
+    cover = (np.array([[0.0, 0.0], [0.02, 0.0], [0.04, 0.0]]), np.full(3, 0.01))
+    (c, r), closing = narrowed(cover, Sighting(np.array([0.04, 0.0]), 0.008, 0.02, 1.0))
+    np.testing.assert_allclose(c, [[0.04, 0.0]])
+    np.testing.assert_allclose(r, [0.008])
+    assert closing == 0.02
+    (c, r), closing = narrowed(cover, Sighting(np.array([0.045, 0.0]), 0.03, 0.02, 1.0))
+    np.testing.assert_allclose(c, [[0.02, 0.0], [0.04, 0.0]])
+    np.testing.assert_allclose(r, [0.01, 0.01])
+    assert closing == np.inf
+    (c, r), _ = narrowed(cover, Sighting(np.array([0.1, 0.0]), 0.008, 0.02, 1.0))
+    assert len(r) == 4 and r[-1] == 0.008
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(1, 6), st.integers(0, 2**32 - 1))
+def test_a_point_in_the_cover_and_the_sighting_stays_in_the_narrowed_discs(k, seed):
+    rng = np.random.default_rng(seed)
+    centres, radii = rng.uniform(0, 0.1, (k, 2)), rng.uniform(0.001, 0.03, k)
+    j = int(rng.integers(k))
+    point = centres[j] + radii[j] * rng.uniform(0, 1) * np.array([np.cos(a := rng.uniform(0, 6.3)), np.sin(a)])
+    grow = float(rng.uniform(0.001, 0.05))
+    sighting = Sighting(point + grow * rng.uniform(0, 1) * np.array([np.cos(b := rng.uniform(0, 6.3)), np.sin(b)]),
+                        grow, 0.0, 0.0)
+    (c, r), _ = narrowed((centres, radii), sighting)
+    assert (np.linalg.norm(c - point, axis=1) - r).min() <= 1e-12
