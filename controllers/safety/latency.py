@@ -106,17 +106,14 @@ holds every command the robot may still act on (the pending ones and the one it 
 on), a robot stale by age, silent or of unknown state is bounded instead by the branches of
 those commands (:mod:`controllers.safety.silent_reach`: it acted on them in order until it
 stopped hearing, held the last for at most ``watchdog_s``, then braked), computed once per
-last state. On the frozen-robot condition of ``bench/safety.py`` (150 policy episodes) that
-took the policy's success with the stack from 0.37 to 0.41 (bare: 0.45), with 0 of 340
-adversarial episodes touching either way; the ball stays for a robot never commanded and for a
-robot :meth:`late` (its state is fresh: the ball from it is small). Once such a robot must be at
-rest, the filter takes a few narrow discs round its branches' rest points instead of the one
-(:meth:`SilentPaths.cover`, :attr:`Prediction.covers`), and the policy and docking are shown it
-at its disc's centre (:meth:`LatencyPredictor.dead_reckoned`), not at its last report: on the
-same condition, 600 episodes of an own-target generalist, the stack's success went from 0.413
-to 0.438 (bare 0.425), and on the robots still commanded from 0.705 to 0.763 (docs/safety.md, "A silent
-robot seen where it stopped"). A tracker's sighting of such a robot taken once it is at rest
-narrows that (``predict(seen=)``; silent_reach, Seen at rest).
+last state; the ball stays for a robot never commanded and for a robot :meth:`late` (its
+state is fresh: the ball from it is small). Once such a robot must be at rest, the filter takes
+a few narrow discs round its branches' rest points instead of the one (:meth:`SilentPaths.cover`,
+:attr:`Prediction.covers`), and the policy and docking are shown it at its disc's centre
+(:meth:`LatencyPredictor.dead_reckoned`), not at its last report; a tracker's sighting taken
+once it is at rest narrows those discs (``predict(seen=)``; silent_reach, Seen at rest). What
+each step gained on the frozen-robot condition: docs/safety.md, "A silent robot seen where it
+stopped" and "A silent robot the tracker sees".
 """
 
 from __future__ import annotations
