@@ -13,9 +13,10 @@ from controllers.scripted import ScriptedController
 from sim.fleet import Obstacles
 from sim.intruders import IntruderFleet, RobotSightings
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import make_scenario, transport_scenario
+from sim.scenario import make_scenario
 from stack.pipeline import ControlStack, StackConfig
 from stack.seen import robot_sightings
+from tests.frozen_neighbour import beside_a_frozen_robot
 
 
 def test_robot_sightings_hand_worked():
@@ -70,29 +71,13 @@ def test_a_robot_is_never_held_by_its_own_sighting():
 
 
 def _beside_a_frozen_robot(tracked: bool, safety: bool = True) -> tuple[float, float]:
-    """Robot 0 thrusts along +x from (0.1, 0.85) and freezes at tick 8 (x = 0.182, 0.36 m/s);
-    held two ticks, then braked, it stops at x = 0.282. Robot 1 is driven by a PD law to a goal
-    at (0.2, 0.78): 108 mm from where robot 0 stops, 84 mm from where it would have stopped had
-    it braked at once. Returns robot 1's final distance to its goal and the smallest gap
-    between the two robots [m]."""
-    sc = transport_scenario(2)
-    world = PymunkWorld(sc, ModelError(freeze=(0, 8)))
-    fleet = IntruderFleet(world, (), sighting_delay_ticks=1, robots=RobotSightings()) if tracked else world
-    fleet.reset(seed=0)
-    world.set_state(np.array([[0.1, 0.85], [0.35, 0.7]]), np.zeros((2, 2)))
-    state, goal = fleet.read_state(), np.array([0.2, 0.78])
+    """:func:`tests.frozen_neighbour.beside_a_frozen_robot` with robot 1's goal at (0.2, 0.78):
+    108 mm from where robot 0 stops, 84 mm from where it would have stopped had it braked at
+    once; with ``tracked`` a tracker sees both robots (5 mm, one tick late)."""
+    def wrap(world):
+        return IntruderFleet(world, (), sighting_delay_ticks=1, robots=RobotSightings()) if tracked else world
 
-    def policy(s):
-        return np.array([[1.0, 0.0], 4.0 * (goal - s.positions[1]) - 3.0 * s.velocities[1]])
-
-    stack, gap = ControlStack(sc, policy, StackConfig(safety=safety)), np.inf
-    for _ in range(100):
-        result = stack.tick(state)
-        fleet.send_accelerations(result.a_cmd)
-        state = fleet.step()
-        true = world.true_state().positions
-        gap = min(gap, float(np.linalg.norm(true[0] - true[1])) - 2 * sc.robot_radius)
-    return float(np.linalg.norm(world.true_state().positions[1] - goal)), gap
+    return beside_a_frozen_robot((0.2, 0.78), StackConfig(safety=safety), 100, wrap)
 
 
 def test_a_neighbour_docks_beside_a_frozen_robot_the_tracker_sees_at_rest():

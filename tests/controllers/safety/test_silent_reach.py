@@ -11,8 +11,9 @@ from controllers.safety.latency import LatencyConfig, LatencyPredictor
 from controllers.safety.silent_reach import Sighting, branch_paths, narrowed, silent_paths
 from controllers.scripted import ScriptedController
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import Dynamics, clip_norm, make_scenario, transport_scenario
+from sim.scenario import Dynamics, clip_norm, make_scenario
 from stack.pipeline import ControlStack, StackConfig
+from tests.frozen_neighbour import beside_a_frozen_robot
 
 DYN = Dynamics()
 
@@ -191,26 +192,9 @@ def test_without_the_hold_branches_a_deaf_robot_holding_its_push_is_missed():
 
 
 def _beside_a_frozen_robot(discs: int) -> tuple[float, float]:
-    """Robot 0 thrusts along +x and freezes at tick 8 (0.35 m/s); robot 1 is driven by a PD
-    law to a goal 103 mm from where robot 0 comes to rest, off its heading. Returns robot 1's
-    final distance to the goal and the smallest gap between the two discs [m]."""
-    sc = transport_scenario(2)
-    world = PymunkWorld(sc, ModelError(freeze=(0, 8)))
-    world.reset(seed=0)
-    world.set_state(np.array([[0.1, 0.85], [0.35, 0.7]]), np.zeros((2, 2)))
-    state, goal = world.read_state(), np.array([0.36, 0.78])
-
-    def policy(s):
-        return np.array([[1.0, 0.0], 4.0 * (goal - s.positions[1]) - 3.0 * s.velocities[1]])
-
-    stack, gap = ControlStack(sc, policy, StackConfig(latency=LatencyConfig(cover_discs=discs))), np.inf
-    for _ in range(80):
-        result = stack.tick(state)
-        world.send_accelerations(result.a_cmd)
-        state = world.step()
-        true = world.true_state().positions
-        gap = min(gap, float(np.linalg.norm(true[0] - true[1])) - 2 * sc.robot_radius)
-    return float(np.linalg.norm(world.true_state().positions[1] - goal)), gap
+    """:func:`tests.frozen_neighbour.beside_a_frozen_robot` with robot 1's goal at (0.36, 0.78),
+    103 mm from where robot 0 comes to rest, off its heading, and ``discs`` cover discs."""
+    return beside_a_frozen_robot((0.36, 0.78), StackConfig(latency=LatencyConfig(cover_discs=discs)), 80)
 
 
 def test_a_neighbour_comes_closer_beside_a_frozen_robot_under_its_cover_than_its_one_disc():
