@@ -13,6 +13,8 @@ import importlib
 import sys
 from collections.abc import Collection
 
+from sim.interrupts import caused_by_interrupt
+
 COMMANDS: dict[str, tuple[str, str]] = {
     "scenarios": ("stack.commands.scenarios", "list the scenario presets (or show one with --show NAME)"),
     "demo": ("stack.commands.demo", "train, transfer, export and run a fleet over Zenoh; write a report"),
@@ -77,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except KeyboardInterrupt:
+    except BaseException as exc:
+        if not caused_by_interrupt(exc):
+            raise
         print("interrupted", file=sys.stderr)
         return 130
 

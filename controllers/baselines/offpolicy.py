@@ -35,6 +35,7 @@ from controllers.mappo.evaluate import (
 )
 from controllers.mappo.logs import MetricsLog
 from sim.files import atomic_path
+from sim.interrupts import caused_by_interrupt
 from sim.provenance import provenance
 from sim.scenario import Scenario, ScenarioError, scenario_from
 from sim.torchrl_env import GROUP, FormationTorchRLEnv
@@ -254,8 +255,9 @@ class OffPolicyTrainer:
                     on_iteration(row)
                 if done:
                     break
-        except KeyboardInterrupt:
-            self._checkpoint()
+        except BaseException as exc:    # a Ctrl-C may surface as another error (sim.interrupts)
+            if caused_by_interrupt(exc):
+                self._checkpoint()
             raise
         finally:
             bar.close()

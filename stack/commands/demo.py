@@ -27,6 +27,7 @@ import sys
 import time
 from pathlib import Path
 
+from sim.interrupts import caused_by_interrupt
 from stack.commands import argtypes
 from stack.demo.state import (
     FULL,
@@ -134,7 +135,7 @@ def run(args) -> int:
     children = Children()
     background: dict = {}
     current = None
-    with interrupt_guard(children):
+    with interrupt_guard(children) as interrupted:
         try:
             for k, name in enumerate(STAGES, 1):
                 if book.done(name):
@@ -147,14 +148,15 @@ def run(args) -> int:
                 book.finish(name, result, time.perf_counter() - start)
                 save_metrics(book, complete=all(book.done(n) for n in STAGES))
                 current = None
-        except KeyboardInterrupt:
+        except BaseException as exc:        # a Ctrl-C may surface as another error (sim.interrupts)
             children.terminate_all()
-            print(f"\ninterrupted during stage {current}: every child process stopped; finished "
-                  f"stages are kept in {out / 'stages.json'}. Continue with:\n"
-                  f"  formation demo --out {out} --resume", file=sys.stderr, flush=True)
-            return 130
-        except DemoError as exc:
-            children.terminate_all()
+            if interrupted["count"] or caused_by_interrupt(exc):
+                print(f"\ninterrupted during stage {current}: every child process stopped; finished "
+                      f"stages are kept in {out / 'stages.json'}. Continue with:\n"
+                      f"  formation demo --out {out} --resume", file=sys.stderr, flush=True)
+                return 130
+            if not isinstance(exc, DemoError):
+                raise
             print(f"error in stage {current}: {exc}", file=sys.stderr)
             return 1
         finally:

@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from sim.files import ConfigFileError, atomic_write_text, read_config
+from sim.interrupts import caused_by_interrupt
 from sim.provenance import provenance
 from stack.sweep import SweepError, aggregate, grid_trials, parse_grid_option, run_trials
 
@@ -119,13 +120,15 @@ def run(args) -> int:
     print(f"sweep: {len(trials)} trials in {out}", file=sys.stderr, flush=True)
     try:
         results = run_trials(trials, out, cpus=args.cpus, address=args.address)
-    except KeyboardInterrupt:
-        print(f"interrupted: the sweep's state is saved; continue with "
-              f"formation sweep --resume --out {out}", file=sys.stderr)
-        return 130
     except SweepError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except BaseException as exc:        # a Ctrl-C may surface as another error (sim.interrupts)
+        if not caused_by_interrupt(exc):
+            raise
+        print(f"interrupted: the sweep's state is saved; continue with "
+              f"formation sweep --resume --out {out}", file=sys.stderr)
+        return 130
     doc |= {"trials": results, "rows": aggregate(results)}
     atomic_write_text(out / OPTIONS_FILE, json.dumps(doc, indent=2))
     if args.json:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+import stack.commands.scenarios as scenarios_command
 from stack.cli import main
+from tests.signals import define_a_class_under_sigint
 
 
 @pytest.mark.parametrize("command", ["eval", "bridge"])
@@ -68,3 +70,12 @@ def test_the_top_level_help_lists_every_command_with_its_line(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for name, (_, line) in COMMANDS.items():
         assert f"{name} {line}" in text
+
+
+def test_the_cli_exits_130_when_a_command_is_interrupted_inside_a_class_definition(monkeypatch, capsys):
+    """A Ctrl-C inside an import reads as an interruption (sim.interrupts). The teeth: with
+    ``except KeyboardInterrupt`` alone (the old rule) the RuntimeError escapes main() with a
+    traceback."""
+    monkeypatch.setattr(scenarios_command, "run", define_a_class_under_sigint)
+    assert main(["scenarios"]) == 130
+    assert capsys.readouterr().err.strip() == "interrupted"
