@@ -68,6 +68,8 @@ def read_config(source: str | Path, what: str) -> dict:
     path = Path(source)
     text = str(source).strip()
     if not is_file(path):
+        if path.suffix.lower() in (".json", ".toml"):
+            raise ConfigFileError(f"{what}: no file {text!r} (looked in {Path.cwd()}); check the path")
         if not text.startswith("{"):
             raise ConfigFileError(f"{what}: {text!r} is neither a file nor inline JSON; give a "
                                   ".json/.toml file or a JSON object such as '{\"lr\": 5e-4}'")

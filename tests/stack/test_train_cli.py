@@ -88,7 +88,11 @@ def test_a_bad_config_file_names_the_problem(tmp_path, capsys, text, message):
 
 def test_config_that_is_neither_file_nor_json_is_refused(capsys):
     assert main(["train", "--config", "no/such/file.toml", "--print-config"]) == 2
+    assert "--config: no file 'no/such/file.toml' (looked in " in capsys.readouterr().err
+    assert main(["train", "--config", "lr=1e-3", "--print-config"]) == 2
     assert "neither a file nor inline JSON" in capsys.readouterr().err
+    assert main(["train", "--scenario", "no/such/layout.json", "--print-config"]) == 2
+    assert "no file 'no/such/layout.json'" in capsys.readouterr().err
 
 
 def test_inline_json_longer_than_a_file_name_is_read(capsys):
