@@ -241,7 +241,6 @@ def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarra
     return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
 
 
-
 VELOCITY_NOISE_BOUND = 3.0
 """A measured velocity noise of standard deviation sigma counts as an error bound of 3 sigma."""
 
