@@ -206,7 +206,8 @@ class MAPPOConfig:
         try:
             return scenario_from(self.scenario)
         except (ScenarioError, TypeError, ValueError) as exc:
-            raise TrainConfigError(f"scenario: {exc}") from None
+            named = str(exc).startswith("scenario")          # "scenario file 'x.json': ..." names it
+            raise TrainConfigError(str(exc) if named else f"scenario: {exc}") from None
 
     def build_team_scenarios(self) -> list:
         """The scenario of each team size trained on (:attr:`team_sizes`; the scenario alone
