@@ -16,8 +16,14 @@ class SignalsWhenNamed:
 
 
 def define_a_class_under_sigint(_args=None):
-    """Define a class holding :class:`SignalsWhenNamed` (raises the wrapped interrupt)."""
-    class Defined:
-        field = SignalsWhenNamed()
+    """Define a class holding :class:`SignalsWhenNamed` (raises the wrapped interrupt) with
+    Python's own SIGINT handler in place (a pytest-xdist worker ignores SIGINT), then put back
+    the handler there was."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        class Defined:
+            field = SignalsWhenNamed()
 
-    return Defined
+        return Defined
+    finally:
+        signal.signal(signal.SIGINT, previous)
