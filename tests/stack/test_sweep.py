@@ -216,3 +216,19 @@ def test_a_local_sweeps_ray_listens_on_the_loopback_address_only():
     assert all(a.rsplit(":", 1)[0] in LOOPBACK for a in local), local
     default = ray_listeners(env | {LOCAL_ONLY_ENV: "1"})   # Ray's own default
     assert any(a.rsplit(":", 1)[0] not in LOOPBACK for a in default), default
+
+
+def test_a_ctrl_c_wrapped_by_a_lazy_import_stops_the_sweep_with_130_and_the_resume_hint(tmp_path, monkeypatch,
+                                                                                          capsys):
+    """A Ctrl-C inside a class definition reaches the command as a RuntimeError
+    (sim.interrupts); the sweep reads it as an interruption. The teeth: with ``except
+    KeyboardInterrupt`` alone the RuntimeError escapes run() with a traceback."""
+    from stack.cli import main
+    from stack.commands import sweep as sweep_command
+    from tests.signals import define_a_class_under_sigint
+
+    monkeypatch.setattr(sweep_command, "run_trials", lambda *a, **k: define_a_class_under_sigint())
+    assert main(["sweep", "--seeds", "1", "--episodes", "8", "--out", str(tmp_path / "sweep")]) == 130
+    err = capsys.readouterr().err
+    assert f"formation sweep --resume --out {tmp_path / 'sweep'}" in err
+    assert "Traceback" not in err

@@ -125,3 +125,24 @@ def test_maddpg_and_gasil_learn_a_clear_lane_for_one_robot(tmp_path, self_imitat
     rows = [json.loads(line) for line in (tmp_path / "eval.jsonl").read_text().splitlines()]
     first, last = rows[0]["final_distance"], min(r["final_distance"] for r in rows[-3:])
     assert last < 0.4 * first, [r["final_distance"] for r in rows]
+
+
+def test_a_ctrl_c_wrapped_by_a_lazy_import_still_leaves_a_checkpoint(tmp_path):
+    """A Ctrl-C that lands inside a class definition surfaces as a RuntimeError
+    (sim.interrupts): the run still writes its checkpoint before the error goes on, and
+    resumes from it. The teeth: with ``except KeyboardInterrupt`` alone no checkpoint is
+    written before the first CHECKPOINT_EVERY episodes."""
+    from tests.signals import define_a_class_under_sigint
+
+    def interrupt_once_trained(row: dict) -> None:
+        if row["episodes"] >= 8:
+            define_a_class_under_sigint()
+
+    with pytest.raises(RuntimeError) as caught:
+        train_maddpg(MADDPGConfig(scenario="paper-3", total_episodes=64, **SMALL), tmp_path,
+                     on_iteration=interrupt_once_trained)
+    assert isinstance(caught.value.__cause__, KeyboardInterrupt)
+    saved = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    assert saved["counters"]["episodes"] == 8
+    more = train_maddpg(MADDPGConfig(scenario="paper-3", total_episodes=32, **SMALL), tmp_path, resume=True)
+    assert more.episodes == 32
