@@ -26,7 +26,9 @@ gain/lag/friction/disturbance model error of part (a). Per condition, on the sam
   :func:`success_pairs`, with the sign test of that split); with a frozen robot, the same three
   again judged on the robots that can still be commanded (``success_{scripted,policy}_commanded``,
   ``..._commanded_bare``, ``..._commanded_pairs``: :func:`commanded_success`), beside the success
-  that also asks the frozen robot to have stopped within tolerance of its target;
+  that also asks the frozen robot to have stopped within tolerance of its target, and in how
+  many episodes it did (``frozen_home_{scripted,policy}``, ``..._bare``: :func:`frozen_home`;
+  a team succeeds at most that often);
 * the MEC's tracking error [mm]: the scripted commands (``|a| <= 0.6``, within a 0.7-gain
   robot's reach) recorded on the nominal model, replayed open loop through the condition's world
   with the MEC on and off (filter off), against the nominal trajectory under the same delay (the
@@ -152,7 +154,18 @@ def task_episode(task: tuple[str, int, str | None, StackConfig]) -> dict:
         out[f"arrival_{key}"] = m.arrival_step
         if world.model_error.freeze is not None:
             out[f"commanded_{key}"] = commanded_success(world, m.collided)
+            out[f"frozen_home_{key}"] = frozen_home(world)
     return out
+
+
+def frozen_home(world: PymunkWorld) -> bool:
+    """Whether the frozen robot stopped within tolerance of some target: what a whole-team
+    success needs of it, and all that the controller's work before the freeze decides (how far
+    along it was); a team whose frozen robot is home fails only on what the others do."""
+    true = world.true_state()
+    robot = world.model_error.freeze[0]
+    nearest = np.linalg.norm(true.targets - true.positions[robot], axis=1).min()
+    return bool(nearest <= world.scenario.target_tolerance)
 
 
 def commanded_success(world: PymunkWorld, collided: bool) -> bool:
@@ -263,6 +276,8 @@ def run_conditions(names: list[str], episodes: int, steps: int, task_episodes: i
                 entry[f"success_{tag}_commanded_bare"] = float(np.mean([r["commanded_off"] for r in rows]))
                 entry[f"success_{tag}_commanded_pairs"] = success_pairs(
                     [{"success_on": r["commanded_on"], "success_off": r["commanded_off"]} for r in rows])
+                entry[f"frozen_home_{tag}"] = sum(r["frozen_home_on"] for r in rows)
+                entry[f"frozen_home_{tag}_bare"] = sum(r["frozen_home_off"] for r in rows)
         entry["tracking_error_mm"] = tracking_error_mm(nm, mec_episodes, seed)
         doc[nm] = entry
     return doc

@@ -49,6 +49,9 @@ def test_safety_bench_json_shape():
     assert frozen["success_scripted_commanded"] >= frozen["success_scripted"]
     assert frozen["success_scripted_commanded_bare"] >= frozen["success_scripted_bare"]
     assert set(frozen["success_scripted_commanded_pairs"]) == {"stack_only", "bare_only", "sign_test_p"}
+    for suffix in ("", "_bare"):          # a team succeeds only where its frozen robot is home
+        home = frozen[f"frozen_home_scripted{suffix}"]
+        assert frozen[f"success_scripted{suffix}"] * frozen["scripted_episodes"] <= home
     assert doc["stack_config"]["latency"]["command_delay_s"] == 0.15    # what "filter + MEC" ran
     assert doc["stack_config"]["safety"] and doc["stack_config"]["mec"]
     assert len(doc["provenance"]["git"]["commit"]) == 40 and doc["provenance"]["packages"]["torch"]
@@ -160,3 +163,21 @@ def test_commanded_success_leaves_out_only_the_frozen_robot():
     assert not commanded_success(world, True)                      # a contact fails it as before
     world.model_error = ModelError(freeze=(1, 0))                     # judged as if robot 1 froze:
     assert not commanded_success(world, m.collided)                 # robot 0, off its target, counts
+
+
+def test_frozen_home_asks_only_where_the_frozen_robot_stopped():
+    """Robot 0 of paper-3 frozen at tick 0 stands on its start slot, 0.34 m from any target: not
+    home. Frozen at tick 120, after the scripted stack brought the team in (tick ~84), it is."""
+    sys.path.insert(0, str(REPO / "bench"))
+    from _safety_conditions import frozen_home
+
+    from controllers.scripted import ScriptedController
+    from sim.pymunk_world import ModelError, PymunkWorld
+    from sim.scenario import make_scenario
+    from stack.pipeline import ControlStack, run_episode
+
+    sc = make_scenario("paper-3")
+    for tick, home in ((0, False), (120, True)):
+        world = PymunkWorld(sc, ModelError(freeze=(0, tick)))
+        run_episode(world, ControlStack(sc, ScriptedController(sc)), 3)
+        assert frozen_home(world) == home
