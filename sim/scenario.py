@@ -36,6 +36,11 @@ class ScenarioError(ValueError):
     """A scenario that cannot be run; the message names the field and the fix."""
 
 
+class ScenarioSourceError(ScenarioError):
+    """A scenario name or file that cannot be resolved; the message begins with the name or file
+    ("scenario file 'x.json': ...", "unknown scenario 'x' ..."), so callers need not prefix it."""
+
+
 @dataclass(frozen=True)
 class Dynamics:
     """Damped double integrator shared by the batched and the pymunk worlds.
@@ -325,14 +330,14 @@ def load_scenario_file(path: str | Path) -> Scenario:
     try:
         data = read_config(path, f"scenario file {str(path)!r}")
     except ConfigFileError as exc:
-        raise ScenarioError(str(exc)) from None
+        raise ScenarioSourceError(str(exc)) from None
     try:
         return Scenario.from_dict(data)
     except TypeError as exc:        # a required field missing: the dataclass names it
-        raise ScenarioError(f"scenario file {str(path)!r}: {exc}; start from "
+        raise ScenarioSourceError(f"scenario file {str(path)!r}: {exc}; start from "
                             "`formation scenarios --show paper-3`") from None
     except ScenarioError as exc:
-        raise ScenarioError(f"scenario file {str(path)!r}: {exc}") from None
+        raise ScenarioSourceError(f"scenario file {str(path)!r}: {exc}") from None
 
 
 def scenario_from(value: str | dict) -> Scenario:
@@ -361,7 +366,7 @@ def make_scenario(name: str) -> Scenario:
         return transport_scenario(16, name=name)
     if name.startswith("transport-") and name[10:].isdigit():
         if not 1 <= int(name[10:]) <= MAX_ROBOTS:
-            raise ScenarioError(f"scenario {name!r}: transport-N takes N = 1..{MAX_ROBOTS} robots")
+            raise ScenarioSourceError(f"scenario {name!r}: transport-N takes N = 1..{MAX_ROBOTS} robots")
         return transport_scenario(int(name[10:]))
-    raise ScenarioError(f"unknown scenario {name!r}; choose one of {sorted(PRESETS)}, transport-N "
+    raise ScenarioSourceError(f"unknown scenario {name!r}; choose one of {sorted(PRESETS)}, transport-N "
                         f"(N = 1..{MAX_ROBOTS}) or a .json/.toml scenario file")

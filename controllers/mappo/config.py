@@ -201,13 +201,14 @@ class MAPPOConfig:
 
     def build_scenario(self):
         """The :class:`sim.scenario.Scenario` of this run."""
-        from sim.scenario import ScenarioError, scenario_from
+        from sim.scenario import ScenarioError, ScenarioSourceError, scenario_from
 
         try:
             return scenario_from(self.scenario)
+        except ScenarioSourceError as exc:
+            raise TrainConfigError(str(exc)) from None
         except (ScenarioError, TypeError, ValueError) as exc:
-            named = str(exc).startswith("scenario")          # "scenario file 'x.json': ..." names it
-            raise TrainConfigError(str(exc) if named else f"scenario: {exc}") from None
+            raise TrainConfigError(f"scenario: {exc}") from None
 
     def build_team_scenarios(self) -> list:
         """The scenario of each team size trained on (:attr:`team_sizes`; the scenario alone

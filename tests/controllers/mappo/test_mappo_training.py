@@ -277,8 +277,10 @@ def test_config_round_trip_and_errors():
         MAPPOConfig.from_dict({"num_env": 4})
     with pytest.raises(TrainConfigError, match="num_envs"):
         MAPPOConfig(num_envs=0)
-    with pytest.raises(TrainConfigError, match="scenario"):
-        MAPPOConfig(scenario="paper-99")
+    with pytest.raises(TrainConfigError, match=r"^unknown scenario 'paper-99'; choose one of"):
+        MAPPOConfig(scenario="paper-99")            # the message names the scenario: no prefix
+    with pytest.raises(TrainConfigError, match=r"^scenario: target_tolerance must be > 0"):
+        MAPPOConfig(scenario={**make_scenario("line-1").to_dict(), "target_tolerance": 0.0})
     with pytest.raises(TrainConfigError, match="gamma"):
         MAPPOConfig(gamma=1.5)
     with pytest.raises(TrainConfigError, match="unknown reward_weights field"):
