@@ -126,9 +126,8 @@ def _load_policy(args, checkpoint: Path):
 
 
 def _policy_plots(args, actor, scenario, moved: str, label: str, out: Path) -> list[Path]:
+    from stack.attention_plot import attention_snapshot, plot_attention
     from stack.plots import (
-        attention_snapshot,
-        plot_attention,
         plot_trajectories,
         record_trajectories,
     )

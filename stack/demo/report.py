@@ -115,10 +115,9 @@ def make_figures(book: StageBook) -> dict[str, Path]:
     """The PNG files of the report (training curves, fleet paths, attention, the unseen fleet's paths)."""
     from controllers.mappo import load_actor
     from sim.scenario import make_scenario
+    from stack.attention_plot import attention_snapshot, plot_attention
     from stack.demo.fleet import SCENARIO, UNSEEN_DIR
     from stack.plots import (
-        attention_snapshot,
-        plot_attention,
         plot_training_curves,
         plot_trajectories,
     )

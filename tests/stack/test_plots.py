@@ -11,7 +11,7 @@ from torch import nn
 from controllers.mappo.evaluate import evaluate
 from controllers.policy import ActorConfig, build_actor
 from sim.scenario import make_scenario
-from stack import plots
+from stack import attention_plot, plots
 from stack.cli import main
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -114,7 +114,7 @@ def test_recorder_agrees_with_evaluate():
 def test_by_entity_puts_each_robot_in_its_own_column():
     n = 3
     w = np.arange(n * 7, dtype=float).reshape(n, 1, 7)    # typed: self, G1..G3, two others, O
-    out, labels = plots.by_entity(w)
+    out, labels = attention_plot.by_entity(w)
     assert labels == ["self", "G1", "G2", "G3", "R1", "R2", "R3", "O"]
     r = {f"R{j + 1}": 4 + j for j in range(n)}
     # robot 1 (row 0) sees robots 2, 3 in tokens 4, 5; robot 2 sees 1, 3; robot 3 sees 1, 2
@@ -123,10 +123,10 @@ def test_by_entity_puts_each_robot_in_its_own_column():
     assert out[2, 0, r["R1"]] == w[2, 0, 4] and out[2, 0, r["R2"]] == w[2, 0, 5] and np.isnan(out[2, 0, r["R3"]])
     np.testing.assert_array_equal(out[:, 0, :4], w[:, 0, :4])
     np.testing.assert_array_equal(out[:, 0, -1], w[:, 0, -1])
-    slot, slot_labels = plots.by_entity(np.ones((n, 2, 8)))
+    slot, slot_labels = attention_plot.by_entity(np.ones((n, 2, 8)))
     assert slot.shape == (n, 2, 9) and slot_labels[:2] == ["P", "V"]
     with pytest.raises(plots.PlotError, match="2N\\+1"):
-        plots.by_entity(np.ones((n, 1, 5)))
+        attention_plot.by_entity(np.ones((n, 1, 5)))
 
 
 def test_attention_sums_to_one_over_valid_tokens(tmp_path):
@@ -138,18 +138,18 @@ def test_attention_sums_to_one_over_valid_tokens(tmp_path):
     obs, mask = BatchedFormationEnv(scenario, 1, seed=0).reset()
     mask = mask.clone()
     mask[0, :, 5] = False                    # every robot loses its first other-robot token
-    w = plots.attention_weights(actor, obs[0], mask[0])
+    w = attention_plot.attention_weights(actor, obs[0], mask[0])
     assert w.shape == (4, 4, 9)              # (N, H, 2N + 1)
     np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-6)
     assert np.all(w[:, :, 5] == 0) and np.all(w[:, :, [0, 1, 4, 6, 8]] > 0)
-    weights, labels = plots.attention_snapshot(actor, scenario, seed=0, step=3)
+    weights, labels = attention_plot.attention_snapshot(actor, scenario, seed=0, step=3)
     assert weights.shape == (4, 4, 10) and len(labels) == 10
     np.testing.assert_allclose(np.nansum(weights, -1), 1.0, atol=1e-6)
     assert np.isnan(weights[np.arange(4), :, 5 + np.arange(4)]).all()    # (i, R_i) is empty
-    out = plots.plot_attention(weights, labels, tmp_path / "attention.png")
+    out = attention_plot.plot_attention(weights, labels, tmp_path / "attention.png")
     assert_png(out, 600, 200)
     with pytest.raises(plots.PlotError, match="no attention"):
-        plots.attention_weights(GoToTarget(), obs[0], mask[0])
+        attention_plot.attention_weights(GoToTarget(), obs[0], mask[0])
 
 
 def test_plot_trajectories_png(tmp_path):
