@@ -4,8 +4,10 @@ and the generalist (one policy trained on 3, 4 and 5 robots; its zero-shot table
 Every stage returns a JSON-able result dict that goes into ``stages.json``; paths in it are
 relative to the demo folder ``out``.
 
-Training uses the MAPPOConfig defaults (network, PPO and reward settings); the demo sets only
-the scenario, the episode budget, the seed, the run folder and (``--quick``) the evaluation size.
+Training uses the MAPPOConfig defaults (network, PPO and reward settings), with four PPO epochs
+a rollout in the stages the demo waits on (:data:`FAST_FIELDS`) and the generalist's settings
+(:data:`GENERALIST_FIELDS`); the demo sets the scenario, the episode budget, the seed, the run
+folder and (``--quick``) the evaluation size.
 Training stops at convergence (:mod:`controllers.mappo.evaluate`: the first evaluation with
 success >= 0.9 whose next one is also >= 0.9) or at the budget. An interrupted stage continues
 from its ``checkpoint.pt`` with the run's own ``config.json`` (so a changed default elsewhere
@@ -28,13 +30,23 @@ from tqdm import tqdm
 from stack.demo.state import Children, DemoError, DemoSettings
 
 SCENARIOS = {"3": "paper-3", "5": "paper-5", "generalist": "paper-3"}
+FAST_FIELDS = {"update_epochs": 4}
+"""Settings of the stages the demo waits on (paper-3, which the others start from, and the
+generalist) beside the MAPPOConfig defaults: four passes over each rollout in place of ten, the
+fast recipe of docs/learning.md (``bench/paper_tables.py --config '{"update_epochs": 4}'``, 5
+seeds: paper-3 median 624 episodes in 45.9 s against 960 in 175 s at ten, every seed converged).
+Seed 0 on an AMD EPYC: paper-3 at 864 episodes in 169 s, against 2112 in 686 s at ten. The
+transfer to paper-5 keeps the default ten (from that checkpoint: 720 episodes against 1440 at
+four); it trains beside the generalist, which takes longer. The training default stays ten
+because the MLP baseline converges in 2 of 5 seeds at four."""
 GENERALIST_TEAM_SIZES = (3, 4, 5)
-GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), "update_epochs": 4, "penalty_curriculum": 3.0}
+GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), **FAST_FIELDS, "penalty_curriculum": 3.0}
 """The generalist's settings beside the MAPPOConfig defaults: those of ``bench/generalization.py``
 (4 PPO epochs; the contact-penalty curriculum, with which every seed of it converged). The demo
 starts it from the 3-robot checkpoint, as the transfer to paper-5 (2026-12-03, seed 0: converged
 at 624 episodes in 3.5 min, against 1872 in 13 min from scratch, both 1.00 on 3, 4 and 5 robots;
-seeds 1 and 2 from their paper-3 checkpoints: 1536 and 1824 episodes)."""
+seeds 1 and 2 from their paper-3 checkpoints: 1536 and 1824 episodes; 2026-12-07, AMD EPYC, seed 0
+from the four-epoch paper-3 checkpoint: 2256 episodes in 627 s)."""
 ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
 UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
 CHECKPOINT = "checkpoint.pt"
@@ -60,8 +72,7 @@ def train_config(settings: DemoSettings, robots: str, out: Path):
     fields: dict[str, Any] = {"scenario": SCENARIOS[robots], "seed": settings.seed,
                               "total_episodes": budget(settings, robots),
                               "stop_at_convergence": True, "progress": True}
-    if robots == "generalist":
-        fields.update(GENERALIST_FIELDS)
+    fields.update({"3": FAST_FIELDS, "5": {}, "generalist": GENERALIST_FIELDS}[robots])
     if settings.eval_episodes is not None:
         fields["eval_episodes"] = settings.eval_episodes
     if settings.eval_interval is not None:

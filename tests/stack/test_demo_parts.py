@@ -76,6 +76,19 @@ def test_noise_floor_matches_a_sampled_estimate():
         math.sqrt(2e-6 + (0.04875 * 0.005) ** 2) * math.sqrt(math.pi / 2))
 
 
+def test_each_stage_trains_with_its_own_settings(tmp_path):
+    """paper-3 and the generalist (what the demo waits on) take four PPO epochs, the transfer to
+    paper-5 the default ten; the budgets, the seed and the transfer's starting point are the demo's."""
+    settings = DemoSettings(seed=7, budget_3=100, budget_5=200, budget_generalist=300)
+    configs = {robots: train_config(settings, robots, tmp_path) for robots in ("3", "5", "generalist")}
+    assert {r: c.update_epochs for r, c in configs.items()} == {"3": 4, "5": 10, "generalist": 4}
+    assert {r: c.total_episodes for r, c in configs.items()} == {"3": 100, "5": 200, "generalist": 300}
+    assert {r: c.seed for r, c in configs.items()} == {"3": 7, "5": 7, "generalist": 7}
+    assert configs["3"].init_from is None and configs["generalist"].team_sizes == [3, 4, 5]
+    assert configs["5"].init_from == configs["generalist"].init_from == str(
+        (tmp_path / "train-3" / "checkpoint.pt").resolve())
+
+
 def test_an_interrupted_training_stage_continues_from_its_checkpoint(tmp_path):
     settings = DemoSettings(quick=True, budget_3=32, budget_5=16, eval_episodes=4, eval_interval=16,
                             zero_shot_episodes=4, fleet_episodes=1)
