@@ -1,6 +1,7 @@
 """`formation demo`: the main job, end to end, in resumable stages.
 
-    1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged (budget --budget-3)
+    1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged, four PPO epochs a
+                rollout, the fast recipe: every later stage waits on it (budget --budget-3)
     2 train-5   zero-shot success of that policy on 5 robots, then transfer training on
                 paper-5 from the 3-robot checkpoint until converged (budget --budget-5)
     3 generalist  one policy trained on 3, 4 and 5 robots at once, also from the 3-robot
