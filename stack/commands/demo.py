@@ -1,12 +1,12 @@
 """`formation demo`: the main job, end to end, in resumable stages.
 
     1 train-3   SDPA-MAPPO on the paper's 3-robot preset until converged, four PPO epochs a
-                rollout, the fast recipe: every later stage waits on it (budget --budget-3)
+                rollout, the fast recipe: the transfer waits on it (budget --budget-3)
     2 train-5   zero-shot success of that policy on 5 robots, then transfer training on
                 paper-5 from the 3-robot checkpoint until converged (budget --budget-5)
-    3 generalist  one policy trained on 3, 4 and 5 robots at once, also from the 3-robot
-                checkpoint (budget --budget-generalist; its training runs in a child process
-                beside stage 2, on the second core), its zero-shot table on 1..8 robots, and
+    3 generalist  one policy trained on 3, 4 and 5 robots at once, from scratch (budget
+                --budget-generalist; its training runs in a child process beside stages 1 and
+                2, on the second core), its zero-shot table on 1..8 robots, and
                 its export as generalist/policy.onnx
     4 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
     5 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
@@ -91,16 +91,17 @@ def resolve_settings(args, out: Path) -> StageBook:
 
 
 def run_stage(name: str, book: StageBook, children: Children, background: dict) -> dict:
-    """Run stage ``name``. The generalist's training starts in a child process with train-5 (both
-    start from the 3-robot checkpoint) and ``background`` holds it until the generalist stage."""
+    """Run stage ``name``. The generalist's training starts in a child process with the first
+    training stage that runs (train-3, or train-5 when resuming after it) and ``background``
+    holds it until the generalist stage."""
     from stack.demo import fleet, report, stages
 
     settings, out = book.settings, book.out
+    if name in ("train-3", "train-5") and not book.done("generalist") and "generalist" not in background:
+        background["generalist"] = stages.start_generalist(out, children)
     if name == "train-3":
         return stages.train_stage(settings, "3", out)
     if name == "train-5":
-        if not book.done("generalist"):
-            background["generalist"] = stages.start_generalist(out, children)
         return stages.transfer_stage(settings, out)
     if name == "export":
         return stages.export_stage(settings, out)

@@ -127,7 +127,7 @@ def make_figures(book: StageBook) -> dict[str, Path]:
     with tqdm(total=len(FIGURES), unit="fig", desc="report figures", dynamic_ncols=True) as bar:
         plot_training_curves({"paper-3 from scratch": out / "train-3",
                               "paper-5 transfer from paper-3": out / "train-5",
-                              "generalist: 3, 4 and 5 robots from paper-3": out / "train-generalist"},
+                              "generalist: 3, 4 and 5 robots from scratch": out / "train-generalist"},
                              paths["curves"],
                              title="SDPA-MAPPO training: 3 robots from scratch, transfer to 5, the generalist")
         bar.update(1)
@@ -287,8 +287,8 @@ def _training_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     t3, t5, shot = metrics["train"]["3"], metrics["train"]["5"], metrics["zero_shot"]
     return [
         ("h2", "Training"),
-        ("p", "SDPA-MAPPO with the MAPPOConfig defaults: first the paper's three robots from scratch "
-              f"(budget {t3['budget']} episodes), then five robots starting from the 3-robot "
+        ("p", "SDPA-MAPPO with the MAPPOConfig defaults (four PPO epochs on paper-3): first the paper's "
+              f"three robots from scratch (budget {t3['budget']} episodes), then five robots starting from the 3-robot "
               f"checkpoint (budget {t5['budget']}). Panels: episode return (sum of rewards, mean over "
               "robots), final robot-target distance [m] and the evaluation success rate, against "
               "training episodes; dotted lines mark convergence."),
@@ -374,7 +374,7 @@ def generalist_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     return [
         ("h2", "One policy for any team size"),
         ("p", f"The generalist is one SDPA-MAPPO policy trained on 3, 4 and 5 robots at once (one "
-              f"batched rollout of each size per update), starting from the 3-robot checkpoint "
+              f"batched rollout of each size per update), from scratch "
               f"(budget {tg['budget']} episodes, 4 PPO epochs, the contact-penalty curriculum): it "
               + (f"converged at episode {tg['converged_episode']}" if tg["converged"] else
                  f"did not converge within its budget of {tg['budget']} episodes")

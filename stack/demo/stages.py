@@ -31,7 +31,7 @@ from stack.demo.state import Children, DemoError, DemoSettings
 
 SCENARIOS = {"3": "paper-3", "5": "paper-5", "generalist": "paper-3"}
 FAST_FIELDS = {"update_epochs": 4}
-"""Settings of the stages the demo waits on (paper-3, which the others start from, and the
+"""Settings of the stages the demo waits on (paper-3, which the transfer starts from, and the
 generalist) beside the MAPPOConfig defaults: four passes over each rollout in place of ten, the
 fast recipe of docs/learning.md (``bench/paper_tables.py --config '{"update_epochs": 4}'``, 5
 seeds: paper-3 median 624 episodes in 45.9 s against 960 in 175 s at ten, every seed converged).
@@ -43,10 +43,12 @@ GENERALIST_TEAM_SIZES = (3, 4, 5)
 GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), **FAST_FIELDS, "penalty_curriculum": 3.0}
 """The generalist's settings beside the MAPPOConfig defaults: those of ``bench/generalization.py``
 (4 PPO epochs; the contact-penalty curriculum, with which every seed of it converged). The demo
-starts it from the 3-robot checkpoint, as the transfer to paper-5 (2026-12-03, seed 0: converged
-at 624 episodes in 3.5 min, against 1872 in 13 min from scratch, both 1.00 on 3, 4 and 5 robots;
-seeds 1 and 2 from their paper-3 checkpoints: 1536 and 1824 episodes; 2026-12-07, AMD EPYC, seed 0
-from the four-epoch paper-3 checkpoint: 2256 episodes in 627 s)."""
+trains it from scratch in a child process that starts with paper-3, so nothing waits for
+paper-3 before it. From the 3-robot checkpoint it took 624, 1536 and 1824 episodes on seeds 0-2
+(2026-12-03, Intel Xeon), from scratch 1872, 1488 and 1296; on an AMD EPYC (2026-12-07, seed 0)
+2256 episodes in 595 s from the four-epoch 3-robot checkpoint, after paper-3's 154 s, against
+1536 in 396 s from scratch. Either way it brings 20 of 20 unseen 6-robot teams home through the
+stack (``formation eval --world pymunk --scenario transport-6``, the demo's model error)."""
 ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
 UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
 CHECKPOINT = "checkpoint.pt"
@@ -77,7 +79,7 @@ def train_config(settings: DemoSettings, robots: str, out: Path):
         fields["eval_episodes"] = settings.eval_episodes
     if settings.eval_interval is not None:
         fields["eval_interval"] = settings.eval_interval
-    if robots != "3":          # both start from the 3-robot policy (transfer)
+    if robots == "5":          # the transfer starts from the 3-robot policy
         fields["init_from"] = str((run_dir(out, "3") / CHECKPOINT).resolve())
     return MAPPOConfig.from_dict(fields)
 
@@ -115,7 +117,7 @@ def train_stage(settings: DemoSettings, robots: str, out: Path, announce: bool =
             "eval_episodes": config.eval_episodes, "eval_interval": config.eval_interval,
             "success_threshold": config.success_threshold, "wall_time_s": result.wall_time_s,
             "run_dir": folder.name, "checkpoint": f"{folder.name}/{CHECKPOINT}",
-            "init_from": None if robots == "3" else "train-3/checkpoint.pt"}
+            "init_from": "train-3/checkpoint.pt" if robots == "5" else None}
 
 
 def zero_shot(settings: DemoSettings, out: Path) -> dict[str, Any]:
@@ -195,8 +197,8 @@ def zero_shot_table(settings: DemoSettings, checkpoint: Path) -> list[dict[str, 
 
 def start_generalist(out: Path, children: Children) -> subprocess.Popen:
     """Start the generalist's training in a child process (``python -m stack.demo.stages OUT``),
-    so that it runs on the second core beside the transfer to paper-5 (the demo's own process
-    trains on one thread); its output goes to ``train-generalist.log``."""
+    so that it runs on the second core beside paper-3 and the transfer to paper-5 (the demo's own
+    process trains on one thread); its output goes to ``train-generalist.log``."""
     with (out / GENERALIST_LOG).open("w") as log:
         return children.spawn([sys.executable, "-m", "stack.demo.stages", str(out)],
                               stdout=log, stderr=subprocess.STDOUT)
@@ -222,7 +224,7 @@ def _wait_for_generalist(child: subprocess.Popen, settings: DemoSettings, out: P
 
 def generalist_stage(settings: DemoSettings, out: Path, child: subprocess.Popen | None = None,
                      children: Children | None = None) -> dict[str, Any]:
-    """Train one policy on 3, 4 and 5 robots at once from the 3-robot checkpoint (or wait for
+    """Train one policy on 3, 4 and 5 robots at once from scratch (or wait for
     ``child``, the training :func:`start_generalist` started), judge it zero-shot on 1..8 robots,
     and export it into ``generalist/`` (golden file on the scenario it trained on)."""
     from deploy.export import TOLERANCE, ExportError, export_checkpoint
