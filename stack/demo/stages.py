@@ -47,7 +47,7 @@ trains it from scratch in a child process that starts with paper-3, so nothing w
 paper-3 before it. From the 3-robot checkpoint it took 624, 1536 and 1824 episodes on seeds 0-2
 (2026-12-03, Intel Xeon), from scratch 1872, 1488 and 1296; on an AMD EPYC (2026-12-07, seed 0)
 2256 episodes in 595 s from the four-epoch 3-robot checkpoint, after paper-3's 154 s, against
-1536 in 396 s from scratch. Either way it brings 20 of 20 unseen 6-robot teams home through the
+1536 in 396 s from scratch; seed 1 there, two runs at a time, 1968 in 533 s against 1248 in 351 s. Either way it brings 20 of 20 unseen 6-robot teams home through the
 stack (``formation eval --world pymunk --scenario transport-6``, the demo's model error)."""
 ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
 UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
