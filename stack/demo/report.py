@@ -287,9 +287,9 @@ def _training_blocks(metrics: dict, figures: dict[str, Path]) -> list[tuple]:
     t3, t5, shot = metrics["train"]["3"], metrics["train"]["5"], metrics["zero_shot"]
     return [
         ("h2", "Training"),
-        ("p", "SDPA-MAPPO with the MAPPOConfig defaults (four PPO epochs on paper-3): first the paper's "
-              f"three robots from scratch (budget {t3['budget']} episodes), then five robots starting from the 3-robot "
-              f"checkpoint (budget {t5['budget']}). Panels: episode return (sum of rewards, mean over "
+        ("p", "SDPA-MAPPO with the MAPPOConfig defaults (four PPO epochs on paper-3): first the "
+              f"paper's three robots from scratch (budget {t3['budget']} episodes), then five robots "
+              f"starting from the 3-robot checkpoint (budget {t5['budget']}). Panels: episode return (sum of rewards, mean over "
               "robots), final robot-target distance [m] and the evaluation success rate, against "
               "training episodes; dotted lines mark convergence."),
         ("img", figures["curves"], "Training curves: paper-3 from scratch and paper-5 with transfer"),

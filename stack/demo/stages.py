@@ -43,12 +43,13 @@ GENERALIST_TEAM_SIZES = (3, 4, 5)
 GENERALIST_FIELDS = {"team_sizes": list(GENERALIST_TEAM_SIZES), **FAST_FIELDS, "penalty_curriculum": 3.0}
 """The generalist's settings beside the MAPPOConfig defaults: those of ``bench/generalization.py``
 (4 PPO epochs; the contact-penalty curriculum, with which every seed of it converged). The demo
-trains it from scratch in a child process that starts with paper-3, so nothing waits for
-paper-3 before it. From the 3-robot checkpoint it took 624, 1536 and 1824 episodes on seeds 0-2
-(2026-12-03, Intel Xeon), from scratch 1872, 1488 and 1296; on an AMD EPYC (2026-12-07, seed 0)
-2256 episodes in 595 s from the four-epoch 3-robot checkpoint, after paper-3's 154 s, against
-1536 in 396 s from scratch; seed 1 there, two runs at a time, 1968 in 533 s against 1248 in 351 s. Either way it brings 20 of 20 unseen 6-robot teams home through the
-stack (``formation eval --world pymunk --scenario transport-6``, the demo's model error)."""
+trains it from scratch in a child process that starts with paper-3, so it waits for nothing.
+From the 3-robot checkpoint it took 624, 1536 and 1824 episodes on seeds 0-2 (2026-12-03, Intel
+Xeon), from scratch 1872, 1488 and 1296. On an AMD EPYC (2026-12-07, two runs at a time), from
+the four-epoch 3-robot checkpoint against from scratch: seed 0 2256 episodes in 595 s (after
+paper-3's 154 s) against 1536 in 396 s, seed 1 1968 in 533 s against 1248 in 351 s. Both of
+seed 0's policies bring 20 of 20 unseen 6-robot teams home through the stack (``formation eval
+--world pymunk --scenario transport-6``, the demo's model error)."""
 ZERO_SHOT_ROBOTS = tuple(range(1, 9))   # the generalist's table: trained on 3-5, the rest unseen
 UNSEEN_ROBOTS = max(GENERALIST_TEAM_SIZES) + 1   # the fleet-unseen stage's team size
 CHECKPOINT = "checkpoint.pt"
@@ -117,7 +118,7 @@ def train_stage(settings: DemoSettings, robots: str, out: Path, announce: bool =
             "eval_episodes": config.eval_episodes, "eval_interval": config.eval_interval,
             "success_threshold": config.success_threshold, "wall_time_s": result.wall_time_s,
             "run_dir": folder.name, "checkpoint": f"{folder.name}/{CHECKPOINT}",
-            "init_from": "train-3/checkpoint.pt" if robots == "5" else None}
+            "init_from": f"{run_dir(out, '3').name}/{CHECKPOINT}" if config.init_from else None}
 
 
 def zero_shot(settings: DemoSettings, out: Path) -> dict[str, Any]:

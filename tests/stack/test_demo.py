@@ -88,6 +88,8 @@ def test_metrics_are_complete_and_consistent(quick_run):
         assert t["success"] == evals[-1]["success_rate"]
         assert t["budget"] == QUICK_BUDGET and (t["converged"] or t["episodes"] >= QUICK_BUDGET)
         assert t["eval_episodes"] == 16
+    assert {r: m["train"][r]["init_from"] for r in ("3", "5", "generalist")} == {
+        "3": None, "5": "train-3/checkpoint.pt", "generalist": None}   # only the transfer starts from paper-3
     assert json.loads((out / "train-5" / "result.json").read_text())["transferred_from"].endswith(
         "train-3/checkpoint.pt")
     assert m["zero_shot_3to5"] == m["zero_shot"]["success"]

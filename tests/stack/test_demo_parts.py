@@ -17,7 +17,7 @@ from sim.fleet import FleetState
 from sim.scenario import make_scenario
 from stack.cli import main
 from stack.commands.bridge import EpisodeCounters
-from stack.commands.demo import print_zero_shot_table
+from stack.commands.demo import print_zero_shot_table, run_stage
 from stack.demo.fleet import tracking_noise_floor
 from stack.demo.stages import GENERALIST_LOG, generalist_stage, train_config, train_stage
 from stack.demo.state import Children, DemoError, DemoSettings, StageBook
@@ -88,6 +88,31 @@ def test_each_stage_trains_with_its_own_settings(tmp_path):
     assert configs["3"].init_from is None and configs["generalist"].init_from is None
     assert configs["5"].init_from == str((tmp_path / "train-3" / "checkpoint.pt").resolve())
     assert configs["generalist"].team_sizes == [3, 4, 5] and configs["generalist"].penalty_curriculum == 3.0
+
+
+def test_the_generalist_starts_with_the_first_training_stage_that_runs(tmp_path):
+    """Its child process starts with train-3 (it trains from scratch, so nothing holds it back);
+    on a resume after train-3, with train-5; once the generalist stage is done, with neither."""
+    settings = DemoSettings(quick=True, budget_3=16, budget_5=16, budget_generalist=16, eval_episodes=4,
+                            eval_interval=16, zero_shot_episodes=4, fleet_episodes=1)
+    book = StageBook(tmp_path, settings)
+    book.save()                                   # what the child reads its settings from
+    children = Children()
+    try:
+        background: dict = {}
+        book.finish("train-3", run_stage("train-3", book, children, background), 1.0)
+        assert set(background) == {"generalist"} and background["generalist"].poll() in (None, 0)
+        children.terminate_all()
+        background.clear()                        # a resume after train-3
+        run_stage("train-5", book, children, background)
+        assert set(background) == {"generalist"}
+        children.terminate_all()
+        background.clear()
+        book.finish("generalist", {}, 1.0)
+        run_stage("train-5", book, children, background)    # its checkpoint is at the budget
+        assert background == {}
+    finally:
+        children.terminate_all()
 
 
 def test_an_interrupted_training_stage_continues_from_its_checkpoint(tmp_path):
