@@ -83,7 +83,8 @@ runs on :class:`TickClock`, sim time that advances one ``period_s`` per answered
 ``use_sim_time``). Ages, silences, round trips and ``FleetState.time`` are counted in fleet
 ticks, the uplink takes no time, and a tick waits up to ``LOCKSTEP_GATHER_S`` for the whole
 burst. A lock-stepped run is then the same run however loaded the machine is; commands go out
-lossless (Zenoh congestion control BLOCK).
+lossless (Zenoh congestion control BLOCK). A burst answered in two parts (:class:`TickClock`)
+stays at one sim time.
 """
 
 from __future__ import annotations
@@ -178,6 +179,7 @@ class Bridge:
         self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
         self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
         self._sent_tick: dict[str, int] = {}  # robot -> the tick it was last sent a row's command
+        self._tick_answered: set[str] = set()  # lock-step: robots answered since the clock advanced
         self._resume_ns = 0  # end of the last stall [ns]
         self._last_look_ns: int | None = None
         self._stop = threading.Event()
@@ -213,7 +215,8 @@ class Bridge:
                 return False
             states = link.latest_states()
             if self.stats.ticks == 0 or self.clock is not None:    # lock-step: every live robot answers
-                return all(self._unanswered(states, r) for r in alive)
+                awaited = alive - self._tick_answered if self._late_part(states) else alive
+                return all(self._unanswered(states, r) for r in awaited)
             recent = link.clock_ns() - int(QUIET_PERIODS * self.config.period_s * 1e9)
 
             def awaited(robot: str) -> bool:     # heard lately, or live without a usable state yet (a rejoin)
@@ -228,6 +231,18 @@ class Bridge:
         gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
         link.wait_for(gathered, gather_s)
         return True
+
+    def _late_part(self, states: Mapping[str, ReceivedState]) -> bool:
+        """Lock-step: whether the new states are the late part of the burst last answered
+        (:class:`TickClock`): no robot answered since the clock advanced has a new one."""
+        return self.clock is not None and bool(self._tick_answered) \
+            and not any(self._unanswered(states, r) for r in self._tick_answered)
+
+    def _mark_answered(self, rs: ReceivedState) -> None:
+        """Record the answer to ``rs``; a new state answered joins the lock-step tick's part."""
+        if self.clock is not None and _key(rs) != self._answered.get(rs.robot):
+            self._tick_answered.add(rs.robot)
+        self._answered[rs.robot] = _key(rs)
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:
         uplink_ns = 0 if self.clock is not None else self.uplink.excess_ns(rs.robot, rs.msg.epoch, rs.msg.send_time_ns,
@@ -403,15 +418,20 @@ class Bridge:
                 rs = states[robot]
                 self.link.send_command(robot, (0.0, 0.0), self.config.ttl_ms, CmdFlags.STOP,
                                        state_seq=rs.msg.seq)
-                self._answered[robot] = _key(rs)
+                self._mark_answered(rs)
                 self._rearm(rs)
 
     # ------------------------------------------------------------------ one tick
     def step(self, timeout_s: float = 0.1) -> TickRecord | None:
         """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
         self._wait_burst(timeout_s)
-        now = self.link.clock_ns()
         states = self.link.latest_states()
+        late = self._late_part(states)
+        if late:
+            self.clock.rewind()     # answered at the sim time of the rest of its burst
+        elif self.clock is not None and any(self._unanswered(states, r) for r in states):
+            self._tick_answered.clear()
+        now = self.link.clock_ns()
         if not self.link.lossless and any(int(rs.msg.status) & LOCKSTEP_BIT for rs in states.values()):
             log.warning("the fleet is lock-stepped (STATE flag LOCKSTEP): sending commands lossless")
             self.link.make_lossless()
@@ -421,6 +441,8 @@ class Bridge:
         self._rearm_refusing(view, states)
         self.rearm.poll()
         if not any(self._unanswered(states, rs.robot) for rs in view.rows):
+            if late:
+                self.clock.advance()
             return None
         self._count(view)
         for robot in view.unknown:
@@ -450,7 +472,7 @@ class Bridge:
                                          self.config.ttl_ms, flags, state_seq=rs.msg.seq)
             self.round_trips.sent(rs.robot, msg)
             self._sent_tick[rs.robot] = self.stats.ticks
-            self._answered[rs.robot] = _key(rs)
+            self._mark_answered(rs)
             sent_flags.append(flags)
         self._report_overrides(state, sent_flags, controller_flags)
         stale = tuple(rs.robot for rs, age in zip(view.rows, view.ages, strict=True)

@@ -34,7 +34,14 @@ def percentile(values: Collection[float], q: float) -> float:
 
 class TickClock:
     """Sim time of a lock-stepped fleet [ns]: ``period_s`` per :meth:`advance` (one answered
-    burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``."""
+    burst), starting at one period. Thread-safe; called like ``time.monotonic_ns``.
+
+    The fleet steps only once every robot it published is answered, so a new state from a robot
+    answered since the clock last advanced means a new tick; new states only from robots not
+    answered yet are the late part of the burst just answered (they came after the gather: a
+    loaded machine, or a rejoining robot's state racing its token). The bridge answers that part
+    at the same sim time (:meth:`rewind`, then :meth:`advance` as the answers go out); counting
+    it as a tick put the bridge's time a tick ahead of the fleet's for the rest of the run."""
 
     def __init__(self, period_s: float):
         self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s
@@ -48,6 +55,11 @@ class TickClock:
     def advance(self) -> None:
         with self._lock:
             self._ticks += 1
+
+    def rewind(self) -> None:
+        """One period back: for the late part of a burst already answered (class docstring)."""
+        with self._lock:
+            self._ticks -= 1
 
 
 class UplinkExcess:

@@ -408,6 +408,23 @@ def test_a_lockstep_bridge_counts_ages_in_fleet_ticks_not_wall_time(lockstep):
             assert silent.age_s[0] > 0.75
 
 
+def test_a_lockstep_burst_answered_in_two_parts_keeps_the_fleets_time():
+    """Lock-step: r1's state of a tick arrives after the gather (0.2 s), so the bridge answers
+    r0 alone, then r1: both parts at that tick's sim time, and the next burst one period on.
+    Counting answered bursts instead put the bridge a tick ahead of the fleet from then on (the
+    fleet-sim + bridge record test failed on that under load: positions 8 mm off their time)."""
+    config = BridgeConfig(stale_after_s=0.2, estop_after_s=0.9, lockstep=True, period_s=0.05)
+    with _fleet(config) as (bridge, links, seen):
+        _tick(bridge, links, links)
+        first = _tick(bridge, links, links[:1])          # r1's state is late
+        assert first.robots == ROBOTS and seen[-1].state_age_s[1] == pytest.approx(0.05, abs=1e-9)
+        late = _tick(bridge, links, links[1:])
+        assert late.robots == ROBOTS and late.tick == first.tick + 1
+        _tick(bridge, links, links)
+        assert [s.time for s in seen] == pytest.approx([0.0, 0.05, 0.05, 0.10], abs=1e-9)
+        assert seen[2].state_age_s.tolist() == [0.0, 0.0] and seen[3].state_age_s.tolist() == [0.0, 0.0]
+
+
 def test_an_operator_engages_and_releases_the_estop_but_not_while_a_robot_is_silent(fleet, capsys):
     """`formation estop` over Zenoh: a release is refused while r1 is silent past estop_after_s
     (the rule would raise the e-stop again), carried out once r1 is back; an engage latches it
