@@ -429,6 +429,7 @@ class Bridge:
         late = self._late_part(states)
         if late:
             self.clock.rewind()     # answered at the sim time of the rest of its burst
+            self.stats.late_parts += 1
         elif self.clock is not None and any(self._unanswered(states, r) for r in states):
             self._tick_answered.clear()
         now = self.link.clock_ns()
@@ -503,6 +504,7 @@ class Bridge:
                 "silent_marks": s.silent_marks, "silent_counts": s.silent_counts,
                 "nonfinite_brakes": s.nonfinite_brakes, "unknown_brakes": s.unknown_brakes,
                 "stalls": s.stalls, "longest_stall_s": s.longest_stall_s, "heap_frozen": s.heap_frozen,
+                "late_parts": s.late_parts,
                 "estop_robot": s.estop_robot, "estop_silence_s": s.estop_silence_s,
                 "command_delay_s": self.round_trips.bound_s(),
                 "round_trip_ms": self.round_trips.summary(), **self.rearm.summary(),

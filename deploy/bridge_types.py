@@ -106,3 +106,4 @@ class BridgeStats:
     estop_robot: str | None = None  # the robot whose silence raised the e-stop
     estop_silence_s: float | None = None
     heap_frozen: int = 0  # objects moved out of the collector's reach when the loop started
+    late_parts: int = 0  # lock-step: bursts answered in two parts (TickClock), the late ones

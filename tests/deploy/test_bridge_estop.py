@@ -423,6 +423,7 @@ def test_a_lockstep_burst_answered_in_two_parts_keeps_the_fleets_time():
         _tick(bridge, links, links)
         assert [s.time for s in seen] == pytest.approx([0.0, 0.05, 0.05, 0.10], abs=1e-9)
         assert seen[2].state_age_s.tolist() == [0.0, 0.0] and seen[3].state_age_s.tolist() == [0.0, 0.0]
+        assert bridge.summary()["late_parts"] == 1
 
 
 def test_an_operator_engages_and_releases_the_estop_but_not_while_a_robot_is_silent(fleet, capsys):
