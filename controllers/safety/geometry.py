@@ -51,6 +51,7 @@ WALL_NORMALS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
 """(4, 2) inward normals of the walls x = 0, x = W, y = 0, y = H (pointing into the arena)."""
 
 _PRISM_HALF_HEIGHT = 1.0
+_TOUCH = 1e-6   # [m] an overlap shallower than this is measured without EPA (CollisionScene._signed)
 _WALL_THICKNESS = 1.0
 
 
@@ -243,6 +244,7 @@ class CollisionScene:
                                                    enable_signed_distance=True)
 
         self.robot_geoms = [fcl.Sphere(self.radius) for _ in range(self.num_robots)]
+        self._thinner = fcl.Sphere(self.radius - _TOUCH)
         self.robots = [fcl.CollisionObject(g, fcl.Transform()) for g in self.robot_geoms]
         pieces = ([self.polygon_local] if is_convex_ccw(self.polygon_local)
                   else ear_clip(self.polygon_local))
@@ -385,7 +387,11 @@ class CollisionScene:
         The plain query first: it is exact for sphere-sphere and sphere-box while they are apart,
         where the signed query (GJK) is off by up to 7e-4 m. Only on overlap (plain distance -1)
         the signed query (EPA) gives the depth, except for two spheres, where EPA never returns
-        for coincident centres: their overlap is the closed form ``|c_a - c_b| - 2 r``.
+        for coincident centres: their overlap is the closed form ``|c_a - c_b| - 2 r``; and
+        except for shapes that (nearly) touch, where EPA throws a C++ ``std::logic_error`` that
+        python-fcl does not catch, aborting the process (a robot touching the object's corner;
+        FCL issues #390, #408, #445): when the robot's sphere made ``_TOUCH`` thinner is apart,
+        the overlap is that gap less ``_TOUCH`` (within ``_TOUCH`` of zero), without EPA.
         """
         result = fcl.DistanceResult()
         d = fcl.distance(a, b, self._unsigned, result)
@@ -396,6 +402,10 @@ class CollisionScene:
                 norm = float(np.hypot(*gap))
                 unit = gap / norm if norm > 1e-12 else np.array([1.0, 0.0])
                 return norm - 2 * self.radius, np.array([ca + self.radius * unit, cb - self.radius * unit])
+            thinner = fcl.CollisionObject(self._thinner, fcl.Transform(a.getRotation(), a.getTranslation()))
             result = fcl.DistanceResult()
-            d = fcl.distance(a, b, self._signed_request, result)
+            d = fcl.distance(thinner, b, self._unsigned, result) - _TOUCH
+            if d < -_TOUCH:
+                result = fcl.DistanceResult()
+                d = fcl.distance(a, b, self._signed_request, result)
         return d, np.array([result.nearest_points[0][:2], result.nearest_points[1][:2]])

@@ -188,7 +188,7 @@ class SweepChecker:
         self.arena = arena
         self.dynamics = dynamics
         self.margin = margin
-        self._request = fcl.DistanceRequest(enable_signed_distance=True)
+        self._request = fcl.DistanceRequest()     # plain: see capsule_clearance
         self._pairs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def failing(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
@@ -233,7 +233,14 @@ class SweepChecker:
         return bad
 
     def capsule_clearance(self, start: np.ndarray, end: np.ndarray, radius: float) -> float:
-        """FCL signed distance between the object and the disc of ``radius`` swept from start to end."""
+        """FCL distance between the object and the disc of ``radius`` swept from start to end [m]:
+        exact while they are apart, -1 when they touch or overlap (all that ``< margin`` needs).
+
+        The plain query, not the signed one: on touching shapes the signed query's EPA throws a
+        C++ ``std::logic_error`` ("the origin is outside of the polytope", FCL issues #390, #408,
+        #445; the fix, PR #632, is not merged) that python-fcl does not catch, so the process
+        aborted (a disc of 0.1 m at (0.5, 0.25) against paper-5's object, whose edge is y = 0.35:
+        ``formation eval --world pymunk --intruder radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20``)."""
         chord = end - start
         length = float(np.hypot(*chord))
         if length < 1e-12:

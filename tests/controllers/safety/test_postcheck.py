@@ -20,6 +20,7 @@ from controllers.safety.postcheck import (
 )
 from sim.batched_env import BatchedFormationEnv
 from sim.scenario import transport_scenario
+from tests.controllers.safety.fcl_child import run_child
 
 SCENARIO = transport_scenario(3)      # box [0.4, 0.6] x [0.35, 0.65]
 DYN = SCENARIO.dynamics
@@ -228,3 +229,40 @@ def test_an_excused_pair_stays_as_far_apart_as_braking_from_any_state_it_may_tru
         braking = d + off + (w0 + delta) * t + 0.5 * b * t**2
         command = braking + 0.5 * diff * t**2
         assert (np.hypot(*command.T) >= np.hypot(*braking.T) - 1e-12).all()
+
+
+TOUCHING = [  # (start, end, radius): discs and swept discs that end touching paper-3's box
+    ((0.5, 0.25), (0.5, 0.25), 0.1),        # the disc that aborted `formation eval --intruder ...`
+    ((0.5, 0.31), (0.5, 0.31), 0.04),       # bottom edge
+    ((0.36, 0.5), (0.36, 0.5), 0.04),       # left edge
+    ((0.5, 0.2), (0.5, 0.31), 0.04),        # a sweep that ends on the bottom edge
+    ((0.3, 0.69), (0.5, 0.69), 0.04),       # a sweep along the top edge
+]
+
+
+def test_a_disc_touching_the_object_is_reported_without_aborting_the_process():
+    """On touching shapes FCL's signed query (EPA) throws a C++ std::logic_error that
+    python-fcl does not catch, and the process aborted (SIGABRT: a controller node gone). The
+    checks run in a child process, so that a regression fails here instead of killing the run:
+    each touching sweep reads 0 to within 1e-9 m (the query's tolerance; -1 where it calls it an
+    overlap), and the same sweeps 1 mm thinner read their gap (GJK on the object's prism: to
+    4e-5 m here, the same with the signed query while apart)."""
+    out = run_child(f"""
+        import json
+        import numpy as np
+        from controllers.safety import CollisionScene
+        from controllers.safety.postcheck import SweepChecker
+        from sim.scenario import transport_scenario
+        sc = transport_scenario(3)
+        scene = CollisionScene(sc, 1)
+        scene.update(np.array([[0.1, 0.1]]))
+        checker = SweepChecker(scene.object_parts, sc.robot_radius, sc.arena, sc.dynamics)
+        out = []
+        for start, end, radius in {TOUCHING!r}:
+            out.append([checker.capsule_clearance(np.array(start), np.array(end), radius),
+                        checker.capsule_clearance(np.array(start), np.array(end), radius - 1e-3)])
+        print(json.dumps(out))
+    """)
+    touching, apart = np.array(out).T
+    assert (touching <= 1e-9).all() and (touching < 0).any(), touching
+    np.testing.assert_allclose(apart, 1e-3, atol=1e-4)
