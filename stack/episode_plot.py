@@ -16,7 +16,8 @@ how far each robot was from its target.
 :func:`plot_episode` draws three panels: the arena with every robot's true path (segments where
 the filter changed its command drawn thick in orange, where it was stale, braked by the link or
 absent dashed grey,
-contact onsets marked, a robot frozen by the world hatched at its end); a raster of the modes,
+contact onsets marked, a robot frozen by the world hatched at its end, and what a tracker saw
+besides the robots dotted, its disc where it was seen last); a raster of the modes,
 robots x time; and each robot's distance to the target it ended matched to (the episode's
 assignment), the target tolerance dashed.
 """
@@ -95,6 +96,7 @@ def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path,
     grid = fig.add_gridspec(2, 2, width_ratios=(1.0, 1.25), height_ratios=(1, 1.2))
     scene, raster, dist = fig.add_subplot(grid[:, 0]), fig.add_subplot(grid[0, 1]), fig.add_subplot(grid[1, 1])
     _draw_paths(scene, record, scenario, modes, colours)
+    _draw_obstacles(scene, record)
     _draw_modes(raster, modes, record, dt)
     _draw_distances(dist, record, scenario, colours, dt)
     legend = [Patch(facecolor=MODE_COLOURS[m], edgecolor="0.5", label=m.name.lower()) for m in Mode]
@@ -102,6 +104,8 @@ def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path,
                Line2D([], [], color="0.4", ls="--", lw=1.2, label="path: stale, link brake or absent"),
                Line2D([], [], color="red", marker="X", mfc="none", ls="none", ms=8, label="contact onset"),
                Patch(facecolor="white", edgecolor="black", hatch="xxx", label="frozen by the world")]
+    if len(record.obstacle_ids):
+        legend.append(Line2D([], [], color="0.15", ls=":", lw=1.5, label="obstacle a tracker saw, last seen"))
     fig.legend(handles=legend, loc="outside lower center", ncol=5, frameon=False, fontsize=8)
     m = record.meta.get("metrics", {})
     verdict = ("success" if m.get("success") else "failed") if m else ""
@@ -134,6 +138,21 @@ def _draw_paths(ax, record: EpisodeRecord, scenario: Scenario, modes: np.ndarray
         ax.plot(pos[hits, i, 0], pos[hits, i, 1], "X", ms=8, mfc="none", mec="red", mew=1.6, zorder=6)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
+
+
+def _draw_obstacles(ax, record: EpisodeRecord) -> None:
+    """Each obstacle's seen centres dotted, its disc where it was seen last."""
+    from matplotlib.patches import Circle
+
+    for j, name in enumerate(record.obstacle_ids):
+        seen = record.obstacles[:, j]
+        seen = seen[np.isfinite(seen[:, 0])]
+        if not len(seen):
+            continue
+        ax.plot(seen[:, 0], seen[:, 1], color="0.15", ls=":", lw=1.5, zorder=3)
+        ax.add_patch(Circle(seen[-1, :2], seen[-1, 2], facecolor="0.3", alpha=0.35, edgecolor="0.1", lw=1.0,
+                            zorder=4))
+        ax.text(*seen[-1, :2], name, ha="center", va="center", fontsize=7, zorder=5)
 
 
 def _draw_modes(ax, modes: np.ndarray, record: EpisodeRecord, dt: float) -> None:

@@ -32,6 +32,11 @@ that joined, in order of appearance; a robot missing from a tick's rows is NaN /
 ``safety_status``         (S,) str        the filter's status per tick ("" with the filter off)
 ``safety_reason``         (S,) str        the filter's reason, when it gives one (which robots the
                                           post-check braked, why the QP failed)
+``obstacle_ids``          (K,) str        what a tracker saw that is none of the fleet's robots
+                                          (``FleetState.obstacles``), in order of appearance
+``obstacles``             (S, K, 4)       x, y [m] where it was seen, radius [m], age of the
+                                          sighting [s]; NaN where the tick's state did not hold
+                                          it (a record written before these arrays: K = 0)
 ========================  ==============  =========================================================
 
 ``meta`` (a JSON object): the scenario (:meth:`sim.scenario.Scenario.to_dict`), the seed, the
@@ -51,8 +56,10 @@ from sim.files import atomic_path
 from sim.fleet import Fleet, FleetState
 
 ARRAYS = ("ids", "time", "measured", "targets", "positions", "a_nom", "a_safe", "a_cmd", "stale", "docking", "detour",
-          "present", "frozen", "contacts", "safety_status", "safety_reason", "link_braked")
-LATER_ARRAYS = ("link_braked",)     # absent from older records: read as all False
+          "present", "frozen", "contacts", "safety_status", "safety_reason", "link_braked", "obstacle_ids",
+          "obstacles")
+LATER_ARRAYS = ("link_braked", "obstacle_ids", "obstacles")     # absent from older records (load_record)
+OBSTACLE_FIELDS = 4     # x, y, radius, age_s
 
 
 class RecordError(ValueError):
@@ -80,7 +87,13 @@ class EpisodeRecord:
     safety_status: np.ndarray
     safety_reason: np.ndarray
     link_braked: np.ndarray
+    obstacle_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
+    obstacles: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.obstacles is None:
+            self.obstacles = np.full((len(self.time), len(self.obstacle_ids), OBSTACLE_FIELDS), np.nan)
 
     @property
     def steps(self) -> int:
@@ -121,8 +134,7 @@ def load_record(path: str | Path) -> EpisodeRecord:
                 raise RecordError(f"{path}: not an episode record (no {', '.join(missing)}); "
                                   "write one with formation eval --trace DIR")
             arrays = {name: data[name] for name in ARRAYS if name in data.files}
-            for name in LATER_ARRAYS:
-                arrays.setdefault(name, np.zeros(arrays["stale"].shape, dtype=bool))
+            arrays.setdefault("link_braked", np.zeros(arrays["stale"].shape, dtype=bool))
             meta = json.loads(str(data["meta"]))
     except (OSError, ValueError) as exc:
         if isinstance(exc, RecordError):
@@ -147,6 +159,17 @@ class _Tick:
     positions: np.ndarray | None = None
     frozen: np.ndarray | None = None
     contacts: np.ndarray | None = None
+    obstacles: dict[str, np.ndarray] = field(default_factory=dict)   # id -> (x, y, radius, age_s)
+
+
+def _sightings(state: FleetState) -> dict[str, np.ndarray]:
+    """The obstacles of ``state`` that are none of the fleet's robots, by id."""
+    seen = state.obstacles
+    if seen is None:
+        return {}
+    robots = seen.robots or (None,) * len(seen)
+    return {name: np.array([*seen.positions[k], seen.radii[k], seen.age_s[k]])
+            for k, name in enumerate(seen.ids) if robots[k] is None}
 
 
 class EpisodeRecorder:
@@ -188,7 +211,7 @@ class EpisodeRecorder:
             self._ticks[-1].state = None
         t = _Tick(ids=tuple(state.robot_ids), time=float(state.time), rows=rows,
                   safety_status="" if status is None else str(status), safety_reason=result.safety_reason,
-                  state=state)
+                  state=state, obstacles=_sightings(state))
         if after is not None:
             t.after_ids, t.positions = _where(fleet, after)
             frozen = getattr(fleet, "frozen", None)
@@ -220,6 +243,7 @@ class EpisodeRecorder:
         ids = list(dict.fromkeys([*start_ids, *(i for t in ticks for i in (*t.ids, *t.after_ids))]))
         column = {rid: k for k, rid in enumerate(ids)}
         s, n = len(ticks), len(ids)
+        obstacle_ids = list(dict.fromkeys(i for t in ticks for i in t.obstacles))
 
         def table(width: tuple[int, ...], dtype, fill) -> np.ndarray:
             return np.full((s, n, *width), fill, dtype=dtype)
@@ -231,7 +255,8 @@ class EpisodeRecorder:
             **{name: table((), bool, False) for name in (*FLAG_ROWS, "present", "frozen", "link_braked")},
             contacts=table((3,), bool, False),
             safety_status=np.array([t.safety_status for t in ticks], dtype=str),
-            safety_reason=np.array([t.safety_reason for t in ticks], dtype=str), meta=dict(meta or {}))
+            safety_reason=np.array([t.safety_reason for t in ticks], dtype=str),
+            obstacle_ids=np.array(obstacle_ids, dtype=str), meta=dict(meta or {}))
         if self._scenario is not None:
             rec.meta.setdefault("scenario", self._scenario.to_dict())
         rec.meta = json.loads(json.dumps(rec.meta))        # as a loaded record holds it
@@ -249,6 +274,9 @@ class EpisodeRecorder:
                 rec.contacts[k, after] = t.contacts
             if t.frozen is not None and len(t.frozen) == len(after):
                 rec.frozen[k, after] = t.frozen
+            for j, name in enumerate(obstacle_ids):
+                if name in t.obstacles:
+                    rec.obstacles[k, j] = t.obstacles[name]
         if not judged and self._scenario is not None and s:
             rec.contacts = _contacts(rec.positions[1:], self._scenario)
         return rec

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -225,3 +226,28 @@ def test_eval_trace_records_and_draws_every_stack_episode(tmp_path, capsys):
     assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--trace",
                  str(tmp_path / "file")]) == 2
     assert "exists and is not a folder" in capsys.readouterr().err
+
+
+def test_the_intruder_of_the_help_text_is_traced_and_the_run_survives_it(tmp_path):
+    """`--help`'s own --intruder example walks down through paper-5's object, where a robot's
+    swept disc came to touch the object exactly: FCL aborted the process there (SIGABRT, a C++
+    error python-fcl does not catch). Run as a user would, in a child process: exit 0, and the
+    trace holds the intruder where the tracker saw it, from tick 20 down at 0.01 m a tick."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from stack.commands.argtypes import INTRUDER_HELP
+    from stack.recorder import load_record
+
+    example = "radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20"
+    assert example in INTRUDER_HELP
+    run = subprocess.run([sys.executable, "-m", "stack.cli", "eval", "--policy", "scripted", "--world", "pymunk",
+                          "--scenario", "paper-5", "--episodes", "1", "--seed", "1", "--intruder", example,
+                          "--trace", str(tmp_path)], cwd=Path(__file__).resolve().parents[2], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-600:]
+    record = load_record(tmp_path / "episode_1.npz")
+    seen = record.obstacles[:, 0]
+    assert record.obstacle_ids.tolist() == ["#0"] and np.isnan(seen[:20]).all()
+    np.testing.assert_allclose(seen[20:25], [[0.5, 1.1 - 0.01 * k, 0.06, 0.0] for k in range(5)], atol=1e-9)

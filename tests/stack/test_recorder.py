@@ -202,3 +202,38 @@ def test_a_recorded_stack_passes_the_brake_on_and_marks_its_record(tmp_path):
     np.testing.assert_array_equal(record.link_braked[-1], [True, False, True])
     np.testing.assert_allclose(record.a_cmd[-1, [0, 2]], [[-1.0, 0.0], [0.0, -1.0]], atol=1e-9)
     assert not record.link_braked[:-1].any()
+
+
+def test_what_a_tracker_saw_is_recorded_in_its_own_columns_and_drawn(tmp_path):
+    """Three ticks: a person p1 seen on ticks 0 and 2 (its sighting 0.1 s old on tick 2), a box
+    seen from tick 1, and a sighting of robot r1 (a tracker that identifies robots), which is
+    the robot's own column and not an obstacle's. A record written before these arrays loads
+    with none."""
+    from sim.fleet import Obstacles
+
+    def seen(k: int) -> Obstacles:
+        rows = [("p1", (0.5, 0.9 - 0.1 * k), 0.06, 0.05 * k, None)] if k != 1 else []
+        rows += [("box", (0.8, 0.2), 0.03, 0.0, None)] if k >= 1 else []
+        rows.append(("sighted-r1", (0.3, 0.4), 0.04, 0.0, "r1"))
+        ids, pos, radii, ages, robots = zip(*rows, strict=True)
+        return Obstacles(ids, np.array(pos), np.array(radii), np.array(ages), np.zeros(len(ids)), robots)
+
+    rec = EpisodeRecorder(make_scenario("paper-3"))
+    for k in range(3):
+        state = _state(("r0", "r1"), k)
+        state.obstacles = seen(k)
+        rec.tick(state, _tick(2))
+    out = rec.finish()
+    assert out.obstacle_ids.tolist() == ["p1", "box"] and out.obstacles.shape == (3, 2, 4)
+    np.testing.assert_allclose(out.obstacles[:, 0], [[0.5, 0.9, 0.06, 0.0], [np.nan] * 4, [0.5, 0.7, 0.06, 0.1]])
+    np.testing.assert_allclose(out.obstacles[:, 1], [[np.nan] * 4, [0.8, 0.2, 0.03, 0.0], [0.8, 0.2, 0.03, 0.0]])
+    back = load_record(out.save(tmp_path / "seen.npz"))
+    np.testing.assert_array_equal(back.obstacles, out.obstacles)
+    assert back.obstacle_ids.tolist() == ["p1", "box"]
+    png = plot_episode(back, make_scenario("paper-3"), tmp_path / "seen.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with np.load(tmp_path / "seen.npz") as data:
+        np.savez(tmp_path / "old.npz", **{k: data[k] for k in data.files if not k.startswith("obstacle")})
+    old = load_record(tmp_path / "old.npz")
+    assert old.obstacle_ids.shape == (0,) and old.obstacles.shape == (3, 0, 4)
+    assert plot_episode(old, make_scenario("paper-3"), tmp_path / "old.png").exists()
