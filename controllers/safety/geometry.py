@@ -304,7 +304,7 @@ class CollisionScene:
         are reported as ``("object", 0)``. Touching within FCL's tolerance counts as overlap.
         """
         total = len(self.robots) + len(self.object_parts) + len(self.walls)
-        request = fcl.CollisionRequest(num_max_contacts=total * total, enable_contact=True)
+        request = fcl.CollisionRequest(num_max_contacts=total * total)   # pairs only: no EPA (see _signed)
         data = fcl.CollisionData(request=request)
         self.manager.collide(data, fcl.defaultCollisionCallback)
         found: set[tuple[tuple[str, int], tuple[str, int]]] = set()
