@@ -122,6 +122,7 @@ Controller = Callable[[FleetState], np.ndarray]
 ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
 NO_FLAGS = CmdFlags(0)
 LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
+LATE_PART_WAIT_S = 0.02  # [s] ... and what looks like a burst's late part waits for the next tick
 
 
 QUIET_PERIODS = 1.5   # a live robot unheard for this many fleet periods is not waited for (gather)
@@ -228,6 +229,8 @@ class Bridge:
 
         if not link.wait_for(lambda: any(unanswered(link.alive_robots)), timeout_s):
             return False
+        if self._late_part(link.latest_states()):   # or the first state of the next tick, from a robot
+            link.wait_for(lambda: not self._late_part(link.latest_states()), LATE_PART_WAIT_S)  # new to it
         gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
         link.wait_for(gathered, gather_s)
         return True

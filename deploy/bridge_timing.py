@@ -41,7 +41,10 @@ class TickClock:
     answered yet are the late part of the burst just answered (they came after the gather: a
     loaded machine, or a rejoining robot's state racing its token). The bridge answers that part
     at the same sim time (:meth:`rewind`, then :meth:`advance` as the answers go out); counting
-    it as a tick put the bridge's time a tick ahead of the fleet's for the rest of the run."""
+    it as a tick put the bridge's time a tick ahead of the fleet's for the rest of the run. A
+    robot new to the fleet, or one the last tick went without, sends a state that looks late
+    too, when it comes first in the next tick: the bridge waits ``LATE_PART_WAIT_S`` for a new
+    state of a robot it answered, which tells the next tick."""
 
     def __init__(self, period_s: float):
         self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s

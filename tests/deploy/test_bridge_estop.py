@@ -423,6 +423,12 @@ def test_a_lockstep_burst_answered_in_two_parts_keeps_the_fleets_time():
         _tick(bridge, links, links)
         assert [s.time for s in seen] == pytest.approx([0.0, 0.05, 0.05, 0.10], abs=1e-9)
         assert seen[2].state_age_s.tolist() == [0.0, 0.0] and seen[3].state_age_s.tolist() == [0.0, 0.0]
+        _tick(bridge, links, links[:1])             # r1 sends nothing this tick (a fleet timeout)
+        sent = {link.robot: link.publish_state((0.3, 0.4), (0.0, 0.1)).seq for link in links[::-1]}
+        assert bridge.link.wait_for(lambda: all(bridge.link.latest_states()[r].msg.seq == q for r, q in sent.items()),
+                                    5.0)
+        bridge.step(timeout_s=0.1)                  # r1 came first in the next tick: not a late part
+        assert [s.time for s in seen[4:]] == pytest.approx([0.15, 0.20], abs=1e-9)
         assert bridge.summary()["late_parts"] == 1
 
 
