@@ -236,10 +236,13 @@ class Bridge:
         return True
 
     def _late_part(self, states: Mapping[str, ReceivedState]) -> bool:
-        """Lock-step: whether the new states are the late part of the burst last answered
-        (:class:`TickClock`): no robot answered since the clock advanced has a new one."""
-        return self.clock is not None and bool(self._tick_answered) \
-            and not any(self._unanswered(states, r) for r in self._tick_answered)
+        """Lock-step: whether the new states of live robots are the late part of the burst last
+        answered (:class:`TickClock`): there are some, and none from a robot answered since the
+        clock advanced."""
+        if self.clock is None or not self._tick_answered:
+            return False
+        fresh = [r for r in self.link.alive_robots if self._unanswered(states, r)]
+        return bool(fresh) and self._tick_answered.isdisjoint(fresh)
 
     def _mark_answered(self, rs: ReceivedState) -> None:
         """Record the answer to ``rs``; a new state answered joins the lock-step tick's part."""
@@ -432,7 +435,6 @@ class Bridge:
         late = self._late_part(states)
         if late:
             self.clock.rewind()     # answered at the sim time of the rest of its burst
-            self.stats.late_parts += 1
         elif self.clock is not None and any(self._unanswered(states, r) for r in states):
             self._tick_answered.clear()
         now = self.link.clock_ns()
@@ -448,6 +450,7 @@ class Bridge:
             if late:
                 self.clock.advance()
             return None
+        self.stats.late_parts += late
         self._count(view)
         for robot in view.unknown:
             if not self.rearm.refusing(robot):

@@ -428,7 +428,9 @@ def test_a_lockstep_burst_answered_in_two_parts_keeps_the_fleets_time():
         assert bridge.link.wait_for(lambda: all(bridge.link.latest_states()[r].msg.seq == q for r, q in sent.items()),
                                     5.0)
         bridge.step(timeout_s=0.1)                  # r1 came first in the next tick: not a late part
-        assert [s.time for s in seen[4:]] == pytest.approx([0.15, 0.20], abs=1e-9)
+        assert bridge.step(timeout_s=0.05) is None   # nothing new: neither a tick nor a late part
+        _tick(bridge, links, links)
+        assert [s.time for s in seen[4:]] == pytest.approx([0.15, 0.20, 0.25], abs=1e-9)
         assert bridge.summary()["late_parts"] == 1
 
 
