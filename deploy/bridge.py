@@ -180,7 +180,6 @@ class Bridge:
         self._discard: dict[str, tuple[int, int]] = {}  # robot -> (epoch, seq) not to act on
         self._heard_since: dict[str, int] = {}  # live robot -> when the bridge noticed it [ns]
         self._sent_tick: dict[str, int] = {}  # robot -> the tick it was last sent a row's command
-        self._tick_answered: set[str] = set()  # lock-step: robots answered since the clock advanced
         self._resume_ns = 0  # end of the last stall [ns]
         self._last_look_ns: int | None = None
         self._stop = threading.Event()
@@ -216,7 +215,7 @@ class Bridge:
                 return False
             states = link.latest_states()
             if self.stats.ticks == 0 or self.clock is not None:    # lock-step: every live robot answers
-                awaited = alive - self._tick_answered if self._late_part(states) else alive
+                awaited = alive - self.clock.answered if self._late_part(self._fresh(states)) else alive
                 return all(self._unanswered(states, r) for r in awaited)
             recent = link.clock_ns() - int(QUIET_PERIODS * self.config.period_s * 1e9)
 
@@ -229,25 +228,24 @@ class Bridge:
 
         if not link.wait_for(lambda: any(unanswered(link.alive_robots)), timeout_s):
             return False
-        if self._late_part(link.latest_states()):   # or the first state of the next tick, from a robot
-            link.wait_for(lambda: not self._late_part(link.latest_states()), LATE_PART_WAIT_S)  # new to it
+        if self._late_part(self._fresh(link.latest_states())):   # or the next tick's first state, from
+            link.wait_for(lambda: not self._late_part(self._fresh(link.latest_states())),  # a robot new to it
+                          LATE_PART_WAIT_S)
         gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
         link.wait_for(gathered, gather_s)
         return True
 
-    def _late_part(self, states: Mapping[str, ReceivedState]) -> bool:
-        """Lock-step: whether the new states of live robots are the late part of the burst last
-        answered (:class:`TickClock`): there are some, and none from a robot answered since the
-        clock advanced."""
-        if self.clock is None or not self._tick_answered:
-            return False
-        fresh = [r for r in self.link.alive_robots if self._unanswered(states, r)]
-        return bool(fresh) and self._tick_answered.isdisjoint(fresh)
+    def _fresh(self, states: Mapping[str, ReceivedState]) -> list[str]:
+        """Live robots with a state not answered yet."""
+        return [r for r in self.link.alive_robots if self._unanswered(states, r)]
+
+    def _late_part(self, fresh: list[str]) -> bool:
+        return self.clock is not None and self.clock.late_part(fresh)   # TickClock's docstring
 
     def _mark_answered(self, rs: ReceivedState) -> None:
         """Record the answer to ``rs``; a new state answered joins the lock-step tick's part."""
         if self.clock is not None and _key(rs) != self._answered.get(rs.robot):
-            self._tick_answered.add(rs.robot)
+            self.clock.answered.add(rs.robot)
         self._answered[rs.robot] = _key(rs)
 
     def _age_s(self, rs: ReceivedState, now: int) -> float:
@@ -432,11 +430,7 @@ class Bridge:
         """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
         self._wait_burst(timeout_s)
         states = self.link.latest_states()
-        late = self._late_part(states)
-        if late:
-            self.clock.rewind()     # answered at the sim time of the rest of its burst
-        elif self.clock is not None and any(self._unanswered(states, r) for r in states):
-            self._tick_answered.clear()
+        late = self.clock is not None and self.clock.begin(self._fresh(states))
         now = self.link.clock_ns()
         if not self.link.lossless and any(int(rs.msg.status) & LOCKSTEP_BIT for rs in states.values()):
             log.warning("the fleet is lock-stepped (STATE flag LOCKSTEP): sending commands lossless")

@@ -50,6 +50,23 @@ class TickClock:
         self.period_ns = round(period_s * 1e9)   # BridgeConfig checked period_s
         self._ticks = 1
         self._lock = threading.Lock()
+        self.answered: set[str] = set()   # robots whose new state was answered since the advance
+
+    def late_part(self, fresh: Collection[str]) -> bool:
+        """Whether the new states of robots ``fresh`` are the late part of the burst last
+        answered: there are some, and none from a robot in :attr:`answered`."""
+        return bool(self.answered) and bool(fresh) and self.answered.isdisjoint(fresh)
+
+    def begin(self, fresh: Collection[str]) -> bool:
+        """A look at new states of ``fresh``: the late part of the last burst goes back to its
+        sim time (True; :meth:`advance` once answered, or if nothing is); a new tick starts
+        :attr:`answered` afresh."""
+        late = self.late_part(fresh)
+        if late:
+            self.rewind()
+        elif fresh:
+            self.answered.clear()
+        return late
 
     def __call__(self) -> int:
         with self._lock:

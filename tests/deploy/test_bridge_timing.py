@@ -1,4 +1,5 @@
-"""deploy.bridge_timing: the partial-sort percentile behind the command delay bound."""
+"""deploy.bridge_timing: the partial-sort percentile behind the command delay bound, and the
+lock-step clock."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from deploy.bridge_timing import percentile
+from deploy.bridge_timing import TickClock, percentile
 
 
 def test_percentile_by_hand():
@@ -24,3 +25,19 @@ def test_percentile_by_hand():
 @given(st.lists(st.integers(0, 10**9), min_size=1, max_size=300), st.floats(0, 100))
 def test_percentile_equals_numpys(values, q):
     assert np.isclose(percentile(deque(values), q), np.percentile(values, q), rtol=1e-12, atol=1e-6)
+
+
+def test_the_tick_clock_tells_a_bursts_late_part_from_the_next_tick():
+    """Hand-worked: r0 and r1 answered at 1 period; r1's state of that tick comes late (looked at
+    after the advance) and reads 1 period again; then a state of r0 (answered at this tick) means
+    the fleet stepped: 2 periods, and who was answered starts afresh. A look with nothing new
+    changes nothing."""
+    clock = TickClock(0.05)
+    assert not clock.begin({"r0", "r1"}) and clock() == 50_000_000
+    clock.answered.add("r0")                      # r1's state was not there: answered r0 only
+    clock.advance()
+    assert clock.begin({"r1"}) and clock() == 50_000_000      # the late part, at its burst's time
+    clock.answered.add("r1")
+    clock.advance()
+    assert not clock.begin(set()) and clock() == 100_000_000 and clock.answered == {"r0", "r1"}
+    assert not clock.begin({"r1", "r0"}) and clock() == 100_000_000 and clock.answered == set()
