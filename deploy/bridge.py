@@ -93,7 +93,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -215,7 +215,7 @@ class Bridge:
                 return False
             states = link.latest_states()
             if self.stats.ticks == 0 or self.clock is not None:    # lock-step: every live robot answers
-                awaited = alive - self.clock.answered if self._late_part(self._fresh(states)) else alive
+                awaited = alive - self.clock.answered if self._late_part(states, alive) else alive
                 return all(self._unanswered(states, r) for r in awaited)
             recent = link.clock_ns() - int(QUIET_PERIODS * self.config.period_s * 1e9)
 
@@ -228,19 +228,20 @@ class Bridge:
 
         if not link.wait_for(lambda: any(unanswered(link.alive_robots)), timeout_s):
             return False
-        if self._late_part(self._fresh(link.latest_states())):   # or the next tick's first state, from
-            link.wait_for(lambda: not self._late_part(self._fresh(link.latest_states())),  # a robot new to it
-                          LATE_PART_WAIT_S)
+        if self._late_part(link.latest_states(), link.alive_robots):   # or the next tick's first state,
+            link.wait_for(lambda: not self._late_part(link.latest_states(), link.alive_robots),  # from a
+                          LATE_PART_WAIT_S)                                                      # robot new to it
         gather_s = LOCKSTEP_GATHER_S if self.clock is not None else self.config.gather_s
         link.wait_for(gathered, gather_s)
         return True
 
-    def _fresh(self, states: Mapping[str, ReceivedState]) -> list[str]:
-        """Live robots with a state not answered yet."""
-        return [r for r in self.link.alive_robots if self._unanswered(states, r)]
+    def _fresh(self, states: Mapping[str, ReceivedState], alive: Iterable[str]) -> list[str]:
+        """The robots of ``alive`` with a state not answered yet."""
+        return [r for r in alive if self._unanswered(states, r)]
 
-    def _late_part(self, fresh: list[str]) -> bool:
-        return self.clock is not None and self.clock.late_part(fresh)   # TickClock's docstring
+    def _late_part(self, states: Mapping[str, ReceivedState], alive: Iterable[str]) -> bool:
+        """Lock-step: whether the new states are a burst's late part (TickClock's docstring)."""
+        return self.clock is not None and self.clock.late_part(self._fresh(states, alive))
 
     def _mark_answered(self, rs: ReceivedState) -> None:
         """Record the answer to ``rs``; a new state answered joins the lock-step tick's part."""
@@ -430,7 +431,7 @@ class Bridge:
         """Answer one burst of states (None if no row has a new one within ``timeout_s``)."""
         self._wait_burst(timeout_s)
         states = self.link.latest_states()
-        late = self.clock is not None and self.clock.begin(self._fresh(states))
+        late = self.clock is not None and self.clock.begin(self._fresh(states, self.link.alive_robots))
         now = self.link.clock_ns()
         if not self.link.lossless and any(int(rs.msg.status) & LOCKSTEP_BIT for rs in states.values()):
             log.warning("the fleet is lock-stepped (STATE flag LOCKSTEP): sending commands lossless")

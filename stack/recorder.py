@@ -244,6 +244,7 @@ class EpisodeRecorder:
         column = {rid: k for k, rid in enumerate(ids)}
         s, n = len(ticks), len(ids)
         obstacle_ids = list(dict.fromkeys(i for t in ticks for i in t.obstacles))
+        obstacle_column = {name: j for j, name in enumerate(obstacle_ids)}
 
         def table(width: tuple[int, ...], dtype, fill) -> np.ndarray:
             return np.full((s, n, *width), fill, dtype=dtype)
@@ -274,9 +275,8 @@ class EpisodeRecorder:
                 rec.contacts[k, after] = t.contacts
             if t.frozen is not None and len(t.frozen) == len(after):
                 rec.frozen[k, after] = t.frozen
-            for j, name in enumerate(obstacle_ids):
-                if name in t.obstacles:
-                    rec.obstacles[k, j] = t.obstacles[name]
+            for name, seen in t.obstacles.items():
+                rec.obstacles[k, obstacle_column[name]] = seen
         if not judged and self._scenario is not None and s:
             rec.contacts = _contacts(rec.positions[1:], self._scenario)
         return rec
