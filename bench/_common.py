@@ -26,18 +26,28 @@ edits made beside it; what its document records is this, with the checkout at th
 it (``git_at_end``) when they differ."""
 
 
-def positive_int_list(text: str) -> list[int]:
-    """argparse type: ``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be a positive integer."""
+def int_list(text: str, minimum: int = 1) -> list[int]:
+    """``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be an integer >= ``minimum``."""
+    kind = "positive integers" if minimum == 1 else f"integers >= {minimum}"
     items = [part.strip() for part in text.split(",") if part.strip()]
     if not items:
-        raise argparse.ArgumentTypeError(f"expected a comma-separated list of positive integers, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {kind}, got {text!r}")
     values = []
     for item in items:
-        if not item.isdigit() or int(item) < 1:
-            raise argparse.ArgumentTypeError(
-                f"{item!r} is not a positive integer (expected e.g. '1,64,1024')")
+        if not item.isdigit() or int(item) < minimum:
+            raise argparse.ArgumentTypeError(f"{item!r} is not one of the {kind} (expected e.g. '1,64,1024')")
         values.append(int(item))
     return values
+
+
+def positive_int_list(text: str) -> list[int]:
+    """argparse type: ``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be a positive integer."""
+    return int_list(text, 1)
+
+
+def nonnegative_int_list(text: str) -> list[int]:
+    """argparse type: ``"0,25,100"`` -> ``[0, 25, 100]``; every item must be an integer >= 0."""
+    return int_list(text, 0)
 
 
 def positive_int(text: str) -> int:

@@ -41,6 +41,9 @@ same answers; run both to compare their latency.
     two ticks late, the scripted controller (and ``--policy``) through the default stack against
     bare: episodes in which a robot drove into an intruder, contacts, success, closest approach;
     see :mod:`_safety_intruders`.
+(f) clutter: tick latency with ``--clutter-discs`` boxes a tracker reports, the default stack
+    (only the discs that can bind enter the QP) against one whose filter takes every disc, on
+    the same states, and the largest difference of their commands; see :mod:`_safety_clutter`.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
@@ -48,7 +51,9 @@ Output: a table, or with ``--json`` one document
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, "arrival_scripted": {...}, ...}, ...},
 "intruders": {"delay2": {"scripted": {"episodes", "drive_in_episodes", "drive_in_episodes_bare",
-"contact_episodes", "success", "min_gap_mm", ...}, "policy": {...}}, ...}, "stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the ``StackConfig`` the
+"contact_episodes", "success", "min_gap_mm", ...}, "policy": {...}}, ...},
+"clutter": {"100": {"discs", "p50_ms", "p99_ms", "p50_ms_all", "p99_ms_all", "speedup_p50",
+"max_discs_in_qp", "max_command_diff", ...}, ...}, "stack_config": {...}, "provenance": {...}}``: ``stack_config`` is the ``StackConfig`` the
 "filter + MEC" columns of (d) ran, resolved (filter, latency and MEC settings): the default,
 which covers 150 ms of command delay, unless ``--command-delay-ms`` narrows its latency bound as a
 user who knows their link would (``formation eval --command-delay-ms``); (a)-(c) run the default.
@@ -75,6 +80,7 @@ from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start, 
 from _common import (  # noqa: E402
     add_output_args,
     map_episodes,
+    nonnegative_int_list,
     positive_int,
     positive_int_list,
     print_json,
@@ -82,6 +88,7 @@ from _common import (  # noqa: E402
     progress,
     set_threads,
 )
+from _safety_clutter import clutter_table, run_clutter  # noqa: E402
 from _safety_conditions import CONDITIONS, OPEN_LOOP, run_conditions  # noqa: E402
 from _safety_intruders import run_intruders  # noqa: E402
 from torch import nn  # noqa: E402
@@ -322,8 +329,13 @@ def _parser() -> argparse.ArgumentParser:
                         help="link conditions for (e), comma-separated (default clean,delay2,noise)")
     parser.add_argument("--intruder-episodes", type=positive_int, default=300,
                         help="episodes per condition and controller for (e) (300)")
+    parser.add_argument("--clutter-discs", type=nonnegative_int_list, default=[0, 25, 100],
+                        help="tracker disc counts for (f), comma-separated (0,25,100)")
+    parser.add_argument("--clutter-episodes", type=positive_int, default=4,
+                        help="paper-5 episodes of 128 ticks per disc count for (f) (4)")
     add_command_delay_arg(parser)
-    parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions", "intruders"], default=None,
+    parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions", "intruders", "clutter"],
+                        default=None,
                         help="run one part only (the document then holds that key alone)")
     add_output_args(parser)
     return parser
@@ -369,6 +381,9 @@ def main(argv: list[str] | None = None) -> int:
         progress(f"(e) intruders under {args.intruder_conditions}, {args.intruder_episodes} episodes each")
         doc["intruders"] = run_intruders(args.intruder_conditions, args.intruder_episodes, args.workers,
                                          args.seed, args.policy, stack_config)
+    if args.only in (None, "clutter"):
+        progress(f"(f) clutter, {args.clutter_discs} tracker discs, {args.clutter_episodes} episodes each")
+        doc["clutter"] = run_clutter(args.clutter_discs, args.clutter_episodes, 128, args.seed)
     doc.update(threads=threads, wall_s=time.perf_counter() - start,
                stack_config=dataclasses.asdict(stack_config))
     if args.json:
@@ -437,6 +452,9 @@ def _print_tables(doc: dict) -> None:
                                                                           "median_min_gap_mm",
                                                                           "median_min_gap_mm_bare"))]
                      for name, by in doc["intruders"].items() for tag, r in by.items()])
+        print()
+    if "clutter" in doc:
+        print_table(*clutter_table(doc["clutter"]))
         print()
     if "latency_ms" in doc:
         print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",

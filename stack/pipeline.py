@@ -46,7 +46,9 @@ every per-robot estimate is keyed by robot id)::
                    reachable disc
       -> obstacles: FleetState.obstacles (a tracker's sightings, stack.seen) appended as fixed
                    discs grown by how far each may move (Prediction.with_obstacles); a sighting
-                   of one of the robots bounds it only once it is silent and at rest
+                   of one of the robots bounds it only once it is silent and at rest; only
+                   the discs that can bind a listening robot this tick go on to the filter
+                   (controllers.safety.relevance: the answer is the same, the QP stays small)
       -> safety:   controllers.safety.SafetyFilter.filter(..., prediction=) (optional)
                    => a_safe (N, 2), SafetyStatus
       -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
@@ -101,6 +103,7 @@ from controllers.position_estimator import PositionEstimator
 from controllers.safety import SafetyFilter, braking_acceleration
 from controllers.safety.latency import LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
+from controllers.safety.relevance import without_idle_fixed_rows
 from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
 from sim.observations import (
@@ -472,15 +475,21 @@ class ControlStack:
                 extra = prediction.pos[len(pos):]
                 pos, vel = np.vstack([pos, extra]), np.vstack([vel, np.zeros_like(extra)])
                 a_nom = np.vstack([a_nom, np.zeros_like(extra)])
+        seen_discs = prediction
         if obstacles is not None:
-            prediction = with_obstacles(prediction, obstacles, pos, vel, unknown, reach, self.scenario.robot_radius)
-            rest = np.zeros((len(obstacles), 2))
-            pos, vel, a_nom = np.vstack([pos, obstacles.positions]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
+            seen_discs = with_obstacles(prediction, obstacles, pos, vel, unknown, reach, self.scenario.robot_radius)
+            prediction, kept = seen_discs, np.ones(len(seen_discs.pos), dtype=bool)
+            if not self.config.all_tracker_discs:
+                prediction, kept = without_idle_fixed_rows(seen_discs, len(pos), self.safety.config, self.dynamics,
+                                                           self.scenario.robot_radius)
+            near = obstacles.positions[kept[len(pos):]]
+            rest = np.zeros((len(near), 2))
+            pos, vel, a_nom = np.vstack([pos, near]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
         pose = state.object_pose
         if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
             pose = None
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
-        self._last_prediction = prediction     # the detours of the next tick keep clear of its discs
+        self._last_prediction = seen_discs     # the detours of the next tick keep clear of its discs, all of them
         return SafeStage(result, prediction, len(pos), ids)
 
     def _resize(self, n: int) -> None:

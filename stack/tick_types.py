@@ -118,6 +118,9 @@ class StackConfig:
             (:mod:`controllers.docking`) and the detours of robots held away from every target
             (:mod:`controllers.detour`), before the filter; ``DockingConfig(enabled=False)``
             leaves the policy's command as it is.
+        all_tracker_discs: every disc a tracker reports enters the filter's QP; False (default):
+            only those that can bind a listening robot this tick
+            (:mod:`controllers.safety.relevance`; the same answer, a smaller QP).
     """
 
     safety: bool = True
@@ -128,6 +131,7 @@ class StackConfig:
     estimated_velocity: bool = True
     estimated_position: bool = True
     docking: DockingConfig = field(default_factory=DockingConfig)
+    all_tracker_discs: bool = False
 
 
 @dataclass

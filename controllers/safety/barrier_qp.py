@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -70,6 +71,8 @@ from sim.scenario import Scenario
 _ROW_CHECK_TOL = 1e-6
 FIXED_SLACK_DISCOUNT = 1e-4
 """Slack weight of rows with a fixed (not listening) robot, relative to ``slack_weight``."""
+MAX_CACHED_PROBLEMS = 32
+"""Problems (one per row count N) a filter keeps set up, the least recently used dropped first."""
 
 
 class SafetyStatus(StrEnum):
@@ -219,14 +222,21 @@ class SafetyFilter:
         self.scenario = scenario
         self.config = config or SafetyConfig()
         self.dynamics = scenario.dynamics
-        self._problems: dict[int, _Problem] = {}
+        self._problems: OrderedDict[int, _Problem] = OrderedDict()
         self._object_pose: np.ndarray | None = None
 
     def problem(self, n: int) -> _Problem:
-        """The cached problem for N robots (built on first use)."""
-        if n not in self._problems:
-            self._problems[n] = _Problem(self.scenario, n, self.config)
-        return self._problems[n]
+        """The cached problem for N robots (built on first use). The ``MAX_CACHED_PROBLEMS`` used
+        last are kept: a tracker whose disc count changes every tick must not grow a
+        long-running controller's memory without end."""
+        prob = self._problems.get(n)
+        if prob is None:
+            prob = self._problems[n] = _Problem(self.scenario, n, self.config)
+            while len(self._problems) > MAX_CACHED_PROBLEMS:
+                self._problems.popitem(last=False)
+        else:
+            self._problems.move_to_end(n)
+        return prob
 
     def _projection(self, terms: BarrierTerms, nominal: np.ndarray, values: np.ndarray, prob: _Problem,
                     fixed: np.ndarray | None) -> np.ndarray | None:
@@ -363,16 +373,18 @@ class SafetyFilter:
     def _slack_qp(self, terms: BarrierTerms, nominal: np.ndarray, prob: _Problem,
                   fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, float, str]:
         """Barrier rows softened by slack variables, solved exactly by DAQP (see module docstring)."""
-        n, k = prob.n, prob.num_barrier
-        a_rows = terms.dense(n)
-        weight = np.full(k, self.config.slack_weight)
+        n = prob.n
+        live = np.isfinite(terms.bound)                        # dropped rows (-inf bounds) go first
+        a_rows = terms.dense(n)[live]
+        k = len(a_rows)
+        weight = np.full(prob.num_barrier, self.config.slack_weight)
         weight[len(terms.pair_i):] *= self.config.static_slack_factor      # object and wall rows
         if fixed is not None and fixed.any():
             # a robot inside a silent robot's grown disc gets out of it as fast as the other rows
             # allow: those rows give way first (the disc is a bound, the wall is a wall)
             with_fixed = row_sums(fixed.astype(np.float64), terms.pair_i, terms.pair_j) > 0
             weight[with_fixed] *= FIXED_SLACK_DISCOUNT
-        p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), weight]))
+        p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), weight[live]]))
         q_vec = np.concatenate([-2.0 * nominal.ravel(), np.zeros(k)])
         diag = np.zeros((2 * n, 2 * n))
         robots = np.arange(n)
@@ -383,14 +395,12 @@ class SafetyFilter:
                           [diag, np.zeros((2 * n, k))],
                           [-diag, np.zeros((2 * n, k))]])
         limit = math.sqrt(2) * prob.a_box
-        h_vec = np.concatenate([-(terms.bound + self.config.tighten), np.full(4 * n, limit)])
+        h_vec = np.concatenate([-(terms.bound[live] + self.config.tighten), np.full(4 * n, limit)])
         lb = np.concatenate([np.full(2 * n, -prob.a_box), np.zeros(k)])
         ub = np.concatenate([np.full(2 * n, prob.a_box), np.full(k, np.inf)])
         if fixed is not None and fixed.any():
             held = np.repeat(fixed, 2)
             lb[:2 * n][held] = ub[:2 * n][held] = 0.0
-        keep = np.isfinite(h_vec)                               # dropped rows (-inf bounds) go
-        g_mat, h_vec = g_mat[keep], h_vec[keep]
         try:
             x = qpsolvers.solve_qp(p_mat, q_vec, g_mat, h_vec, lb=lb, ub=ub, solver="daqp")
         except Exception as exc:  # any solver failure means: brake, and the reason says why

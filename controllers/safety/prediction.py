@@ -107,6 +107,22 @@ class Prediction:
             velocity_error=_appended(self.velocity_error, speed, k), unsure=_appended(self.unsure, False, k),
             covers=self.covers)
 
+    def rows(self, kept: np.ndarray) -> Prediction:
+        """The prediction over the rows where ``kept`` (M,) bool is True, in order (covers follow
+        their rows, which must be kept)."""
+        kept = np.asarray(kept, dtype=bool)
+        index = np.cumsum(kept) - 1
+        if any(not kept[row] for row, _, _ in self.covers):
+            raise ValueError("Prediction.rows: a covered row must be kept")
+
+        def take(x: np.ndarray | None) -> np.ndarray | None:
+            return None if x is None else x[kept]
+
+        return Prediction(pos=self.pos[kept], vel=self.vel[kept], grow=self.grow[kept], closing=self.closing[kept],
+                          fixed=self.fixed[kept], horizon=self.horizon[kept], brake_vel=take(self.brake_vel),
+                          velocity_error=take(self.velocity_error), unsure=take(self.unsure),
+                          covers=tuple((int(index[row]), centres, radii) for row, centres, radii in self.covers))
+
     def braking_velocity(self) -> np.ndarray:
         """(N, 2) :attr:`brake_vel`, or :attr:`vel` where it is not set."""
         return self.vel if self.brake_vel is None else self.brake_vel

@@ -18,9 +18,16 @@ def test_safety_bench_json_shape():
         [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--steps", "15",
          "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5",
          "--conditions", "delay2,frozen_robot", "--condition-episodes", "2", "--task-episodes", "1",
-         "--intruder-conditions", "clean", "--intruder-episodes", "1"],
+         "--intruder-conditions", "clean", "--intruder-episodes", "1", "--clutter-discs", "0,10",
+         "--clutter-episodes", "1"],
         cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
     doc = json.loads(out.stdout)   # stdout holds the document alone; progress is on stderr
+    clutter = doc["clutter"]
+    assert set(clutter) == {"0", "10"} and clutter["0"]["max_discs_in_qp"] == 0
+    for row in clutter.values():
+        assert row["ticks"] == 128 and 0 < row["p50_ms"] <= row["p99_ms"] and 0 < row["p50_ms_all"]
+        assert row["compared_ticks"] >= 1 and row["max_command_diff"] <= 1e-5
+    assert clutter["10"]["max_discs_in_qp"] <= 10
     assert list(doc["intruders"]) == ["clean"] and doc["intruders"]["clean"]["scripted"]["episodes"] == 1
     inv = doc["invariance"]
     assert inv["episodes"] == 4
