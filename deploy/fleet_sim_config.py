@@ -43,7 +43,7 @@ class FleetSimConfig:
     model_error: ModelError = field(default_factory=ModelError)
     seed: int = 0
     rate_hz: float | None = 20.0
-    lockstep_timeout_s: float = 0.25
+    lockstep_timeout_s: float = 0.5
     start_timeout_s: float = 30.0
     max_ticks: int | None = None
     drop_commands: float = 0.0

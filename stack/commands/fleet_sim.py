@@ -62,7 +62,8 @@ def register(sub) -> None:
     p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
     p.add_argument("--episodes", type=int, default=None,
                    help="run this many episodes (world reset each), then stop")
-    p.add_argument("--lockstep-timeout", type=float, default=0.25, help="seconds per tick")
+    p.add_argument("--lockstep-timeout", type=float, default=0.5,
+                   help="seconds a lock-stepped tick waits for the answers (0.5: above the bridge's 0.2 s gather)")
     p.add_argument("--start-timeout", type=float, default=30.0,
                    help="seconds to wait for the controller before the first tick")
     p.add_argument("--brake-after-ticks", type=int, default=1, metavar="K",

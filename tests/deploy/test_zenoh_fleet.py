@@ -78,7 +78,7 @@ def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake(
 
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     sim = Proc("fleet-sim", "--fleet", "late", "--scenario", "paper-3", "--lockstep", "--episodes", "1",
-               "--listen", endpoint)
+               "--lockstep-timeout", "0.25", "--listen", endpoint)
     scenario = make_scenario("paper-3")
     answers, sent = [], []
     stack = ControlStack(scenario, lambda s: np.tile([0.1 * len(answers) + 0.05, 0.0], (s.num_robots, 1)),
@@ -155,7 +155,7 @@ def test_run_episode_over_zenoh_records_the_ticks_the_bridge_braked_for_a_late_a
 
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     sim = Proc("fleet-sim", "--fleet", "slow", "--scenario", "paper-3", "--lockstep", "--episodes", "1",
-               "--listen", endpoint)
+               "--lockstep-timeout", "0.25", "--listen", endpoint)
     recorder = EpisodeRecorder()
     try:
         with ZenohFleet(scenario, "slow", TransportConfig(connect=(endpoint,)),
