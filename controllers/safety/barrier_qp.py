@@ -66,6 +66,7 @@ from controllers.safety.geometry import CollisionScene, SceneDistances, analytic
 from controllers.safety.latency import Prediction, row_sums
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
 from controllers.safety.projection import projected_optimum
+from controllers.safety.reduced_qp import ReducedQP
 from sim.scenario import Scenario
 
 _ROW_CHECK_TOL = 1e-6
@@ -73,6 +74,8 @@ FIXED_SLACK_DISCOUNT = 1e-4
 """Slack weight of rows with a fixed (not listening) robot, relative to ``slack_weight``."""
 MAX_CACHED_PROBLEMS = 32
 """Problems (one per row count N) a filter keeps set up, the least recently used dropped first."""
+MAX_CACHED_MASKS = 8
+"""Problems without their fixed robots (one per fixed mask) each of those keeps set up."""
 
 
 class SafetyStatus(StrEnum):
@@ -148,6 +151,10 @@ class _Problem:
                 np.arange(2 * n),
                 np.repeat(2 * robots, 4) + np.tile([0, 1, 0, 1], n)]
         rows, cols = np.concatenate(rows), np.concatenate(cols)
+        self.coo_rows, self.coo_cols = rows, cols
+        self.pair_i, self.pair_j = pi, pj
+        self.config = config
+        self._reduced: OrderedDict[bytes, ReducedQP] = OrderedDict()
         self.wall_values = np.tile([1.0, -1.0, 1.0, -1.0], n)
         self.const_values = np.concatenate([self.wall_values, np.ones(2 * n),
                                             np.tile([1.0, 1.0, 1.0, -1.0], n)])
@@ -167,10 +174,27 @@ class _Problem:
                           max_iter=config.max_iter, polishing=True, warm_starting=True,
                           verbose=False)
 
+    def _coo_values(self, pair_normal: np.ndarray, object_normal: np.ndarray) -> np.ndarray:
+        """(E,) the constraint entries in the COO pattern's order."""
+        return np.concatenate([np.concatenate([pair_normal, -pair_normal], 1).ravel(),
+                               object_normal.ravel(), self.const_values])
+
     def _ax(self, pair_normal: np.ndarray, object_normal: np.ndarray) -> np.ndarray:
-        values = np.concatenate([np.concatenate([pair_normal, -pair_normal], 1).ravel(),
-                                 object_normal.ravel(), self.const_values])
-        return values[self.perm]
+        return self._coo_values(pair_normal, object_normal)[self.perm]
+
+    def reduced(self, fixed: np.ndarray) -> ReducedQP:
+        """The QP without the ``fixed`` robots (:mod:`controllers.safety.reduced_qp`), set up once
+        per mask; the ``MAX_CACHED_MASKS`` used last are kept."""
+        key = fixed.tobytes()
+        qp = self._reduced.get(key)
+        if qp is None:
+            qp = self._reduced[key] = ReducedQP(self.coo_rows, self.coo_cols, len(self.lower), self.num_barrier,
+                                                self.pair_i, self.pair_j, fixed, self.config)
+            while len(self._reduced) > MAX_CACHED_MASKS:
+                self._reduced.popitem(last=False)
+        else:
+            self._reduced.move_to_end(key)
+        return qp
 
     def posed_polygon(self, object_pose: np.ndarray | None) -> np.ndarray:
         """The (M, 2) world polygon, re-posing the FCL object (and polygon) when the pose changed."""
@@ -179,17 +203,24 @@ class _Problem:
         return self.scene.polygon
 
     def solve(self, terms: BarrierTerms, a_nom: np.ndarray, tighten: float,
-              fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
+              fixed: np.ndarray | None = None, reduce: bool = True) -> tuple[np.ndarray | None, str]:
         """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row.
 
         Only the vectors and matrix values change between ticks: ``update(q, l, u, Ax)`` on the
         problem set up once; OSQP warm-starts from the last answer. ``fixed`` (N,) robots are
-        held at ``u = 0`` (their box and octagon rows closed to [0, 0]).
+        held at ``u = 0``: with ``reduce`` they leave the problem (:meth:`reduced`), else their
+        box and octagon rows are closed to [0, 0] (the same optimum).
         """
         self.lower[:self.num_barrier] = np.maximum(terms.bound + tighten, -1e20)  # dropped rows
         upper = self.upper
         lower = self.lower
         if fixed is not None and fixed.any():
+            if fixed.all():
+                return self._checked(np.zeros((self.n, 2)), "solved", terms)   # nothing listens
+            if reduce:
+                u, status = self.reduced(fixed).solve(self._coo_values(terms.pair_normal, terms.object_normal),
+                                                      a_nom, lower, upper)
+                return self._checked(u, status, terms)
             upper, lower = self.upper.copy(), self.lower.copy()
             idx = np.flatnonzero(fixed)
             for base in (self.num_barrier, self.num_barrier + 2 * self.n):
@@ -202,10 +233,16 @@ class _Problem:
             return None, res.info.status
         if res.x is None or not np.all(np.isfinite(res.x)):
             return None, "solved but not finite"
-        u = res.x.reshape(self.n, 2)
+        return self._checked(res.x.reshape(self.n, 2), res.info.status, terms)
+
+    @staticmethod
+    def _checked(u: np.ndarray | None, status: str, terms: BarrierTerms) -> tuple[np.ndarray | None, str]:
+        """``(u, status)``, or None where ``u`` breaks a barrier row beyond the tolerance."""
+        if u is None:
+            return None, status
         if np.any(terms.rows_times(u) < terms.bound - _ROW_CHECK_TOL):
             return None, "solved but a barrier row is violated"
-        return u, res.info.status
+        return u, status
 
 
 class SafetyFilter:

@@ -116,3 +116,23 @@ def test_the_filter_keeps_the_problems_it_used_last():
     safety.problem(MAX_CACHED_PROBLEMS + 1)
     assert len(safety._problems) == MAX_CACHED_PROBLEMS and 2 not in safety._problems
     assert safety.problem(1) is first
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 5), k=st.integers(1, 12))
+def test_the_qp_without_its_fixed_robots_has_the_full_qps_answer(seed, n, k):
+    """OSQP over the listening robots only (controllers.safety.reduced_qp) against the full
+    problem with the fixed robots pinned at 0, on the rows the filter builds: wherever the full
+    problem is solved, the same answer (about one scene in five: the rest overlap, infeasible
+    for both)."""
+    scene, a_nom = _random_scene(seed, n, k)
+    safety = SafetyFilter(SCENARIO)
+    prob = safety.problem(n + k)
+    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_polygon(None), scene)
+    a_nom = np.where(scene.fixed[:, None], 0.0, np.clip(a_nom, -0.6, 0.6))
+    reduced, status = prob.solve(terms, a_nom, CONFIG.tighten, scene.fixed)
+    full, full_status = prob.solve(terms, a_nom, CONFIG.tighten, scene.fixed, reduce=False)
+    if full is not None:
+        assert reduced is not None, (status, full_status)
+        np.testing.assert_allclose(reduced, full, atol=1e-5)
+        assert np.abs(reduced[scene.fixed]).max(initial=0.0) == 0.0
