@@ -27,7 +27,8 @@ Solve path, every outcome an explicit :class:`SafetyStatus`:
    otherwise OSQP (one problem per N, set up once with a fixed sparsity pattern, then only
    ``update(q=, l=, Ax=)`` per tick, warm-started, eps 1e-7 with polishing; no setup on the hot
    path) solved and its answer satisfies
-   every row within 1e-6.
+   every row within 1e-6. With fixed robots (silent, stale, tracked discs: held at ``u = 0``) it
+   solves the same QP over the listening robots alone (:mod:`controllers.safety.reduced_qp`).
 3. ``SLACK``: OSQP failed or was infeasible: the QP with one slack ``sigma_k >= 0`` per barrier row
    (``n_k . (u_i - u_j) + sigma_k >= b_k + tighten``, cost ``+ sum_k w_k sigma_k^2``, the
    actuator octagon kept hard) on the exact active-set solver DAQP via qpsolvers. ``w_k`` is
