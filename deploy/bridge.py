@@ -51,15 +51,9 @@ A stall never raises the e-stop by itself; a robot still silent ``estop_after_s`
 resume does. Tested with a 3 s SIGSTOP of the bridge process, 5 runs, one outcome
 (``tests/deploy/test_bridge_stall.py``).
 
-Command delay: every command's send time is kept; a STATE whose ``last_cmd_seq`` names one for
-the first time closes a round trip on the bridge's clock (command out, robot accepted and acted,
-state back). The ``delay_percentile`` of the last ``delay_window`` round trips (at least 8) is
-``FleetState.command_delay_s``: a conservative bound on transport + actuation (it includes the
-robot's wait for its next tick and the uplink). ``summary()`` reports it. The same send times
-count each row's commands still in flight (sent after its ``last_cmd_seq``):
-``FleetState.commands_pending``, so the safety filter predicts through exactly those. A silent
-robot's count (``SilentRobots.commands_pending``) adds the ticks since it was last sent one: the
-controller records a braking row for it on each of them, so its count names the same commands.
+Command delay (:class:`deploy.bridge_timing.RoundTrips`, the rule in its docstring): each
+command's round trip on the bridge's clock gives ``FleetState.command_delay_s`` and the
+commands still in flight, ``FleetState.commands_pending``.
 
 One tick (:meth:`Bridge.step`): wait for a fresh state from some robot, then up to ``gather_s``
 for the rest of the burst: a fresh state of every live robot (in real time: heard within the

@@ -107,7 +107,18 @@ class UplinkExcess:
 
 class RoundTrips:
     """Command round trips on the bridge's clock: CMD sent -> first STATE whose ``last_cmd_seq``
-    names it [ns]; :meth:`bound_s` is the configured percentile of the recent ones."""
+    names it [ns]; :meth:`bound_s` is the configured percentile of the recent ones.
+
+    Every command's send time is kept; a STATE whose ``last_cmd_seq`` names one for
+    the first time closes a round trip on the bridge's clock (command out, robot accepted and acted,
+    state back). The ``delay_percentile`` of the last ``delay_window`` round trips (at least 8;
+    :class:`~deploy.bridge_types.BridgeConfig`) is ``FleetState.command_delay_s``: a conservative
+    bound on transport + actuation (it includes the robot's wait for its next tick and the
+    uplink). The bridge's ``summary()`` reports it. The same send times
+    count each row's commands still in flight (sent after its ``last_cmd_seq``):
+    ``FleetState.commands_pending``, so the safety filter predicts through exactly those. A silent
+    robot's count (``SilentRobots.commands_pending``) adds the ticks since it was last sent one: the
+    controller records a braking row for it on each of them, so its count names the same commands."""
 
     KEEP = 64  # send times kept per robot
 
