@@ -187,9 +187,9 @@ class Detour:
         radius); None when there is none."""
         free = self.static_free.copy()
         for c in others:
-            free &= np.linalg.norm(self.centres - c, axis=1) >= 2 * self.radius + CLEARANCE
+            self._block(free, c[0], c[1], 2 * self.radius + CLEARANCE)
         for x, y, radius in (() if discs is None else discs):
-            free &= np.hypot(self.centres[:, 0] - x, self.centres[:, 1] - y) >= self.radius + radius + CLEARANCE
+            self._block(free, x, y, self.radius + radius + CLEARANCE)
         cells = np.flatnonzero(free)
         if len(cells) == 0:
             return None
@@ -207,6 +207,17 @@ class Detour:
         while order[-1] != g:
             order.append(pred[order[-1]])
         return np.vstack([self.centres[order], goal])
+
+    def _block(self, free: np.ndarray, x: float, y: float, reach: float) -> None:
+        """Mark the cells whose centre lies closer than ``reach`` [m] to ``(x, y)`` as not free,
+        in place on ``free`` (X*Y,); only the cells of the square round it are measured."""
+        nx, ny = self.shape
+        x0, x1 = max(int(math.floor((x - reach) / CELL)) - 1, 0), min(int(math.ceil((x + reach) / CELL)) + 1, nx)
+        y0, y1 = max(int(math.floor((y - reach) / CELL)) - 1, 0), min(int(math.ceil((y + reach) / CELL)) + 1, ny)
+        if x0 >= x1 or y0 >= y1:
+            return
+        window = self.centres.reshape(nx, ny, 2)[x0:x1, y0:y1]
+        free.reshape(nx, ny)[x0:x1, y0:y1] &= np.hypot(window[..., 0] - x, window[..., 1] - y) >= reach
 
     def _follow(self, path: np.ndarray, p: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The detour law (module docstring) for a robot at ``p``, ``v`` on ``path``."""

@@ -55,6 +55,31 @@ def test_the_filter_discs_are_kept_clear_like_robots():
     assert path[:, 1].max() >= 0.65 + R + CLEARANCE
 
 
+def test_robots_and_discs_close_exactly_the_cells_within_their_reach():
+    """The free cells of a plan are those of every grid centre measured against every robot and
+    disc (the brute force), for robots and discs anywhere, partly outside the arena too."""
+    d = detour()
+    rng = np.random.default_rng(0)
+    closing = 0
+    for _ in range(100):
+        others = rng.uniform(-0.1, 1.1, (int(rng.integers(0, 6)), 2))
+        k = int(rng.integers(0, 30))
+        discs = np.column_stack([rng.uniform(-0.2, 1.2, (k, 2)), rng.uniform(0.0, 0.2, k)])
+        want = d.static_free.copy()
+        for c in others:
+            want &= np.linalg.norm(d.centres - c, axis=1) >= 2 * R + CLEARANCE
+        for x, y, radius in discs:
+            want &= np.hypot(d.centres[:, 0] - x, d.centres[:, 1] - y) >= R + radius + CLEARANCE
+        got = d.static_free.copy()
+        for c in others:
+            d._block(got, c[0], c[1], 2 * R + CLEARANCE)
+        for x, y, radius in discs:
+            d._block(got, x, y, R + radius + CLEARANCE)
+        np.testing.assert_array_equal(got, want)
+        closing += int(want.sum() < d.static_free.sum())
+    assert closing >= 80          # the draws do close cells
+
+
 @pytest.mark.parametrize("case", ["stuck", "jittering", "not movable", "near a target", "moving", "not pushed"])
 def test_a_robot_detours_once_held_still_for_after_s_away_from_every_target(case):
     """One robot at (0.15, 0.15), its target at (0.85, 0.15) past a robot in the way; the
