@@ -136,3 +136,20 @@ def test_the_qp_without_its_fixed_robots_has_the_full_qps_answer(seed, n, k):
         assert reduced is not None, (status, full_status)
         np.testing.assert_allclose(reduced, full, atol=1e-5)
         assert np.abs(reduced[scene.fixed]).max(initial=0.0) == 0.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 5), k=st.integers(1, 30), unit=st.booleans())
+def test_every_row_of_a_disc_left_out_holds_for_any_command(seed, n, k, unit):
+    """The rows the filter builds (controllers.safety.fused) for a disc left out: each one's
+    bound plus the tightening is at most -accel_limit (met by any command the stack sends), and
+    its gap exceeds one tick's sweep; for the cubic class-K function too."""
+    config = SafetyConfig(class_k="cubic") if unit else CONFIG
+    scene, _ = _random_scene(seed, n, k)
+    binding = binding_fixed_rows(scene, n, config, DYN, R)
+    safety = SafetyFilter(SCENARIO, config)
+    prob = safety.problem(n + k)
+    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_polygon(None), scene)
+    idle_rows = np.isin(terms.pair_j, n + np.flatnonzero(~binding)) & (terms.pair_i < n)
+    assert np.all(terms.bound[:len(terms.pair_i)][idle_rows] + config.tighten <= -DYN.accel_limit)
+    assert np.all(terms.distance[:len(terms.pair_i)][idle_rows] > DYN.dt * DYN.speed_limit)
