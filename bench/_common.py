@@ -28,14 +28,14 @@ it (``git_at_end``) when they differ."""
 
 def int_list(text: str, minimum: int = 1) -> list[int]:
     """``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be an integer >= ``minimum``."""
-    kind = "positive integers" if minimum == 1 else f"integers >= {minimum}"
+    kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
     items = [part.strip() for part in text.split(",") if part.strip()]
     if not items:
-        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {kind}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list, each {kind}, got {text!r}")
     values = []
     for item in items:
         if not item.isdigit() or int(item) < minimum:
-            raise argparse.ArgumentTypeError(f"{item!r} is not one of the {kind} (expected e.g. '1,64,1024')")
+            raise argparse.ArgumentTypeError(f"{item!r} is not {kind} (expected e.g. '1,64,1024')")
         values.append(int(item))
     return values
 
