@@ -47,8 +47,7 @@ every per-robot estimate is keyed by robot id)::
       -> obstacles: FleetState.obstacles (a tracker's sightings, stack.seen) appended as fixed
                    discs grown by how far each may move (Prediction.with_obstacles); a sighting
                    of one of the robots bounds it only once it is silent and at rest; only
-                   the discs that can bind a listening robot this tick go on to the filter
-                   (controllers.safety.relevance: the answer is the same, the QP stays small)
+                   discs that can bind this tick go on (controllers.safety.relevance)
       -> safety:   controllers.safety.SafetyFilter.filter(..., prediction=) (optional)
                    => a_safe (N, 2), SafetyStatus
       -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
@@ -103,7 +102,6 @@ from controllers.position_estimator import PositionEstimator
 from controllers.safety import SafetyFilter, braking_acceleration
 from controllers.safety.latency import LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
-from controllers.safety.relevance import without_idle_fixed_rows
 from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
 from sim.observations import (
@@ -117,7 +115,7 @@ from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
 from stack.policy_io import StackError, _mask_is_optional, load_policy
-from stack.seen import robot_sightings, with_obstacles
+from stack.seen import binding_discs, robot_sightings, with_obstacles
 from stack.team_view import team_view
 from stack.tick_types import PolicyStatus, SafeStage, StackConfig, TickResult
 
@@ -478,11 +476,8 @@ class ControlStack:
         seen_discs = prediction
         if obstacles is not None:
             seen_discs = with_obstacles(prediction, obstacles, pos, vel, unknown, reach, self.scenario.robot_radius)
-            prediction, kept = seen_discs, np.ones(len(seen_discs.pos), dtype=bool)
-            if not self.config.all_tracker_discs:
-                prediction, kept = without_idle_fixed_rows(seen_discs, len(pos), self.safety.config, self.dynamics,
-                                                           self.scenario.robot_radius)
-            near = obstacles.positions[kept[len(pos):]]
+            prediction, near = binding_discs(seen_discs, len(pos), obstacles.positions, self.safety.config,
+                                             self.dynamics, self.scenario.robot_radius, self.config.all_tracker_discs)
             rest = np.zeros((len(near), 2))
             pos, vel, a_nom = np.vstack([pos, near]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
         pose = state.object_pose

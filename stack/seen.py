@@ -14,9 +14,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from controllers.safety.barrier import SafetyConfig
 from controllers.safety.prediction import Prediction
+from controllers.safety.relevance import without_idle_fixed_rows
 from controllers.safety.silent_reach import Sighting
 from sim.fleet import Obstacles
+from sim.scenario import Dynamics
 
 
 def robot_sightings(obstacles: Obstacles, ids: Sequence[str], now: float, reach_s: float,
@@ -47,4 +50,16 @@ def with_obstacles(prediction: Prediction | None, obstacles: Obstacles, pos: np.
                                      robot_radius)
 
 
-__all__ = ["robot_sightings", "with_obstacles"]
+def binding_discs(seen: Prediction, first: int, centres: np.ndarray, config: SafetyConfig, dynamics: Dynamics,
+                  robot_radius: float, every_disc: bool = False) -> tuple[Prediction, np.ndarray]:
+    """``(the filter's prediction, (K', 2) centres of the discs in it)``: ``seen``, whose rows
+    ``first..`` are the K discs at ``centres`` (K, 2), without the discs that cannot bind a
+    listening robot this tick (:func:`controllers.safety.relevance.without_idle_fixed_rows`: the
+    filter's answer is the same); with ``every_disc``, all of them."""
+    if every_disc:
+        return seen, centres
+    kept_rows, kept = without_idle_fixed_rows(seen, first, config, dynamics, robot_radius)
+    return kept_rows, centres[kept[first:]]
+
+
+__all__ = ["binding_discs", "robot_sightings", "with_obstacles"]
