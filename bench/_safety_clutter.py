@@ -1,8 +1,8 @@
 """Part (f) of bench/safety.py: a tick with a cluttered arena, every disc in the QP or only those
 that can bind (:mod:`controllers.safety.relevance`).
 
-A tracker reports ``K`` boxes of radius 1-3 cm anywhere in the 1 x 1 arena (2 cm clear of every
-start slot). The scripted controller drives paper-5 in pymunk with two ticks of command delay
+A tracker reports ``K`` boxes of radius 1-3 cm anywhere in the 1 x 1 arena
+(:func:`sim.intruders.scattered_boxes`). The scripted controller drives paper-5 in pymunk with two ticks of command delay
 through the default stack (only the binding discs reach the QP); on each state a second stack
 whose filter takes every disc (``StackConfig(all_tracker_discs=True)``, the peer) runs the same
 tick. Per K: tick p50/p99 of both [ms], the p50 ratio, the largest number of discs the pruned
@@ -22,26 +22,13 @@ import numpy as np
 from tqdm import tqdm
 
 from controllers.scripted import ScriptedController
-from sim.fleet import Obstacles
+from sim.intruders import scattered_boxes
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import Scenario, make_scenario
+from sim.scenario import make_scenario
 from stack.pipeline import ControlStack, StackConfig
 
 SCENARIO = "paper-5"
 AGREE = 1e-5   # [m/s^2]
-
-
-def clutter(rng: np.random.Generator, sc: Scenario, count: int) -> Obstacles:
-    """``count`` standing boxes of radius 1-3 cm, centres anywhere 3 cm inside the arena and
-    ``r + 5 cm`` clear of every start slot."""
-    w, h = sc.arena
-    centres: list[np.ndarray] = []
-    while len(centres) < count:
-        c = rng.uniform([0.03, 0.03], [w - 0.03, h - 0.03])
-        if np.linalg.norm(sc.starts - c, axis=1).min() > sc.robot_radius + 0.05:
-            centres.append(c)
-    return Obstacles(tuple(f"box{k}" for k in range(count)), np.array(centres).reshape(-1, 2),
-                     rng.uniform(0.01, 0.03, count), np.zeros(count), np.zeros(count))
 
 
 def run_clutter(counts: list[int], episodes: int, ticks: int, seed: int) -> dict:
@@ -56,7 +43,7 @@ def run_clutter(counts: list[int], episodes: int, ticks: int, seed: int) -> dict
         slack = {"pruned": 0, "all": 0}
         for e in tqdm(range(episodes), desc=f"clutter K={count}", unit="episode", file=sys.stderr, leave=False):
             rng = np.random.default_rng(seed + e)
-            boxes = clutter(rng, sc, count) if count else None
+            boxes = scattered_boxes(rng, sc.starts, sc.arena, sc.robot_radius, count) if count else None
             world = PymunkWorld(sc, ModelError(delay_ticks=2))
             state = world.reset(seed=seed + e)
             stacks = {"pruned": ControlStack(sc, ScriptedController(sc), StackConfig()),
@@ -109,4 +96,4 @@ def clutter_table(rows: dict) -> tuple[list[str], list[list]]:
                      r["slack_ticks_all"], r["compared_ticks"], f"{r['max_command_diff']:.1e}"] for r in rows.values()]
 
 
-__all__ = ["clutter", "clutter_table", "run_clutter"]
+__all__ = ["clutter_table", "run_clutter"]

@@ -255,4 +255,20 @@ class IntruderFleet:
         return state.replaced(obstacles=obstacles)
 
 
-__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "RobotSightings", "in_arena"]
+
+def scattered_boxes(rng: np.random.Generator, starts: np.ndarray, arena: tuple[float, float],
+                    robot_radius: float, count: int) -> Obstacles:
+    """``count`` standing boxes of radius 1-3 cm, as a tracker reports them (a cluttered arena):
+    centres anywhere 3 cm inside the arena and ``robot_radius + 5 cm`` clear of every start
+    slot (``starts`` (N, 2)) [m]."""
+    w, h = arena
+    centres: list[np.ndarray] = []
+    while len(centres) < count:
+        c = rng.uniform([0.03, 0.03], [w - 0.03, h - 0.03])
+        if np.linalg.norm(starts - c, axis=1).min() > robot_radius + 0.05:
+            centres.append(c)
+    return Obstacles(tuple(f"box{k}" for k in range(count)), np.array(centres).reshape(-1, 2),
+                     rng.uniform(0.01, 0.03, count), np.zeros(count), np.zeros(count))
+
+__all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "RobotSightings", "in_arena",
+           "scattered_boxes"]

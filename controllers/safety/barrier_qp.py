@@ -204,30 +204,21 @@ class _Problem:
         return self.scene.polygon
 
     def solve(self, terms: BarrierTerms, a_nom: np.ndarray, tighten: float,
-              fixed: np.ndarray | None = None, reduce: bool = True) -> tuple[np.ndarray | None, str]:
+              fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
         """OSQP answer (N, 2) and its status; None when not solved, not finite or breaking a row.
 
         Only the vectors and matrix values change between ticks: ``update(q, l, u, Ax)`` on the
         problem set up once; OSQP warm-starts from the last answer. ``fixed`` (N,) robots are
-        held at ``u = 0``: with ``reduce`` they leave the problem (:meth:`reduced`), else their
-        box and octagon rows are closed to [0, 0] (the same optimum).
+        held at ``u = 0`` by leaving the problem (:meth:`reduced`: the same optimum).
         """
         self.lower[:self.num_barrier] = np.maximum(terms.bound + tighten, -1e20)  # dropped rows
-        upper = self.upper
-        lower = self.lower
         if fixed is not None and fixed.any():
             if fixed.all():
                 return self._checked(np.zeros((self.n, 2)), "solved", terms)   # nothing listens
-            if reduce:
-                u, status = self.reduced(fixed).solve(self._coo_values(terms.pair_normal, terms.object_normal),
-                                                      a_nom, lower, upper)
-                return self._checked(u, status, terms)
-            upper, lower = self.upper.copy(), self.lower.copy()
-            idx = np.flatnonzero(fixed)
-            for base in (self.num_barrier, self.num_barrier + 2 * self.n):
-                for axis in (0, 1):
-                    upper[base + 2 * idx + axis] = lower[base + 2 * idx + axis] = 0.0
-        self.solver.update(q=-2.0 * a_nom.ravel(), l=lower, u=upper,
+            u, status = self.reduced(fixed).solve(self._coo_values(terms.pair_normal, terms.object_normal),
+                                                  a_nom, self.lower, self.upper)
+            return self._checked(u, status, terms)
+        self.solver.update(q=-2.0 * a_nom.ravel(), l=self.lower, u=self.upper,
                            Ax=self._ax(terms.pair_normal, terms.object_normal))
         res = self.solver.solve(raise_error=False)
         if res.info.status != "solved":

@@ -77,9 +77,9 @@ class ReducedQP:
     def solve(self, coo_values: np.ndarray, a_nom: np.ndarray, lower: np.ndarray, upper: np.ndarray
               ) -> tuple[np.ndarray | None, str]:
         """``(u (M, 2) with the fixed rows 0, or None; OSQP's status)`` for the full problem's COO
-        entry values (E,), nominal (M, 2) and bounds (num_rows,)."""
-        self.solver.update(q=-2.0 * a_nom[self.free].ravel(), l=np.maximum(lower[self.rows], -1e20),
-                           u=upper[self.rows], Ax=coo_values[self.perm])
+        entry values (E,), nominal (M, 2) and bounds (num_rows,; dropped rows at -1e20)."""
+        self.solver.update(q=-2.0 * a_nom[self.free].ravel(), l=lower[self.rows], u=upper[self.rows],
+                           Ax=coo_values[self.perm])
         res = self.solver.solve(raise_error=False)
         if res.info.status != "solved":
             return None, res.info.status

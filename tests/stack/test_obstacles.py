@@ -9,6 +9,7 @@ import pytest
 from controllers.safety.prediction import Prediction
 from controllers.scripted import ScriptedController
 from sim.fleet import Obstacles
+from sim.intruders import scattered_boxes
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import make_scenario
 from stack.pipeline import ControlStack, StackConfig
@@ -103,24 +104,13 @@ def test_with_the_latency_prediction_off_an_obstacle_is_still_kept_clear():
     assert gap > 0.0, gap
 
 
-def _clutter(rng: np.random.Generator, sc, count: int) -> Obstacles:
-    """``count`` boxes of radius 1-3 cm anywhere in the arena, 2 cm clear of every start slot."""
-    centres = []
-    while len(centres) < count:
-        c = rng.uniform(0.03, 0.97, 2)
-        if np.linalg.norm(sc.starts - c, axis=1).min() > sc.robot_radius + 0.05:
-            centres.append(c)
-    return Obstacles(tuple(f"box{k}" for k in range(count)), np.array(centres), rng.uniform(0.01, 0.03, count),
-                     np.zeros(count), np.zeros(count))
-
-
 def test_a_cluttered_arena_gives_the_commands_of_the_filter_that_takes_every_disc():
     """100 boxes reported by a tracker, pymunk with two ticks of command delay: at every tick the
     stack's commands are those of a stack whose filter takes all 100 (1e-5 m/s^2), while its QP
-    holds only the boxes near a robot (at most 60 here, p50 tick 3 ms against 105 ms); the boxes
-    do change the commands (teeth)."""
+    holds only the boxes near a robot (at most 60 here; the time it saves: bench/safety.py
+    --only clutter); the boxes do change the commands (teeth)."""
     sc = make_scenario("paper-3")
-    boxes = _clutter(np.random.default_rng(3), sc, 100)
+    boxes = scattered_boxes(np.random.default_rng(3), sc.starts, sc.arena, sc.robot_radius, 100)
     world = PymunkWorld(sc, ModelError(delay_ticks=2))
     state = world.reset(seed=0)
     stacks = {name: ControlStack(sc, ScriptedController(sc), config) for name, config in
