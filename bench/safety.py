@@ -19,7 +19,9 @@
     mean over ticks and robots of |p_pymunk - p_nominal| [m].
 (c) latency of ControlStack.tick (observe + policy + safety + MEC) for N robots, after warm-up,
     one torch thread, on states of scripted-controller episodes in pymunk with model error; the
-    policy is the TorchScript of ``--policy`` or of an untrained typed SDPA actor. Parts are
+    policy is ``--policy`` (a checkpoint) or an untrained typed SDPA actor, in memory as the
+    default stack runs it (a typed actor by the compiled kernel of npz files,
+    :class:`stack.policy_io.ModuleKernel`), and as a TorchScript module. Parts are
     reported too: observe (tokens), policy (observe + network), policy_stage (the network
     alone), safety and MEC. The same actor is then exported (``formation export``) as
     TorchScript, torch.export, ONNX and npz (the compiled kernel of :mod:`deploy.npz_policy`)
@@ -47,6 +49,7 @@ same answers; run both to compare their latency.
 
 Output: a table, or with ``--json`` one document
 ``{"invariance": {...}, "mec": {...}, "latency_ms": {"3": {"p50", "p99", ...}, ...},
+"latency_ms_torchscript_module": {"3": {...}, ...},
 "latency_ms_by_format": {"torchscript": {"5": {...}}, "pt2": {...}, "onnx": {...}, "npz": {...}},
 "conditions": {"delay2": {"episodes", "collisions_filter_on", "collisions_filter_off",
 "success_scripted", "tracking_error_mm": {"mec", "no_mec"}, "arrival_scripted": {...}, ...}, ...},
@@ -209,16 +212,18 @@ def mec_tracking(episodes: int, seed: int, command_limit: float = MEC_COMMAND_LI
 
 # -------------------------------------------------------------------- (c) latency
 def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None, seed: int,
-            geometry: str = "fused") -> tuple[dict, dict]:
-    """Tick latency per N: the policy as a TorchScript module in memory (``latency_ms``), and the
-    same actor exported (``formation export``) as TorchScript, torch.export, ONNX and npz, each file
-    loaded as the ControlStack loads one (``latency_ms_by_format``). All stacks run the same
-    episodes in turn (:func:`_tick_latency`), so machine noise hits them alike. The actor:
-    ``policy`` (a checkpoint; an exported file is measured alone), else a fresh typed actor."""
+            geometry: str = "fused") -> tuple[dict, dict, dict]:
+    """Tick latency per N: the actor in memory as the default ControlStack runs a checkpoint's
+    (``latency_ms``: a typed actor by the compiled kernel, :class:`stack.policy_io.ModuleKernel`),
+    the same module as TorchScript (``latency_ms_torchscript_module``), and the actor exported
+    (``formation export``) as TorchScript, torch.export, ONNX and npz, each file loaded as the
+    ControlStack loads one (``latency_ms_by_format``). All stacks run the same episodes in turn
+    (:func:`_tick_latency`), so machine noise hits them alike. The actor: ``policy`` (a
+    checkpoint; an exported file is measured alone), else a fresh typed actor."""
     from deploy.export import DEFAULT_FORMATS, ExportedPolicy, export_policy, load_exported
 
     loaded = load_policy(policy) if policy is not None else _random_actor(seed)
-    in_memory, by_format = {}, {}
+    in_memory, scripted, by_format = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         if isinstance(loaded, ExportedPolicy):
             files = {loaded.file_format: Path(policy)}
@@ -227,14 +232,16 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
             files = {r.meta["file_format"]: r.path for r in reports}
         networks = {name: load_exported(files[name]) for name in DEFAULT_FORMATS if name in files}
         if not isinstance(loaded, ExportedPolicy):
-            networks["in_memory"] = torch.jit.script(loaded)
+            networks["in_memory"], networks["in_memory_torchscript"] = loaded, torch.jit.script(loaded)
         for n in robot_counts:
             rows = _tick_latency(transport_scenario(n), networks, ticks, warmup, seed, geometry)
-            if "in_memory" in rows:
-                in_memory[str(n)] = rows.pop("in_memory")
             for name, row in rows.items():
-                by_format.setdefault(name, {})[str(n)] = row
-    return in_memory, by_format
+                target = {"in_memory": in_memory, "in_memory_torchscript": scripted}.get(name)
+                if target is None:
+                    by_format.setdefault(name, {})[str(n)] = row
+                else:
+                    target[str(n)] = row
+    return in_memory, scripted, by_format
 
 
 def _random_actor(seed: int) -> nn.Module:
@@ -362,8 +369,9 @@ def main(argv: list[str] | None = None) -> int:
     doc: dict = {}
     if args.only in (None, "latency"):
         progress(f"(c) latency, N = {args.robots}, {threads} torch thread(s)")
-        doc["latency_ms"], doc["latency_ms_by_format"] = latency(args.robots, args.ticks, args.warmup,
-                                                                 args.policy, args.seed, args.geometry)
+        (doc["latency_ms"], doc["latency_ms_torchscript_module"],
+         doc["latency_ms_by_format"]) = latency(args.robots, args.ticks, args.warmup, args.policy, args.seed,
+                                                args.geometry)
     if args.only in (None, "mec"):
         progress("(b) MEC tracking")
         doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
@@ -457,18 +465,18 @@ def _print_tables(doc: dict) -> None:
         print_table(*clutter_table(doc["clutter"]))
         print()
     if "latency_ms" in doc:
-        print_table(["robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",
+        modules = [("in memory", doc["latency_ms"]), ("TorchScript module", doc["latency_ms_torchscript_module"])]
+        print_table(["policy", "robots", "tick p50 [ms]", "p99", "observe p50", "policy p50", "p99", "safety p50",
                      "p99", "mec p50", "geometry"],
-                    [[n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "observe_p50", "policy_p50", "policy_p99",
-                                                    "safety_p50", "safety_p99", "mec_p50")), r["geometry"]]
-                     for n, r in doc["latency_ms"].items()])
+                    [[label, n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "observe_p50", "policy_p50", "policy_p99",
+                                                           "safety_p50", "safety_p99", "mec_p50")), r["geometry"]]
+                     for label, rows in modules for n, r in rows.items()])
         print()
         print_table(["file format", "robots", "tick p50 [ms]", "p99", "policy stage p50", "p99",
-                     "tick vs in-memory TorchScript"],
+                     "tick vs in memory"],
                     [[fmt, n, *(f"{r[k]:.3f}" for k in ("p50", "p99", "policy_stage_p50", "policy_stage_p99")),
                       f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x" if n in doc["latency_ms"] else "-"]
                      for fmt, rows in doc["latency_ms_by_format"].items() for n, r in rows.items()])
-
 
 if __name__ == "__main__":
     sys.exit(main())

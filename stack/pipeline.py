@@ -27,14 +27,13 @@ every per-robot estimate is keyed by robot id)::
       -> observe:  sim.observations tokens (1, N, 2N+1, 4) + mask (1, N, 2N+1), torch float32
                    (or the flat vector (1, N, 4N+2) for an actor with obs_kind == "flat")
       -> policy:   eager nn.Module or TorchScript module ``forward(obs, mask) -> (1, N, 2)``,
-                   run under torch.inference_mode; an exported file of any format
+                   run under torch.inference_mode (an eager typed actor by the compiled kernel
+                   of npz files instead, stack.policy_io.ModuleKernel, unless
+                   ``StackConfig.policy_kernel`` is off); an exported file of any format
                    (:class:`deploy.export.ExportedPolicy`, its rows ``(N, 2N+1, 4)``, rows it
                    flags not valid count as non-finite); or a plain callable FleetState -> (N, 2)
-                   => a_nom (N, 2) [m/s^2]
-                   (the tick writes the tokens, compiled (:mod:`controllers.observation_kernels`),
-                   into a float32 buffer kept per N and, every token
-                   being valid, passes ``mask=None`` to a network whose forward accepts it, else
-                   an all-true mask kept per N; a TorchScript forward is called directly)
+                   => a_nom (N, 2) [m/s^2] (the tokens are written by a compiled kernel into a
+                   float32 buffer kept per N; a network whose forward accepts it gets mask=None)
       -> docking:  controllers.docking.Docking: a robot near its free matched target gets a PD
                    law onto it instead (``docking``); the filter judges it like any command
       -> detour:   controllers.detour.Detour: a robot held in place away from every target while
@@ -64,19 +63,15 @@ produce) is replaced the same way with :attr:`TickResult.brake_reason` set. Exce
 by a policy propagate: a bug is not a data error.
 
 Compiled stages: the compensator, the position estimator, the tokens, docking, the latency
-prediction and the fused filter's rows and sweep run as numba kernels (:mod:`controllers.jit`),
-each bit for bit its numpy formulation (parity tests; ``bench/tick_kernels.py`` runs both ticks
-on the same states and compares the commands). At five robots that halves the tick (0.77 ->
-0.37 ms p50 with an ONNX policy in the same run): numpy's per-call cost, not arithmetic, was the
-time. The checks between the stages (finiteness, norm clips, the filter's first look at its
-rows, the re-check's first pass) are row kernels too (:mod:`controllers.array_kernels`): another
-14-25 % off the ONNX tick (0.41-0.45 -> 0.33-0.37 ms p50, alternating runs). The kernels are
-compiled or loaded from the on-disk cache when the first ControlStack is built
-(:func:`controllers.jit.warm_up`), never inside a tick.
+prediction, the fused filter's rows and sweep and the checks between the stages run as numba
+kernels (:mod:`controllers.jit`, :mod:`controllers.array_kernels`), each bit for bit its numpy
+formulation (parity tests; ``bench/tick_kernels.py`` compares the two ticks' commands): numpy's
+per-call cost, not arithmetic, was the time (0.77 -> 0.33-0.37 ms p50 at five robots with an
+ONNX policy). They are compiled or loaded from the on-disk cache when the first ControlStack is
+built (:func:`controllers.jit.warm_up`), never inside a tick.
 
-Threads: torch's intra-op thread count is the caller's choice. For one fleet (batch of 1) on the
-control path call ``torch.set_num_threads(1)`` once before the loop: more threads only add
-synchronisation cost for tensors this small.
+Threads: torch's intra-op thread count is the caller's choice; for one fleet call
+``torch.set_num_threads(1)`` once before the loop (more threads only add synchronisation cost).
 
 :func:`run_episode` (:mod:`stack.episodes`) drives any :class:`sim.fleet.Fleet` with a stack
 and judges the episode.
@@ -114,13 +109,12 @@ from sim.observations import (
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
-from stack.policy_io import StackError, _mask_is_optional, load_policy
+from stack.policy_io import ModuleKernel, StackError, _mask_is_optional, load_policy
 from stack.seen import binding_discs, robot_sightings, with_obstacles
 from stack.team_view import team_view
 from stack.tick_types import PolicyStatus, SafeStage, StackConfig, TickResult
 
-PolicyLike = (nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path
-              | Callable[[FleetState], np.ndarray])
+PolicyLike = nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path | Callable[[FleetState], np.ndarray]
 
 
 class ControlStack:
@@ -170,6 +164,8 @@ class ControlStack:
         self._forward: Callable[..., torch.Tensor] | None = None
         self._row_masks: dict[int, np.ndarray] = {}
         self._mask_optional = False
+        kernel = self.network is not None and self.config.policy_kernel and ModuleKernel.refusal(self.network) is None
+        self._rows = self._exported.run if self._exported is not None else ModuleKernel(self.network) if kernel else None
         if self.network is not None:
             scripted = isinstance(self.network, torch.jit.ScriptModule)
             self._forward = self.network.forward if scripted else self.network
@@ -190,6 +186,13 @@ class ControlStack:
         self._ticked: FleetState | None = None             # the state of the last tick that returned
         self.num_robots: int | None = None
         warm_up()                       # compile or load the kernels now, not at the first tick
+
+    @property
+    def policy_runtime(self) -> str:
+        """What runs the policy: ``kernel`` (an eager typed actor, :class:`ModuleKernel`), ``file``
+        (an exported file), ``torch`` (the module as given) or ``callable``."""
+        return ("callable" if self.callable is not None else "file" if self._exported is not None
+                else "kernel" if self._rows is not None else "torch")
 
     def reset(self) -> None:
         """Start a new episode: forget the compensator's estimate and any callable's plan."""
@@ -382,8 +385,8 @@ class ControlStack:
         if self.callable is not None:
             t_obs = t0
             raw = np.asarray(self.callable(state), dtype=np.float64)
-        elif self._exported is not None:    # numpy in, numpy out; rows it flags count as NaN
-            if n not in self._exported.robot_counts:
+        elif self._rows is not None:    # numpy in, numpy out; rows it flags count as NaN
+            if self._exported is not None and n not in self._exported.robot_counts:
                 raise StackError(f"{self._exported.path} runs {self._exported.robot_counts_text} "
                                  f"robots, this fleet has {n}; export a typed actor (any team "
                                  "a scenario holds) or one trained for this N")
@@ -392,7 +395,7 @@ class ControlStack:
             if mask is None:
                 mask = self._row_masks[n] = np.ones(array.shape[:2], dtype=bool)
             t_obs = time.perf_counter_ns()
-            accel, valid = self._exported.run(array, mask)
+            accel, valid = self._rows(array, mask)
             valid = np.asarray(valid)
             raw = (accel.astype(np.float64) if np.count_nonzero(valid) == n
                    else np.where(valid[:, None], accel, np.nan).astype(np.float64))

@@ -121,6 +121,9 @@ class StackConfig:
         all_tracker_discs: every disc a tracker reports enters the filter's QP; False (default):
             only those that can bind a listening robot this tick
             (:mod:`controllers.safety.relevance`; the same answer, a smaller QP).
+        policy_kernel: an eager typed actor given in memory (a checkpoint's) runs by the
+            compiled kernel of ``.npz`` files (:class:`stack.policy_io.ModuleKernel`: the same
+            maths to 1e-5, its current weights, ~4x faster); False runs the module as given.
     """
 
     safety: bool = True
@@ -132,6 +135,7 @@ class StackConfig:
     estimated_position: bool = True
     docking: DockingConfig = field(default_factory=DockingConfig)
     all_tracker_discs: bool = False
+    policy_kernel: bool = True
 
 
 @dataclass

@@ -193,7 +193,7 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
             out, traced = _episodes(args, fleet, stack, safety=safety, mec=mec)
         _draw_traces(traced, scenario)
         out["model_error"] = None         # the fleet's own
-        out["command_delay_ms"] = args.command_delay_ms
+        out["command_delay_ms"], out["policy_runtime"] = args.command_delay_ms, stack.policy_runtime
         return out
     try:             # the world checks the model error against the team (a frozen robot it has)
         world = PymunkWorld(scenario, model_error, seed=args.seed)
@@ -205,7 +205,7 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
     out, traced = _episodes(args, world, stack, safety=safety, mec=mec)
     _draw_traces(traced, scenario)
     out["model_error"] = dataclasses.asdict(model_error)
-    out["command_delay_ms"] = args.command_delay_ms
+    out["command_delay_ms"], out["policy_runtime"] = args.command_delay_ms, stack.policy_runtime
     return out
 
 

@@ -64,6 +64,7 @@ def test_safety_bench_json_shape():
     for row in doc["latency_ms"].values():
         assert 0 < row["p50"] <= row["p99"]
         assert 0 < row["policy_p50"] and 0 < row["safety_p50"]
+    assert set(doc["latency_ms_torchscript_module"]) == {"3", "5"}
     by_format = doc["latency_ms_by_format"]            # the key other tools read
     assert set(by_format) == {"torchscript", "pt2", "onnx", "npz"}
     for rows in by_format.values():
