@@ -56,8 +56,9 @@ def register(sub) -> None:
     p = sub.add_parser("eval", description=__doc__)
     p.add_argument("policy_path", nargs="?", metavar="POLICY_FILE",
                    help="a training checkpoint or an exported policy (.pt, .pt2, .onnx, .npz)")
-    p.add_argument("--policy", choices=["scripted"], default=None,
-                   help="evaluate a built-in controller instead of a file")
+    p.add_argument("--policy", default=None, metavar="FILE|scripted",
+                   help="the policy file as with bridge --policy (the same as POLICY_FILE), or "
+                        "'scripted' for the built-in controller")
     p.add_argument("--scenario", default="paper-3", help="preset, transport-N or a .json/.toml scenario file (default paper-3)")
     p.add_argument("--world", choices=["batched", "pymunk", "zenoh"], default="batched",
                    help="batched: training world, no safety/MEC; pymunk: ControlStack with model error; "
@@ -108,8 +109,10 @@ def run(args) -> int:
 def evaluate_from_args(args) -> dict:
     """The result document of ``formation eval`` for parsed ``args`` (raises on bad input)."""
     if (args.policy_path is None) == (args.policy is None):
-        raise EvalArgumentError("give either a policy file (POLICY_FILE) or --policy scripted, "
-                                "not both and not neither")
+        raise EvalArgumentError("give either a policy file (POLICY_FILE or --policy FILE) or --policy "
+                                "scripted, not both and not neither")
+    if args.policy not in (None, "scripted"):
+        args = _with(args, policy_path=args.policy, policy=None)
     if args.episodes < 1:
         raise EvalArgumentError(f"--episodes must be a positive integer, got {args.episodes}")
     if args.steps is not None and args.steps < 1:

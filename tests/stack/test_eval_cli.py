@@ -174,6 +174,13 @@ def test_trained_checkpoint_runs_in_both_worlds(tmp_path):
         assert main(["eval", str(checkpoints[-1]), "--world", world, "--episodes", "2",
                      *(["--steps", "10"] if world == "pymunk" else []), "--json", str(out)]) == 0
         assert json.loads(out.read_text())["episodes"] == 2
+    # --policy FILE, as bridge takes it, is the positional file; the stack runs the actor by the kernel
+    flagged = tmp_path / "flagged.json"
+    assert main(["eval", "--policy", str(checkpoints[-1]), "--world", "pymunk", "--episodes", "2",
+                 "--steps", "10", "--json", str(flagged)]) == 0
+    doc, positional = json.loads(flagged.read_text()), json.loads((tmp_path / "pymunk.json").read_text())
+    assert doc["policy_runtime"] == "kernel" and doc["policy"] == str(checkpoints[-1])
+    assert doc["final_distance"] == positional["final_distance"]
 
 
 def test_a_scenario_file_runs_where_a_preset_does(tmp_path, capsys):
