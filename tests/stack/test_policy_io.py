@@ -38,9 +38,13 @@ def module_rows(net: torch.nn.Module, tokens: torch.Tensor, mask: torch.Tensor) 
         return clip_norm(net.rows(tokens, mask).double().numpy(), net.accel_limit)
 
 
-@pytest.mark.parametrize("n", [1, 3, 6])
-def test_the_kernel_computes_the_actors_rows(n):
-    net = typed_actor(0)
+OTHER = ActorConfig(embed_dim=16, num_heads=4, embed_hidden=0, hidden_sizes=(32, 16), frame="world",
+                    velocity_damping=1.0, own_target=True)
+
+
+@pytest.mark.parametrize("n, config", [(1, SMALL), (3, SMALL), (6, SMALL), (4, OTHER)])
+def test_the_kernel_computes_the_actors_rows(n, config):
+    net = typed_actor(0, config)
     tokens, mask = random_rows(n, 40, seed=n)
     accel, valid = ModuleKernel(net)(tokens.numpy(), mask.numpy())
     want = module_rows(net, tokens, mask)
