@@ -91,6 +91,7 @@ def test_modules_the_kernel_does_not_cover_are_named_and_run_as_given():
     stack = ControlStack(sc, subclass, StackConfig(safety=False, mec=False))
     assert stack.policy_runtime == "torch"
     np.testing.assert_array_equal(stack.tick(state).a_nom, 0.0)
+    assert "CPU" in ModuleKernel.refusal(typed_actor(0).to("meta"))
     assert ModuleKernel.refusal(typed_actor(0)) is None
 
 
