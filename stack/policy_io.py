@@ -81,7 +81,8 @@ class ModuleKernel:
     def refusal(actor: nn.Module) -> str | None:
         """Why the kernel cannot run ``actor`` as it is, or None: it runs an eager
         :class:`~controllers.policy.actor.TypedSDPAActor` (not a subclass, whose forward may
-        differ) on the CPU, without token mixers, with a head of Linear and ReLU layers."""
+        differ) on the CPU, not made under inference mode, without token mixers, with a head of
+        Linear and ReLU layers."""
         from controllers.policy.actor import TypedSDPAActor
         from deploy.export.formats import npz_refusal
         from deploy.export.graph import TypedRows
@@ -90,6 +91,8 @@ class ModuleKernel:
             return f"the kernel runs typed actors, not {type(actor).__name__}"
         if any(p.device.type != "cpu" for p in actor.parameters()):
             return "the kernel runs weights held on the CPU"
+        if any(t.is_inference() for t in (*actor.parameters(), *actor.buffers())):
+            return "weights made under torch.inference_mode keep no version counter to follow"
         return npz_refusal(TypedRows(actor))
 
     def _current(self):

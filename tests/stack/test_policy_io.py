@@ -92,6 +92,10 @@ def test_modules_the_kernel_does_not_cover_are_named_and_run_as_given():
     assert stack.policy_runtime == "torch"
     np.testing.assert_array_equal(stack.tick(state).a_nom, 0.0)
     assert "CPU" in ModuleKernel.refusal(typed_actor(0).to("meta"))
+    with torch.inference_mode():
+        made_in_inference_mode = typed_actor(0)
+    assert "inference_mode" in ModuleKernel.refusal(made_in_inference_mode)
+    assert ControlStack(sc, made_in_inference_mode).policy_runtime == "torch"
     assert ModuleKernel.refusal(typed_actor(0)) is None
 
 
