@@ -478,5 +478,6 @@ def _print_tables(doc: dict) -> None:
                       f"{r['p50'] / doc['latency_ms'][n]['p50']:.2f}x" if n in doc["latency_ms"] else "-"]
                      for fmt, rows in doc["latency_ms_by_format"].items() for n, r in rows.items()])
 
+
 if __name__ == "__main__":
     sys.exit(main())
