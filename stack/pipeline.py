@@ -164,8 +164,8 @@ class ControlStack:
         self._forward: Callable[..., torch.Tensor] | None = None
         self._row_masks: dict[int, np.ndarray] = {}
         self._mask_optional = False
-        kernel = self.network is not None and self.config.policy_kernel and ModuleKernel.refusal(self.network) is None
-        self._rows = self._exported.run if self._exported is not None else ModuleKernel(self.network) if kernel else None
+        kernel = ModuleKernel.of(self.network) if self.network is not None and self.config.policy_kernel else None
+        self._rows = self._exported.run if self._exported is not None else kernel
         if self.network is not None:
             scripted = isinstance(self.network, torch.jit.ScriptModule)
             self._forward = self.network.forward if scripted else self.network

@@ -66,16 +66,22 @@ class ModuleKernel:
     ~0.1 ms. What ``formation eval`` runs from a checkpoint is then the kernel a fleet runs
     from the ``.npz`` file exported from it.
 
-    The arrays are taken from the module's weights and taken again whenever a weight has
-    changed since (an optimiser step or ``load_state_dict`` bumps a tensor's version counter),
-    so a stack built on an actor still in training always runs its current weights.
+    The arrays are taken from the module's weights when the kernel is made (:meth:`of`, not in
+    a tick) and taken again whenever a weight has changed since (an optimiser step or
+    ``load_state_dict`` bumps a tensor's version counter), so a stack built on an actor still in
+    training always runs its current weights.
     """
 
-    def __init__(self, actor: nn.Module):
+    def __init__(self, actor: nn.Module, rows: nn.Module):
         self.actor = actor
         self._tensors = [*actor.parameters(), *actor.buffers()]
-        self._seen: tuple[tuple[int, int], ...] | None = None
-        self._runner = None
+        self._build(rows)
+
+    @classmethod
+    def of(cls, actor: nn.Module) -> ModuleKernel | None:
+        """The kernel of ``actor``, its arrays built now; None where :meth:`refusal` names a reason."""
+        reason, rows = _kernel_rows(actor)
+        return None if reason is not None else cls(actor, rows)
 
     @staticmethod
     def refusal(actor: nn.Module) -> str | None:
@@ -83,28 +89,38 @@ class ModuleKernel:
         :class:`~controllers.policy.actor.TypedSDPAActor` (not a subclass, whose forward may
         differ) on the CPU, not made under inference mode, without token mixers, with a head of
         Linear and ReLU layers."""
-        from controllers.policy.actor import TypedSDPAActor
-        from deploy.export.formats import npz_refusal
-        from deploy.export.graph import TypedRows
+        return _kernel_rows(actor)[0]
 
-        if type(actor) is not TypedSDPAActor:
-            return f"the kernel runs typed actors, not {type(actor).__name__}"
-        if any(p.device.type != "cpu" for p in actor.parameters()):
-            return "the kernel runs weights held on the CPU"
-        if any(t.is_inference() for t in (*actor.parameters(), *actor.buffers())):
-            return "weights made under torch.inference_mode keep no version counter to follow"
-        return npz_refusal(TypedRows(actor))
+    def _versions(self) -> tuple[tuple[int, int], ...]:
+        return tuple((t._version, t.data_ptr()) for t in self._tensors)
 
-    def _current(self):
-        seen = tuple((t._version, t.data_ptr()) for t in self._tensors)
-        if seen != self._seen:
-            from deploy.export.formats import typed_rows_arrays
-            from deploy.export.graph import TypedRows
-            from deploy.npz_policy import NpzRunner
+    def _build(self, rows: nn.Module) -> None:
+        from deploy.export.formats import typed_rows_arrays
+        from deploy.npz_policy import NpzRunner
 
-            self._runner = NpzRunner(typed_rows_arrays(TypedRows(self.actor)), self.actor.accel_limit)
-            self._seen = seen
-        return self._runner
+        self._seen = self._versions()
+        self._runner = NpzRunner(typed_rows_arrays(rows), self.actor.accel_limit)
 
     def __call__(self, tokens, mask):
-        return self._current()(tokens, mask)
+        if self._versions() != self._seen:
+            from deploy.export.graph import TypedRows
+
+            self._build(TypedRows(self.actor))
+        return self._runner(tokens, mask)
+
+
+def _kernel_rows(actor: nn.Module) -> tuple[str | None, nn.Module | None]:
+    """``(None, TypedRows of actor)`` where the npz kernel runs it, else ``(why not, None)``."""
+    from controllers.policy.actor import TypedSDPAActor
+    from deploy.export.formats import npz_refusal
+    from deploy.export.graph import TypedRows
+
+    if type(actor) is not TypedSDPAActor:
+        return f"the kernel runs typed actors, not {type(actor).__name__}", None
+    if any(p.device.type != "cpu" for p in actor.parameters()):
+        return "the kernel runs weights held on the CPU", None
+    if any(t.is_inference() for t in (*actor.parameters(), *actor.buffers())):
+        return "weights made under torch.inference_mode keep no version counter to follow", None
+    rows = TypedRows(actor)
+    reason = npz_refusal(rows)
+    return reason, (rows if reason is None else None)
