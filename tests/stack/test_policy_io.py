@@ -8,8 +8,9 @@ import torch
 
 from controllers.policy import ActorConfig, build_actor
 from controllers.policy.actor import TypedSDPAActor
+from deploy.export import random_fleet_rows
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import clip_norm, make_scenario
+from sim.scenario import clip_norm, make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig
 from stack.policy_io import ModuleKernel
 
@@ -25,11 +26,8 @@ def typed_actor(seed: int, config: ActorConfig = SMALL) -> torch.nn.Module:
 
 
 def random_rows(n: int, batch: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    tokens = 0.4 * torch.randn(batch, 2 * n + 1, 4, generator=g)
-    mask = torch.rand(batch, 2 * n + 1, generator=g) > 0.3
-    mask[:, 0] = True
-    return tokens * mask.unsqueeze(-1), mask
+    """Rows of ``batch`` random fleets of ``n`` robots, 30 % of their tokens masked."""
+    return random_fleet_rows(n, batch, torch.Generator().manual_seed(seed), transport_scenario(n), masked=True)
 
 
 def module_rows(net: torch.nn.Module, tokens: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
@@ -46,7 +44,7 @@ OTHER = ActorConfig(embed_dim=16, num_heads=4, embed_hidden=0, hidden_sizes=(32,
 def test_the_kernel_computes_the_actors_rows(n, config):
     net = typed_actor(0, config)
     tokens, mask = random_rows(n, 40, seed=n)
-    accel, valid = ModuleKernel(net)(tokens.numpy(), mask.numpy())
+    accel, valid = ModuleKernel.of(net)(tokens.numpy(), mask.numpy())
     want = module_rows(net, tokens, mask)
     assert valid.all() and np.abs(want).max() > 0.3
     np.testing.assert_allclose(accel, want, atol=1e-5, rtol=0)
@@ -57,7 +55,7 @@ def test_the_kernel_follows_the_weights_of_an_actor_still_in_training():
     before either runs the new weights (without the version check it runs the first ones)."""
     net = typed_actor(1)
     first = {k: v.clone() for k, v in net.state_dict().items()}
-    kernel = ModuleKernel(net)
+    kernel = ModuleKernel.of(net)
     tokens, mask = random_rows(3, 40, seed=7)
     before, _ = kernel(tokens.numpy(), mask.numpy())
     optimiser = torch.optim.Adam(net.parameters(), lr=0.05)
