@@ -235,12 +235,10 @@ def latency(robot_counts: list[int], ticks: int, warmup: int, policy: str | None
             networks["in_memory"], networks["in_memory_torchscript"] = loaded, torch.jit.script(loaded)
         for n in robot_counts:
             rows = _tick_latency(transport_scenario(n), networks, ticks, warmup, seed, geometry)
+            if "in_memory" in rows:
+                in_memory[str(n)], scripted[str(n)] = rows.pop("in_memory"), rows.pop("in_memory_torchscript")
             for name, row in rows.items():
-                target = {"in_memory": in_memory, "in_memory_torchscript": scripted}.get(name)
-                if target is None:
-                    by_format.setdefault(name, {})[str(n)] = row
-                else:
-                    target[str(n)] = row
+                by_format.setdefault(name, {})[str(n)] = row
     return in_memory, scripted, by_format
 
 
