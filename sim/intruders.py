@@ -255,7 +255,6 @@ class IntruderFleet:
         return state.replaced(obstacles=obstacles)
 
 
-
 def scattered_boxes(rng: np.random.Generator, starts: np.ndarray, arena: tuple[float, float],
                     robot_radius: float, count: int) -> Obstacles:
     """``count`` standing boxes of radius 1-3 cm, as a tracker reports them (a cluttered arena):
@@ -269,6 +268,7 @@ def scattered_boxes(rng: np.random.Generator, starts: np.ndarray, arena: tuple[f
             centres.append(c)
     return Obstacles(tuple(f"box{k}" for k in range(count)), np.array(centres).reshape(-1, 2),
                      rng.uniform(0.01, 0.03, count), np.zeros(count), np.zeros(count))
+
 
 __all__ = ["DRIVE_IN_SPEED", "Intruder", "IntruderFleet", "IntruderWatch", "RobotSightings", "in_arena",
            "scattered_boxes"]
