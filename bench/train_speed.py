@@ -16,19 +16,34 @@ wall seconds; ``vs_mlp`` = the row's seconds per episode over the MLP row's on t
 not). Variants run
 in turn, repeated ``--repeats`` times, the median kept.
 
+The arithmetic floor: ``update_gflop_per_episode`` = the floating-point operations of the PPO
+update per training episode (every epoch and minibatch, forward and backward of actor and
+critic: matrix products and attention, counted by ``torch.utils.flop_counter`` on the first
+update of an untimed run); ``update_floor_s_per_episode`` = that over the rate of a 512 x 512
+matrix product on this machine and thread count (``matmul_gflop_s``: the most these networks'
+products could reach, with no overhead at all); ``floor_vs_mlp`` = that floor over the MLP
+row's *whole* seconds per episode. A ``floor_vs_mlp`` above a target ratio means no kernel work
+can reach it with these networks on this machine.
+
     python bench/train_speed.py                 # table
     python bench/train_speed.py --episodes 96 --json
-    -> {"rows": [{"setting", "variant", "s_per_episode", "env_steps_per_s", "vs_mlp", ...}]}
+    -> {"rows": [{"setting", "variant", "s_per_episode", "env_steps_per_s", "vs_mlp",
+                  "update_gflop_per_episode", "update_floor_s_per_episode", "floor_vs_mlp", ...}],
+        "matmul_gflop_s": ...}
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 _BENCH = Path(__file__).resolve().parent
 for _path in (_BENCH, _BENCH.parent):
@@ -44,13 +59,49 @@ SETTINGS = {"paper-3": ("paper-3", False), "paper-5": ("paper-5", False), "trans
 VARIANTS = {"sdpa": "typed", "mlp": "mlp"}
 
 
-def timed_run(scenario: str, variant: str, episodes: int, seed: int, init_from: str | None) -> dict:
-    """One short training run; its episodes, env steps and wall seconds."""
+def run_config(scenario: str, variant: str, episodes: int, seed: int, init_from: str | None) -> MAPPOConfig:
+    """The defaults, with the actor (and for MLP-MAPPO the critic) of ``variant``."""
     fields = {"scenario": scenario, "seed": seed, "total_episodes": episodes, "progress": False,
               "stop_at_convergence": False, "init_from": init_from, "actor": {"variant": variant}}
     if variant == "mlp":                       # as `formation train --variant mlp` sets it
         fields["critic"] = {"variant": "mlp"}
-    config = MAPPOConfig.from_dict(fields)
+    return MAPPOConfig.from_dict(fields)
+
+
+def update_flops(config: MAPPOConfig) -> tuple[int, int]:
+    """(FLOPs of one PPO update, environment steps of the rollout it learns from): the first
+    iteration of an untimed run, its update under ``FlopCounterMode``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = MAPPOTrainer(config, Path(tmp) / "run")
+        update, counted = trainer._update, []
+
+        def counted_update(*args, **kwargs):
+            with FlopCounterMode(display=False) as counter:
+                out = update(*args, **kwargs)
+            counted.append(counter.get_total_flops())
+            return out
+
+        trainer._update = counted_update
+        trainer._iteration()
+        return counted[0], trainer.env_steps
+
+
+def matmul_rate(size: int = 512, reps: int = 40) -> float:
+    """FLOP/s of a ``size`` x ``size`` matrix product on this machine's torch threads, best of 3."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    best = math.inf
+    for _ in range(3):
+        start = time.perf_counter()
+        for _ in range(reps):
+            a @ b
+        best = min(best, time.perf_counter() - start)
+    return 2 * size**3 * reps / best
+
+
+def timed_run(scenario: str, variant: str, episodes: int, seed: int, init_from: str | None) -> dict:
+    """One short training run; its episodes, env steps and wall seconds."""
+    config = run_config(scenario, variant, episodes, seed, init_from)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = MAPPOTrainer(config, Path(tmp) / "run")
         update, spent = trainer._update, [0.0]
@@ -77,8 +128,9 @@ def source_checkpoint(folder: Path, seed: int) -> str:
     return str(folder / "source" / "checkpoint.pt")
 
 
-def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> list[dict]:
-    rows = []
+def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> tuple[list[dict], float]:
+    """The rows, and the matrix-product rate [FLOP/s] their floors are worked from."""
+    rows, rate_flops = [], matmul_rate()
     with tempfile.TemporaryDirectory() as tmp:
         source = source_checkpoint(Path(tmp), seed) if "transfer-3to5" in settings else None
         for name in settings:
@@ -97,15 +149,22 @@ def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> list
                     continue
                 per_episode = statistics.median(r["wall_s"] / r["episodes"] for r in done)
                 rate = statistics.median(r["env_steps"] / r["wall_s"] for r in done)
+                flops, flop_steps = update_flops(run_config(scenario, VARIANTS[variant], episodes, seed,
+                                                            source if transfer else None))
+                gflop = flops / flop_steps * done[0]["env_steps"] / done[0]["episodes"] / 1e9
                 rows.append({"setting": name, "variant": variant, "s_per_episode": per_episode,
                              "env_steps_per_s": rate, "episodes": done[0]["episodes"], "repeats": len(done),
-                             "update_share": statistics.median(r["update_s"] / r["wall_s"] for r in done)})
+                             "update_share": statistics.median(r["update_s"] / r["wall_s"] for r in done),
+                             "update_gflop_per_episode": gflop,
+                             "update_floor_s_per_episode": gflop * 1e9 / rate_flops})
     for r in rows:              # the peer: MLP-MAPPO on the same robots (paper-5's for a transfer)
         robots = SETTINGS[r["setting"]][0]
         peer = next((m["s_per_episode"] for m in rows if SETTINGS[m["setting"]][0] == robots
                      and m["variant"] == "mlp" and m["s_per_episode"]), None)
         r["vs_mlp"] = r["s_per_episode"] / peer if (peer and r["s_per_episode"]) else None
-    return rows
+        floor = r.get("update_floor_s_per_episode")
+        r["floor_vs_mlp"] = floor / peer if (peer and floor) else None
+    return rows, rate_flops
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,16 +186,24 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     threads = set_threads(args.threads)
     start = time.perf_counter()
-    rows = measure(settings, args.episodes, args.repeats, args.seed)
-    doc = {"rows": rows, "threads": threads, "wall_s": time.perf_counter() - start}
+    rows, rate_flops = measure(settings, args.episodes, args.repeats, args.seed)
+    doc = {"rows": rows, "threads": threads, "matmul_gflop_s": rate_flops / 1e9,
+           "wall_s": time.perf_counter() - start}
     if args.json:
         print_json(doc)
         return 0
-    print_table(["setting", "variant", "s / episode", "env steps / s", "vs MLP-MAPPO", "update share"],
-                [[r["setting"], r["variant"], "-" if r["s_per_episode"] is None else f"{r['s_per_episode']:.3f}",
-                  "-" if r["env_steps_per_s"] is None else f"{r['env_steps_per_s']:.0f}",
-                  "-" if r["vs_mlp"] is None else f"{r['vs_mlp']:.2f}x",
-                  f"{r['update_share']:.0%}" if r.get("update_share") is not None else "-"] for r in rows])
+
+    def cell(row: dict, key: str, fmt: str) -> str:
+        return "-" if row.get(key) is None else format(row[key], fmt)
+
+    print_table(["setting", "variant", "s / episode", "env steps / s", "vs MLP-MAPPO", "update share",
+                 "update GFLOP / episode", "update floor s / episode", "floor vs MLP-MAPPO"],
+                [[r["setting"], r["variant"], cell(r, "s_per_episode", ".3f"), cell(r, "env_steps_per_s", ".0f"),
+                  cell(r, "vs_mlp", ".2f") + "x" * (r["vs_mlp"] is not None), cell(r, "update_share", ".0%"),
+                  cell(r, "update_gflop_per_episode", ".2f"), cell(r, "update_floor_s_per_episode", ".4f"),
+                  cell(r, "floor_vs_mlp", ".2f") + "x" * (r.get("floor_vs_mlp") is not None)] for r in rows])
+    print(f"matrix products here: {rate_flops / 1e9:.1f} GFLOP/s ({threads} thread(s)); the floor is the "
+          "update's arithmetic at that rate, with no overhead")
     return 0
 
 

@@ -25,6 +25,23 @@ def test_train_speed_json_shape():
         assert r["env_steps_per_s"] * r["s_per_episode"] == pytest.approx(128.0)
     assert rows[1]["vs_mlp"] == 1.0
     assert rows[0]["vs_mlp"] == pytest.approx(rows[0]["s_per_episode"] / rows[1]["s_per_episode"])
+    sdpa, mlp = rows
+    # The MLP-MAPPO update, worked by hand: 10 epochs x 4 minibatches of 128 teams x 3 robots
+    # (384 rows); actor 14 -> 128 -> 2 (the flat vector of 3 robots: 4 * 3 + 2 numbers), critic
+    # 56 -> 128 -> 1 (its own vector and the team's). A layer's forward is 2 * rows * in * out;
+    # its backward adds the weight gradient (1x) and, above the first layer, the input gradient (1x)
+    def layers(*shapes):
+        first, *rest = shapes
+        return 2 * 384 * (2 * first[0] * first[1] + sum(3 * i * o for i, o in rest))
+    minibatch = layers((14, 128), (128, 2)) + layers((56, 128), (128, 1))
+    assert mlp["update_gflop_per_episode"] == pytest.approx(10 * 4 * minibatch / 4 / 1e9)  # 4 episodes an update
+    assert sdpa["update_gflop_per_episode"] > 10 * mlp["update_gflop_per_episode"]
+    rate = json.loads(out.stdout)["matmul_gflop_s"] * 1e9
+    for r in rows:
+        # the floor is the arithmetic at the best matmul rate, so the update measured cannot beat it
+        assert r["update_floor_s_per_episode"] == pytest.approx(r["update_gflop_per_episode"] * 1e9 / rate)
+        assert r["update_floor_s_per_episode"] < r["update_share"] * r["s_per_episode"]
+    assert sdpa["floor_vs_mlp"] == pytest.approx(sdpa["update_floor_s_per_episode"] / mlp["s_per_episode"])
 
 
 def test_train_speed_rejects_an_unknown_setting():
