@@ -40,6 +40,8 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
 import torch
@@ -68,22 +70,41 @@ def run_config(scenario: str, variant: str, episodes: int, seed: int, init_from:
     return MAPPOConfig.from_dict(fields)
 
 
+def around_update(trainer: MAPPOTrainer, context: Callable[[], AbstractContextManager]) -> None:
+    """Run every PPO update of ``trainer`` inside a fresh ``context()``."""
+    update = trainer._update
+
+    def wrapped(*args, **kwargs):
+        with context():
+            return update(*args, **kwargs)
+
+    trainer._update = wrapped
+
+
+@contextmanager
+def adding_time_to(spent: list[float]):
+    """Add the seconds spent inside to ``spent[0]``."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        spent[0] += time.perf_counter() - start
+
+
 def update_flops(config: MAPPOConfig) -> tuple[int, int]:
     """(FLOPs of one PPO update, environment steps of the rollout it learns from): the first
     iteration of an untimed run, its update under ``FlopCounterMode``."""
+    counters: list[FlopCounterMode] = []
+
+    def counter() -> FlopCounterMode:
+        counters.append(FlopCounterMode(display=False))
+        return counters[-1]
+
     with tempfile.TemporaryDirectory() as tmp:
         trainer = MAPPOTrainer(config, Path(tmp) / "run")
-        update, counted = trainer._update, []
-
-        def counted_update(*args, **kwargs):
-            with FlopCounterMode(display=False) as counter:
-                out = update(*args, **kwargs)
-            counted.append(counter.get_total_flops())
-            return out
-
-        trainer._update = counted_update
+        around_update(trainer, counter)
         trainer._iteration()
-        return counted[0], trainer.env_steps
+        return counters[0].get_total_flops(), trainer.env_steps
 
 
 def matmul_rate(size: int = 512, reps: int = 40) -> float:
@@ -104,16 +125,8 @@ def timed_run(scenario: str, variant: str, episodes: int, seed: int, init_from: 
     config = run_config(scenario, variant, episodes, seed, init_from)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = MAPPOTrainer(config, Path(tmp) / "run")
-        update, spent = trainer._update, [0.0]
-
-        def timed_update(*args, **kwargs):   # the profile: the PPO update's share of the wall
-            start = time.perf_counter()
-            try:
-                return update(*args, **kwargs)
-            finally:
-                spent[0] += time.perf_counter() - start
-
-        trainer._update = timed_update
+        spent = [0.0]                       # the profile: the PPO update's share of the wall
+        around_update(trainer, lambda: adding_time_to(spent))
         result = trainer.run()
     return {"episodes": result.episodes, "env_steps": result.env_steps, "wall_s": result.wall_time_s,
             "update_s": spent[0]}
