@@ -145,12 +145,17 @@ class Obstacles:
 
     def split(self, robot_ids: Sequence[str]) -> tuple[dict[str, int], Obstacles | None]:
         """``(row of each sighted robot of robot_ids, by name -> index here; the rest)``: the
-        obstacles that are none of ``robot_ids`` (None if no obstacle is left)."""
+        obstacles that are none of ``robot_ids`` (None if no obstacle is left). A robot sighted
+        more than once (a tracker that gave it a new track before ending the old one) is named
+        by its freshest sighting, and none of its sightings is left as an obstacle."""
         names = set(robot_ids)
-        seen = {name: k for k, name in enumerate(self.robots) if name is not None and name in names}
+        seen: dict[str, int] = {}
+        for k, name in enumerate(self.robots):
+            if name is not None and name in names and (name not in seen or self.age_s[k] < self.age_s[seen[name]]):
+                seen[name] = k
         if not seen:
             return {}, self
-        keep = np.array([k not in seen.values() for k in range(len(self))])
+        keep = np.array([r is None or r not in seen for r in self.robots])
         if not keep.any():
             return seen, None
         robots = tuple(r for r, kept in zip(self.robots, keep, strict=True) if kept)

@@ -158,6 +158,7 @@ class ControlStack:
         self._token_constants = (*object_token_constants(np.asarray(self._polygon)),
                                  float(scenario.arena[0] / 2), float(scenario.arena[1] / 2))
         self._static_pose_list = [*map(float, scenario.object_center), 0.0]
+        self._object_moved = False             # whether a tick ever gave the filter another pose
         # Per-N buffers of the tick: float32 tokens (numpy and a torch view of the same memory)
         # and the mask to pass (None when the network accepts it: every token is valid).
         self._buffers: dict[int, tuple[np.ndarray, torch.Tensor, torch.Tensor | None]] = {}
@@ -271,6 +272,9 @@ class ControlStack:
         ids = state.robot_ids
         unknown = np.empty(n, dtype=bool)
         any_unknown = non_finite_rows(f64(pos), f64(vel), unknown) > 0
+        if not np.isfinite(ages).all():         # an infinitely old state places its robot nowhere
+            unknown |= ~np.isfinite(ages)
+            any_unknown = True
         news = self._last_known.new_measurement(ids, ages, state.time) & ~unknown
         pos, vel, ages, unplaced = self._last_known.update(ids, pos, vel, ages, state.time, unknown)
         stale = unknown | (ages > self.config.latency.stale_after_s)
@@ -302,7 +306,7 @@ class ControlStack:
             a_nom = a_nom[:n]
         safety_status, safety_reason, safe = None, "", None
         if self.safety is not None:
-            safe = self._safety(state, pos, vel, ages, unknown, a_nom, position_std)
+            safe = self._safety(state, pos, vel, ages, unknown, stale, a_nom, position_std)
             a_safe, safety_status, safety_reason = safe.result.a_safe[:n], safe.result.status, safe.result.reason
         else:
             a_safe = clip_norm(a_nom, self.dynamics.accel_limit)
@@ -311,8 +315,9 @@ class ControlStack:
         if self.mec is not None:
             mec = self.mec.compensate(a_safe)
             a_cmd, mec_status = mec.a_cmd, mec.status
-            if safe is not None:
-                a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(a_cmd), n)
+            if safe is not None:                # a stale robot is held at a_safe (0) in its rows: it is braked
+                held = np.where(stale[:, None], a_safe, a_cmd)
+                a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(held), n)
             achieved = a_cmd + np.where(stale[:, None], 0.0, mec.compensation)
         if np.count_nonzero(stale):             # not listening or not seen: brake, as the robot would
             a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
@@ -443,9 +448,12 @@ class ControlStack:
         return False
 
     def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
-                unknown: np.ndarray, a_nom: np.ndarray, position_std: np.ndarray | None = None) -> SafeStage:
+                unknown: np.ndarray, stale: np.ndarray, a_nom: np.ndarray,
+                position_std: np.ndarray | None = None) -> SafeStage:
         """Filter the N commanded robots together with the silent ones (obstacles), over the
-        latency; ``position_std`` (N,) [m], the position estimator's error, grows their discs."""
+        latency; ``position_std`` (N,) [m], the position estimator's error, grows their discs.
+        ``stale`` (N,): rows that are obstacles (with the latency prediction off, held where
+        measured; the prediction finds them itself)."""
         silent = state.silent if state.silent is not None and len(state.silent) else None
         ids = state.robot_ids
         velocity_std = None if self.mec is None else np.sqrt(self.mec.noise_var)
@@ -454,6 +462,7 @@ class ControlStack:
             pos, vel = np.vstack([pos, silent.positions]), np.vstack([vel, silent.velocities])
             ages = np.concatenate([ages, silent.age_s])
             unknown = np.concatenate([unknown, np.ones(len(silent), dtype=bool)])
+            stale = np.concatenate([stale, np.ones(len(silent), dtype=bool)])
             a_nom = np.vstack([a_nom, np.zeros((len(silent), 2))])
             if position_std is not None:
                 position_std = np.concatenate([position_std, np.zeros(len(silent))])
@@ -476,6 +485,8 @@ class ControlStack:
                 extra = prediction.pos[len(pos):]
                 pos, vel = np.vstack([pos, extra]), np.vstack([vel, np.zeros_like(extra)])
                 a_nom = np.vstack([a_nom, np.zeros_like(extra)])
+        elif np.count_nonzero(stale):
+            prediction = Prediction.as_measured(pos, vel, stale)
         seen_discs = prediction
         if obstacles is not None:
             seen_discs = with_obstacles(prediction, obstacles, pos, vel, unknown, reach, self.scenario.robot_radius)
@@ -484,8 +495,10 @@ class ControlStack:
             rest = np.zeros((len(near), 2))
             pos, vel, a_nom = np.vstack([pos, near]), np.vstack([vel, rest]), np.vstack([a_nom, rest])
         pose = state.object_pose
-        if pose.tolist() == self._static_pose_list:   # the scene's own pose: no re-posing
-            pose = None
+        if not self._object_moved and pose.tolist() == self._static_pose_list:
+            pose = None                        # the scenes' own pose, never left: no re-posing
+        else:                                  # once moved, every tick poses each N's scene
+            self._object_moved = True
         result = self.safety.filter(pos, vel, a_nom, pose, prediction=prediction)
         self._last_prediction = seen_discs     # the detours of the next tick keep clear of its discs, all of them
         return SafeStage(result, prediction, len(pos), ids)

@@ -40,3 +40,16 @@ def test_fleet_state_checks_the_pending_counts():
     state = FleetState(**kw, commands_pending=[2, -1])
     assert state.pending().tolist() == [2, -1]
     assert FleetState(**kw).pending().tolist() == [-1, -1]
+
+
+def test_obstacles_split_names_a_robot_by_its_freshest_sighting_and_keeps_none_of_its_own():
+    from sim.fleet import Obstacles
+
+    seen = Obstacles(("#1", "#2", "#3", "#4"), [[0.2, 0.2], [0.21, 0.2], [0.5, 0.9], [0.8, 0.8]],
+                     [0.04, 0.04, 0.04, 0.05], [0.02, 0.10, 0.0, 0.0], [0.0, 0.0, 0.0, 0.3],
+                     robots=("a", "a", "b", None))
+    rows, rest = seen.split(("a", "b"))
+    assert rows == {"a": 0, "b": 2}
+    assert rest.ids == ("#4",) and rest.robots == (None,)
+    rows, rest = seen.split(("c",))
+    assert rows == {} and rest is seen
