@@ -37,7 +37,9 @@ obstacle, its STATEs answered with STOP until one comes without FAULT.
 Fleet e-stop (latched, reason 1 = ``ESTOP_STALE_PICTURE``; an operator clears it): raised when
 any single live robot has been silent longer than ``estop_after_s`` while the bridge runs,
 silence = ``min(state age, time since the bridge could hear it)``, where the bridge can hear a
-robot from the moment its token appeared or the bridge resumed from a stall.
+robot from the moment its token appeared or the bridge resumed from a stall. While it is
+engaged every row is sent BRAKE: a latched robot ignores motion commands, and the controller is
+told what the robots do.
 
 Controller stall (**the recovery rule**): when two consecutive looks at the fleet lie more than
 ``estop_after_s`` apart beyond the tick's own wait (``timeout_s + gather_s``) -- the process was
@@ -450,6 +452,8 @@ class Bridge:
             self.round_trips.observe(rs)
         state = self._fleet_state(view, now)
         controller_flags, commands, controller_s = self._run_controller(state)
+        if self.link.estop_engaged:                 # latched robots ignore motion: say what they do
+            controller_flags |= CmdFlags.BRAKE
         late_s = (self.link.clock_ns() - now) / 1e9  # the picture aged while the controller ran
         if self.clock is not None:
             self.clock.advance()  # before the answers go out: the next burst is one tick later

@@ -8,9 +8,10 @@ the acceleration chosen by its own watchdog (below).
 Pacing:
     * real time: one tick every ``1 / rate_hz`` seconds of wall time;
     * lock-step (tests): after publishing the states of tick k, wait until every online robot
-      holds a command answering its state of tick k (``state_seq``) and has seen the
+      holds a command answering its state of tick k (``state_seq``), has seen the
       controller's liveliness token (a link opened this tick learns of it on another Zenoh
-      thread; a command taken before would be ignored), or ``lockstep_timeout_s``; then
+      thread; a command taken before would be ignored) and has its answer to the query for the
+      latched e-stop (before it, the robot brakes), or ``lockstep_timeout_s``; then
       advance. Deterministic when the controller is. States are published lossless
       (:mod:`deploy.transport`, Delivery), so a starved CPU delays a tick but loses none, and
       carry the STATE flag LOCKSTEP, so a bridge sends its commands lossless too; run the
@@ -219,7 +220,9 @@ class FleetSim:
         link = robot.link
         if link is None:
             return
-        robot.estopped = link.estopped
+        # until the controller has answered the query for its latched e-stop, the robot cannot
+        # know whether one is engaged: it brakes as if one were (wire-format.md, What a robot must do)
+        robot.estopped = link.estopped or (link.controller_alive and not link.estop_synced)
         if self.config.playout_ticks:
             received = self._due_command(link.recent_commands, robot.seen, tick_seq - self.config.playout_ticks)
         else:
@@ -358,7 +361,8 @@ class FleetSim:
             if link is None or seq is None:
                 continue
             ok = link.wait_for(lambda lk=link, s=seq: lk.latest_command is not None
-                               and lk.latest_command.msg.state_seq >= s and lk.controller_alive,
+                               and lk.latest_command.msg.state_seq >= s and lk.controller_alive
+                               and lk.estop_synced,
                                max(0.0, deadline - time.monotonic()))
             if not ok:
                 self.lockstep_timeouts += 1

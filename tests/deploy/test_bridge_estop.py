@@ -468,6 +468,8 @@ def test_an_operator_engages_and_releases_the_estop_but_not_while_a_robot_is_sil
     for link in links:
         assert link.wait_for(lambda lk=link: lk.estopped, 5.0)
         assert link.estop_reason == ESTOP_OPERATOR
+    record = _tick(bridge, links, links)                    # latched robots are told to brake
+    assert record.flags == (CmdFlags.BRAKE, CmdFlags.BRAKE) and not record.commands.any()
     code, answer = operator("status")
     assert code == 0 and answer["estop"] == "engaged"
 

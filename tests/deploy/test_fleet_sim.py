@@ -11,7 +11,7 @@ import zenoh
 
 from deploy.fleet_sim import FleetSim, FleetSimConfig
 from deploy.network import FleetKeys, TransportConfig, free_tcp_port
-from deploy.wire import CmdMsg, encode
+from deploy.wire import CmdMsg, EstopMsg, encode
 from sim.scenario import make_scenario
 
 pytestmark = pytest.mark.realtime   # fleet-sim on Zenoh sessions
@@ -88,3 +88,41 @@ def test_a_playout_that_cannot_work_is_refused_by_name(value):
     with pytest.raises(ValueError, match="playout_ticks must be an integer >= 0"):
         FleetSimConfig(fleet="f", scenario=make_scenario("paper-3"), transport=TransportConfig(),
                        playout_ticks=value)
+
+
+def test_a_robot_brakes_until_it_knows_whether_the_controller_has_an_estop_latched():
+    """A controller (its token, its e-stop queryable) that answers the robots' query for its latched
+    e-stop only after 0.6 s, with an ENGAGED one, and meanwhile sends full-thrust commands: no robot
+    moves, neither before the answer (it cannot know yet) nor after (it is latched). Before the
+    rule r0 drove off in the 0.6 s before the answer."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    keys = FleetKeys("es")
+    sim = FleetSim(FleetSimConfig(fleet="es", scenario=make_scenario("paper-3"), rate_hz=20.0, max_ticks=30,
+                                  start_timeout_s=5.0, transport=TransportConfig(listen=(endpoint,))))
+    runner = threading.Thread(target=sim.run)
+    runner.start()
+    engaged = encode(EstopMsg(99, 1, time.monotonic_ns(), True, 2))
+    with zenoh.open(TransportConfig(connect=(endpoint,)).to_zenoh()) as raw:
+        queries = raw.declare_queryable(keys.estop, zenoh.handlers.FifoChannel(16))
+        publisher = raw.declare_publisher(keys.cmd("r0"))
+        token = raw.liveliness().declare_token(keys.ctrl_alive)
+        first_query_ns, pending, seq = None, [], 0
+        while runner.is_alive():
+            query = queries.try_recv()
+            if query is not None:
+                first_query_ns = first_query_ns or time.monotonic_ns()
+                pending.append(query)
+            if first_query_ns and time.monotonic_ns() - first_query_ns >= 600_000_000:
+                for late in pending:                           # every robot's query, answered late
+                    late.reply(keys.estop, engaged)
+                    late.drop()
+                pending.clear()
+            seq += 1
+            publisher.put(encode(CmdMsg(0, 4242, seq, time.monotonic_ns(), (1.0, 0.0), 500)))
+            time.sleep(0.02)
+        token.undeclare()
+    runner.join(timeout=10.0)
+    report = sim.summary()
+    assert first_query_ns is not None, "no robot asked for the latched e-stop"
+    assert max(report["speeds"]) == 0.0
+    assert np.allclose(report["positions"], sim.world.scenario.starts, atol=0.02)
