@@ -277,6 +277,7 @@ class Bridge:
     def _classify(self, now: int, states: Mapping[str, ReceivedState]) -> _View:
         """Rows, silent and unknown robots, and the longest silence of a live one."""
         view = _View()
+        self._forget_departed(states)
         alive = self.link.alive_robots
         for robot in self.registry.names:
             rs = states.get(robot)
@@ -304,6 +305,17 @@ class Bridge:
                 if rs is not None:
                     view.silent.append((rs, age))
         return view
+
+    def _forget_departed(self, states: Mapping[str, ReceivedState]) -> None:
+        """A robot whose token went since the last look, even if it is back (a restart between
+        two ticks): its state received before it left is discarded, and it is heard anew."""
+        for event in self.link.pop_events():
+            if event.joined:
+                continue
+            self._heard_since.pop(event.robot, None)
+            rs = states.get(event.robot)
+            if rs is not None and rs.receive_time_ns <= event.time_ns:
+                self._discard[event.robot] = _key(rs)
 
     def _new_link(self, robot: str, rs: ReceivedState) -> bool:
         """Whether ``rs``, from a robot without a liveliness token, opens a new link: another epoch

@@ -131,6 +131,7 @@ class _Robot:
     stop_held: bool = False
     latched: bool = False
     estopped: bool = False
+    estop_unknown: bool = False   # the controller's latched e-stop not fetched yet: brake
     mode: str = "idle"
     accepted_seq: int = 0  # seq of the command in force (0: none yet)
     state_seq: int = 0     # seq of the newest STATE its link published (0: none yet)
@@ -222,7 +223,8 @@ class FleetSim:
             return
         # until the controller has answered the query for its latched e-stop, the robot cannot
         # know whether one is engaged: it brakes as if one were (wire-format.md, What a robot must do)
-        robot.estopped = link.estopped or (link.controller_alive and not link.estop_synced)
+        robot.estopped = link.estopped
+        robot.estop_unknown = link.controller_alive and not link.estop_synced
         if self.config.playout_ticks:
             received = self._due_command(link.recent_commands, robot.seen, tick_seq - self.config.playout_ticks)
         else:
@@ -270,6 +272,9 @@ class FleetSim:
         if robot.estopped:
             robot.mode = "estop"
             return brake, StateStatus.ESTOPPED
+        if robot.estop_unknown:
+            robot.mode = "estop_unknown"
+            return brake, StateStatus(0)
         if robot.cmd_tick is None:
             robot.mode = "idle"
             return brake, StateStatus.WATCHDOG_BRAKING
