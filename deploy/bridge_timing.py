@@ -88,7 +88,11 @@ class UplinkExcess:
     ``receive - send_time_ns`` is the uplink delay plus the (unknown, constant) offset between
     the robot's clock and ours; its running minimum, allowed to creep up by DRIFT_ALLOWANCE for
     clocks that run at different rates, estimates the offset plus the fastest transfer. A new
-    epoch (the robot restarted, maybe its clock too) starts over."""
+    epoch (the robot restarted, maybe its clock too) starts over. At most ``MAX_SENDERS`` floors
+    are kept (the least recently heard go first): a tracker keys its floors by epoch, and epochs
+    come and go over a long run."""
+
+    MAX_SENDERS = 1024
 
     def __init__(self) -> None:
         self._floor: dict[str, tuple[int, float, int]] = {}  # robot -> (epoch, floor, when)
@@ -101,7 +105,10 @@ class UplinkExcess:
             floor = float(offset)
         else:
             floor = min(prev[1] + DRIFT_ALLOWANCE * max(0, receive_time_ns - prev[2]), offset)
+        self._floor.pop(sender, None)                 # re-inserted last: the dict's order is recency
         self._floor[sender] = (epoch, floor, receive_time_ns)
+        if len(self._floor) > self.MAX_SENDERS:
+            del self._floor[next(iter(self._floor))]
         return offset - floor
 
 

@@ -81,8 +81,8 @@ class SightingTable:
                 self.gone += self._seen.pop(msg.robot_id, None) is not None
                 return
             excess = 0.0
-            if self.uplink is not None:  # one clock per tracker: keyed by the tracker, not the obstacle
-                excess = self.uplink.excess_ns("tracker", msg.epoch, msg.send_time_ns, now)
+            if self.uplink is not None:  # one floor per sender epoch: a tracker's, or an obstacle's own
+                excess = self.uplink.excess_ns(f"tracker:{msg.epoch}", msg.epoch, msg.send_time_ns, now)
             self._seen[msg.robot_id] = (msg, now - excess - msg.capture_age_ms * 1e6)
 
     def obstacles(self, now_ns: int) -> Obstacles | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -41,3 +42,18 @@ def test_the_tick_clock_tells_a_bursts_late_part_from_the_next_tick():
     clock.advance()
     assert not clock.begin(set()) and clock() == 100_000_000 and clock.answered == {"r0", "r1"}
     assert not clock.begin({"r1", "r0"}) and clock() == 100_000_000 and clock.answered == set()
+
+
+def test_the_uplink_floors_are_bounded_and_the_least_recently_heard_goes_first():
+    """MAX_SENDERS floors: a sender heard again stays; the one heard longest ago is forgotten, so
+    its next message starts a floor anew (excess 0) where a kept one measures its 5 ms."""
+    from deploy.bridge_timing import UplinkExcess
+
+    uplink = UplinkExcess()
+    cap = UplinkExcess.MAX_SENDERS
+    for k in range(cap):
+        uplink.excess_ns(f"s{k}", 1, 0, 1_000_000)
+    uplink.excess_ns("s0", 1, 0, 1_000_000)                  # heard again: now the most recent
+    uplink.excess_ns("new", 1, 0, 1_000_000)                  # one too many: s1 goes
+    assert uplink.excess_ns("s0", 1, 0, 6_000_000) == pytest.approx(5_000_000, rel=1e-3)
+    assert uplink.excess_ns("s1", 1, 0, 6_000_000) == 0.0

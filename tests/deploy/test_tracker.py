@@ -58,6 +58,23 @@ def test_the_table_ages_each_sighting_and_forgets_it_only_when_told():
     assert table.decoder.rejects.snapshot() == {"UNEXPECTED_TYPE": 1, "STALE": 1}
 
 
+@pytest.mark.parametrize("epochs", [(5, 5), (5, 6)])
+def test_a_sighting_queued_on_the_uplink_is_aged_whether_obstacles_share_an_epoch_or_not(epochs):
+    """Tracker clock 7 s behind ours. Both obstacles cross in 1 ms, then both queue 500 ms on the
+    uplink: each is 499 ms old on receipt (500 less the fastest transfer, drift 200 ppm x 599 ms
+    allowed). Each obstacle may be its own stream with its own epoch: before, each message of
+    another epoch reset the tracker's floor, and both read as fresh (0 ms)."""
+    clock = Clock(0)
+    table = SightingTable(WireDecoder(), clock)
+    for obstacle, (sent_ms, received_ms) in ((0, (0, 1)), (1, (0, 1)), (0, (100, 600)), (1, (100, 600))):
+        clock.ns = received_ms * MS
+        seq = 1 + (sent_ms > 0)
+        table.receive(encode(SightingMsg(obstacle, epochs[obstacle], seq, 10**12 + sent_ms * MS - 7000 * MS,
+                                         (0.2, 0.2 + 0.5 * obstacle), 0.05, 0.3)))
+    allowance = 2e-4 * 0.599
+    np.testing.assert_allclose(table.obstacles(600 * MS).age_s, [0.499 - allowance] * 2, atol=1e-9)
+
+
 def test_a_robots_sighting_is_named_by_the_registry_and_refused_without_one():
     """Obstacle 5 is robot id 1 (r1 in the registry {r0: 0, r1: 1}); obstacle 6 is nobody. The
     obstacles name r1 beside #5 and None beside #6; a robot id the registry lacks, or a table
