@@ -62,8 +62,13 @@ The status published with a state says what the robot does if that state goes un
 Re-arming the latch: the controller sees FAULT in the robot's state and sends a command with
 the STOP flag; the robot leaves the latch into STOP (held at rest) and moves again on the
 next command without STOP. While latched, other commands are ignored and counted. So are
-commands that arrive while the robot sees no controller liveliness token (``ctrl/alive``): a
-robot obeys the node that holds it, not any node that can publish on its key.
+commands the robot would take (at its tick) while it sees no controller liveliness token
+(``ctrl/alive``): a robot obeys the node that holds it, not any node that can publish on its
+key. The token is judged when a command is taken, not when it arrived: token and commands reach
+the robot on separate Zenoh threads, and a lock-stepped fleet waits for both before its tick.
+So a command that came shortly before a controller's token can act, for one tick at most (the
+controller answers the next state), once the latched e-stop has been fetched; mutual TLS with
+access control on a router is what keeps other nodes off the command keys.
 
 Trace (``summary()["trace"]``, one entry per tick k, the true state at tick k; a real-time run
 without ``max_ticks`` keeps the newest ``TRACE_TICKS``): ``modes`` (each
