@@ -125,10 +125,8 @@ class RobotLink(_Link):
         now = self.clock_ns()
         payload = sample.payload.to_bytes()
         with self._cond:
-            msg = self.decoder.decode(payload, MsgType.CMD, self.robot_id)
-            if isinstance(msg, CmdMsg) and self._answers_too_old(msg, now):
-                self.rejects.add(Reason.STALE_ANSWER)
-                return
+            msg = self.decoder.decode(payload, MsgType.CMD, self.robot_id,
+                                      check=lambda m: self._stale_answer(m, now))
             if isinstance(msg, CmdMsg):
                 last = self._command.msg if self._command is not None else None
                 if last is not None and last.epoch == msg.epoch:   # the controller numbers 1, 2, ...
@@ -140,13 +138,18 @@ class RobotLink(_Link):
                 self._recent.append(self._command)
                 self._cond.notify_all()
 
-    def _answers_too_old(self, msg: CmdMsg, now: int) -> bool:
-        """The CMD names a STATE older than ``max_answer_age_s``, or one not sent in this epoch;
-        BRAKE and STOP always pass (they use the robot's own state, never the controller's)."""
+    def _stale_answer(self, msg: CmdMsg, now: int) -> tuple[Reason, str] | None:
+        """STALE_ANSWER if the CMD names a STATE older than ``max_answer_age_s``, or one not sent
+        in this epoch; BRAKE and STOP always pass (they use the robot's own state, never the
+        controller's). Judged before the CMD may move the command stream on."""
         if self._max_answer_ns is None or msg.state_seq == 0 or int(msg.flags) & BRAKE_OR_STOP:
-            return False
+            return None
         sent = self._published.get(msg.state_seq)
-        return sent is None or now - sent > self._max_answer_ns
+        if sent is None:
+            return Reason.STALE_ANSWER, f"answers state seq {msg.state_seq}, not one of this epoch"
+        if now - sent > self._max_answer_ns:
+            return Reason.STALE_ANSWER, f"answers a state sent {(now - sent) / 1e6:.0f} ms ago"
+        return None
 
     def _on_estop(self, payload: bytes) -> None:
         with self._cond:

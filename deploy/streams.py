@@ -119,10 +119,13 @@ class WireDecoder:
         return Rejection(reason, detail)
 
     def decode(self, data: bytes | bytearray | memoryview, expect: MsgType | None = None,
-               robot_id: int | None = None) -> Message | Rejection:
+               robot_id: int | None = None,
+               check: Callable[[Message], tuple[Reason, str] | None] | None = None) -> Message | Rejection:
         """Validate one message; ``robot_id`` is the id the key names (ROBOT_MISMATCH if not).
 
-        Accepted messages advance the per-(type, robot id) sequence; rejections are counted.
+        ``check``: the receiver's own last check (e.g. a robot's STALE_ANSWER), run after every
+        other one; a ``(reason, detail)`` it returns rejects the message. Only accepted messages
+        advance the per-(type, robot id) sequence; rejections are counted.
         """
         msg = decode(data, expect)
         if isinstance(msg, Rejection):
@@ -150,6 +153,9 @@ class WireDecoder:
         if not self.sequences.is_fresh(stream, msg.epoch, msg.seq):
             return self.reject(Reason.STALE, f"{msg.TYPE.name} epoch {msg.epoch} seq {msg.seq} is "
                                "not newer than the last accepted")
+        refused = check(msg) if check is not None else None
+        if refused is not None:
+            return self.reject(*refused)
         self.sequences.accept(stream, msg.epoch, msg.seq)
         return msg
 

@@ -424,6 +424,27 @@ def test_a_robot_refuses_commands_answering_a_state_it_sent_too_long_ago(control
         assert r0.rejects.snapshot() == expected
 
 
+def test_a_command_refused_as_a_stale_answer_does_not_take_the_command_stream(controller, port):
+    """A CMD of another epoch (another node, or a controller before its restart) answering a STATE
+    the robot never sent is STALE_ANSWER, and must leave the stream to the controller: before, it
+    retired the controller's epoch and the robot refused every genuine command from then on."""
+    own = free_tcp_port()
+    with robot_link(port, "r0", listen_port=own) as r0, \
+            zenoh.open(TransportConfig(connect=(f"tcp/127.0.0.1:{own}",)).to_zenoh()) as raw:
+        connected(controller, r0)
+        first = r0.publish_state((0.5, 0.5), (0.0, 0.0))
+        assert _takes(r0, controller.send_command("r0", (0.1, 0.0), ttl_ms=500, state_seq=first.seq))
+        foreign = raw.declare_publisher(FleetKeys(FLEET).cmd("r0"))
+        deadline = time.monotonic() + WAIT_S
+        while not foreign.matching_status and time.monotonic() < deadline:
+            time.sleep(0.01)
+        foreign.put(encode(CmdMsg(0, 2222, 1, time.monotonic_ns(), (0.4, 0.0), 500, state_seq=first.seq + 50)))
+        assert r0.wait_for(lambda: r0.rejects.snapshot() == {"STALE_ANSWER": 1}, WAIT_S), r0.rejects.snapshot()
+        fresh = r0.publish_state((0.5, 0.5), (0.0, 0.0))
+        assert _takes(r0, controller.send_command("r0", (0.2, 0.0), ttl_ms=500, state_seq=fresh.seq))
+        assert r0.rejects.snapshot() == {"STALE_ANSWER": 1}
+
+
 def test_an_answer_age_bound_that_cannot_work_is_refused(port):
     with pytest.raises(ValueError, match="max_answer_age_s must be a positive number of seconds"):
         robot_link(port, "r0", max_answer_age_s=0.0)
