@@ -4,7 +4,8 @@
 
 ``engage`` latches the fleet e-stop at once (reason :data:`ESTOP_OPERATOR`); ``release`` clears it
 only while no live robot is silent past ``estop_after_s`` (the rule that raises it would raise it
-again at once); ``status`` reports. Every answer carries the e-stop state and the live robot
+again at once), and publishes the clearing ESTOP even if this controller never raised one (the
+robots may hold the latch of the controller before a restart); ``status`` reports. Every answer carries the e-stop state and the live robot
 silent longest at the bridge's last tick.
 """
 
@@ -36,9 +37,10 @@ def operator_answer(request: str, link: FleetLink, silence: tuple[str, float] | 
             return {"ok": False, **status, "reason": f"robot {silence[0]} has been silent for "
                     f"{silence[1]:.2f} s (> estop_after_s {estop_after_s} s): bring it "
                     "back or take it off the link first"}
-        if link.estop_engaged:
-            log.warning("operator: releasing the fleet e-stop")
-            link.clear_estop()
+        # published even when this controller never raised one: robots may still hold the latch
+        # of a controller before a restart, and leave it only on a newer ESTOP with ENGAGED clear
+        log.warning("operator: releasing the fleet e-stop")
+        link.clear_estop()
         return {"ok": True, **status, "estop": "released"}
     if request == "status":
         return {"ok": True, **status}

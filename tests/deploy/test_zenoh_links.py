@@ -448,3 +448,27 @@ def test_a_command_refused_as_a_stale_answer_does_not_take_the_command_stream(co
 def test_an_answer_age_bound_that_cannot_work_is_refused(port):
     with pytest.raises(ValueError, match="max_answer_age_s must be a positive number of seconds"):
         robot_link(port, "r0", max_answer_age_s=0.0)
+
+
+def test_an_operator_release_after_a_controller_restart_frees_the_latched_robots(port):
+    """Controller A latches the e-stop and restarts as B, which never raised one: `formation estop
+    --release` through B frees the robots (before, it answered 'released' and sent nothing, and
+    every robot stayed latched)."""
+    from deploy.operator_channel import operator_answer
+
+    endpoint = TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    first = FleetLink(FLEET, REGISTRY, endpoint)
+    with robot_link(port, "r0") as r0:
+        try:
+            connected(first, r0)
+            first.raise_estop(1)
+            assert r0.wait_for(lambda: r0.estopped, WAIT_S)
+        finally:
+            first.close()
+        assert r0.wait_for(lambda: not r0.controller_alive, WAIT_S)
+        with FleetLink(FLEET, REGISTRY, endpoint) as second:
+            assert r0.wait_for(lambda: r0.controller_alive and r0.estop_synced, 3 * WAIT_S)
+            assert r0.estopped
+            answer = operator_answer("release", second, None, 1.0)
+            assert answer["ok"] and answer["estop"] == "released"
+            assert r0.wait_for(lambda: not r0.estopped, WAIT_S)
