@@ -290,8 +290,10 @@ def check_accelerations(accelerations: np.ndarray, n: int) -> np.ndarray:
 class BatchedFleet:
     """The batched training world with one environment, behind the :class:`Fleet` interface.
 
-    No automatic reset: the episode runs until the caller stops; collisions and the outcome are
-    judged with :mod:`sim.metrics` by whoever drives it.
+    No automatic reset: the episode runs until the caller stops. It judges itself, as the
+    batched world does in training (:attr:`collision_counts`, :meth:`outcome`, :attr:`contacts`):
+    a robot the world stops at a wall or the object rests exactly touching it, which a test of
+    positions alone (:func:`sim.metrics.collision_events`, ``< r - 1e-6``) would not see.
     """
 
     def __init__(self, scenario: Scenario):
@@ -328,3 +330,26 @@ class BatchedFleet:
         self.env.step(torch.from_numpy(self._command).unsqueeze(0))
         self._step += 1
         return self.read_state()
+
+    @property
+    def collision_counts(self):
+        """Collision onsets since reset, the world's own count (:class:`sim.pymunk_world.CollisionCounts`)."""
+        from sim.pymunk_world import CollisionCounts
+
+        robot, obj, wall = (int(c) for c in self.env.counts[0])
+        return CollisionCounts(robot=robot, object=obj, wall=wall)
+
+    @property
+    def contacts(self):
+        """This instant's contacts (:class:`sim.pymunk_world.Contacts`), as the world counted them."""
+        from sim.pymunk_world import Contacts
+
+        robot, obj, wall = self.env.prev_contact[0].numpy().T.copy()
+        return Contacts(robot=robot, object=obj, wall=wall)
+
+    def outcome(self):
+        """:func:`sim.metrics.episode_outcome` of the current positions (batch of 1)."""
+        from sim.metrics import episode_outcome
+
+        return episode_outcome(self.env.pos[:1], self.env.targets[:1], self.env.collided[:1],
+                               self.scenario.target_tolerance)

@@ -140,3 +140,4 @@ def test_an_object_back_at_its_own_pose_is_filtered_where_it_is():
     back = tick(stack, 1.05, home)
     assert fresh.a_cmd[0, 0] < 0.0
     assert back.a_cmd[0].tolist() == pytest.approx(fresh.a_cmd[0].tolist())
+
