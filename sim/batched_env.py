@@ -18,6 +18,7 @@ start slots in the same call, so the returned observation is the first one of th
 
 from __future__ import annotations
 
+import secrets
 from dataclasses import dataclass
 
 import numpy as np
@@ -176,7 +177,7 @@ class BatchedFormationEnv:
     # ----------------------------------------------------------------- set-up
     def seed(self, seed: int | None) -> None:
         """Seed the start jitter and (with a distribution) the layout and actuator draws."""
-        seed = int(seed) if seed is not None else torch.seed() % (2**63)
+        seed = int(seed) if seed is not None else secrets.randbits(63)   # torch.seed() would reseed torch's global RNG
         self.generator.manual_seed(seed)
         self._layout_rng = np.random.default_rng([seed, 1])
         self._actuator_rng = np.random.default_rng([seed, 2])

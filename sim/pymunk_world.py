@@ -55,9 +55,11 @@ commands sent after the newest one the robot had acted on when its delivered row
 Collision events come from :func:`sim.metrics.collision_events` on the true positions after each
 tick, counted as onsets (robot, step) per kind like the batched world.
 
-Randomness: ``reset(seed)`` seeds four independent numpy streams (start jitter, per-robot gain,
-disturbance noise, measurement noise) spawned from ``numpy.random.SeedSequence(seed)``, so turning
-one knob never changes the draws of another. ``reset()`` without a seed continues the streams.
+Randomness: ``reset(seed)`` seeds five independent numpy streams (start jitter, per-robot gain,
+disturbance noise, measurement noise, and the link: delay jitter and dropped states draw from
+this one) spawned from ``numpy.random.SeedSequence(seed)``, so turning one knob never changes the
+draws of another, but for the two link knobs: with jitter on, turning drops on changes the
+jitter's draws. ``reset()`` without a seed continues the streams.
 The same seed does not always repeat an episode bit for bit in another process: Chipmunk keys
 its contact cache by shape pointers (``CP_HASH_PAIR`` of the two shapes), so the order in which
 it resolves the contacts of a tick follows memory addresses. Seen in one of 12 open-loop replays
@@ -255,24 +257,29 @@ class PymunkWorld:
         center = scenario.object_center
         self._object_pose = np.array([center[0], center[1], 0.0])
 
-        self.space = pymunk.Space()
-        self.space.collision_slop = COLLISION_SLOP
-        self._robots: list[pymunk.Body] = []
-        for _ in range(n):
-            body = pymunk.Body(mass=1.0, moment=float("inf"))
-            shape = pymunk.Circle(body, scenario.robot_radius)
-            self._set_material(shape, contact_friction, contact_elasticity)
-            self.space.add(body, shape)
-            self._robots.append(body)
-        for shape in self._static_shapes():
-            self._set_material(shape, contact_friction, contact_elasticity)
-            self.space.add(shape)
-
+        self._material = (contact_friction, contact_elasticity)
+        self._build_space()
+        self._counts = np.zeros(3, dtype=np.int64)
         self._seed_streams(seed)
         self._command = np.zeros((n, 2))
         self.reset()
 
     # ----------------------------------------------------------------- set-up
+    def _build_space(self) -> None:
+        """A new space: the robots' bodies, then the walls and the object (in this order)."""
+        self.space = pymunk.Space()
+        self.space.collision_slop = COLLISION_SLOP
+        self._robots: list[pymunk.Body] = []
+        for _ in range(self.scenario.num_robots):
+            body = pymunk.Body(mass=1.0, moment=float("inf"))
+            shape = pymunk.Circle(body, self.scenario.robot_radius)
+            self._set_material(shape, *self._material)
+            self.space.add(body, shape)
+            self._robots.append(body)
+        for shape in self._static_shapes():
+            self._set_material(shape, *self._material)
+            self.space.add(shape)
+
     @staticmethod
     def _set_material(shape: pymunk.Shape, friction: float, elasticity: float) -> None:
         shape.friction = friction
@@ -307,9 +314,15 @@ class PymunkWorld:
         return self.scenario.dynamics.dt
 
     def reset(self, seed: int | None = None) -> FleetState:
-        """Start an episode: jittered start slots at rest, fresh gains, empty actuators and delay line."""
+        """Start an episode: jittered start slots at rest, fresh gains, empty actuators and delay line.
+
+        After an episode with a contact the space is built anew: Chipmunk keeps each body's
+        penetration-correction velocity past a reset, which moved robots at rest (about 20 um in
+        the first tick); a world reused so runs as a fresh one would."""
         if seed is not None:
             self._seed_streams(seed)
+        if self._counts.any():
+            self._build_space()
         s, me = self.scenario, self.model_error
         n = s.num_robots
         j = s.start_jitter

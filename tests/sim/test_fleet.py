@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import torch
 
 from sim.fleet import BatchedFleet, Fleet, FleetState
 from sim.scenario import make_scenario
@@ -53,3 +54,11 @@ def test_obstacles_split_names_a_robot_by_its_freshest_sighting_and_keeps_none_o
     assert rest.ids == ("#4",) and rest.robots == (None,)
     rows, rest = seen.split(("c",))
     assert rows == {} and rest is seen
+
+
+def test_building_a_batched_fleet_leaves_torchs_global_random_stream_alone():
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    torch.manual_seed(0)
+    BatchedFleet(make_scenario("paper-3"))
+    assert torch.equal(torch.rand(3), expected)

@@ -391,3 +391,19 @@ def test_model_error_defaults_are_a_perfect_robot():
     me = ModelError()
     assert (me.gain, me.gain_spread, me.lag_tau, me.delay_ticks, me.disturbance) == (1.0, 0.0, 0.0, 0, (0.0, 0.0))
     assert me.disturbance_std == me.floor_friction == me.position_noise_std == me.velocity_noise_std == 0.0
+
+
+def test_a_reset_after_an_episode_in_contact_leaves_robots_at_rest():
+    """Robots rammed into the right wall for 60 ticks, then a new episode: at rest on their start
+    slots, under a zero command, nothing may move (before, Chipmunk's correction velocity of the
+    last contact moved every robot 21.6 um in the first tick)."""
+    scenario = make_scenario("paper-3")
+    world = PymunkWorld(scenario, ModelError())
+    world.reset(seed=0)
+    for _ in range(60):
+        world.send_accelerations(np.tile([1.0, 0.0], (3, 1)))
+        world.step()
+    assert world.collision_counts.wall == 3
+    start = world.reset(seed=1)
+    world.send_accelerations(np.zeros((3, 2)))
+    assert np.array_equal(world.step().positions, start.positions)
