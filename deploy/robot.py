@@ -153,6 +153,8 @@ def least_squares_assignment(path) -> np.ndarray:
     """(N,) int: the column of each row of an (N, N) matrix of path lengths under the one-to-one
     assignment of least total squared length; the Hungarian method, O(N^3), numpy only."""
     cost = np.square(np.asarray(path, dtype=np.float64))
+    if not np.isfinite(cost).all():                    # the search below would never end
+        raise ValueError("least_squares_assignment: every path length must be finite (and its square)")
     n = len(cost)
     u, v = np.zeros(n + 1), np.zeros(n + 1)
     owner = np.zeros(n + 1, dtype=np.int64)            # owner[j]: row (1-based) holding column j
@@ -352,6 +354,17 @@ class RobotPolicy:
             accel, valid = self.session.run(None, {"tokens": x, "mask": mask})
         return accel.astype(np.float64), valid
 
+    def _own_target(self, team: np.ndarray, targets, polygon) -> int | None:
+        """The first robot's target under :func:`own_targets`; None (nothing marked) where the
+        picture is not finite or has no assignment: the policy then brakes on its invalid input."""
+        given = (team, np.asarray(targets, dtype=np.float64), np.asarray(polygon, dtype=np.float64))
+        if not all(np.isfinite(x).all() for x in given):
+            return None
+        try:
+            return int(own_targets(team, targets, polygon, self.own_target_margin)[0])
+        except ValueError:
+            return None
+
     def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena,
             own_target: int | None = None) -> Action:
         """The robot's mean acceleration [m/s^2] and whether it is valid (arguments as
@@ -367,8 +380,7 @@ class RobotPolicy:
         if self.own_target and own_target is None:
             team = np.vstack((np.asarray(own_pos, dtype=np.float64).reshape(1, 2),
                               np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)))
-            own_target = (int(own_targets(team, targets, polygon, self.own_target_margin)[0])
-                          if np.isfinite(team).all() else None)
+            own_target = self._own_target(team, targets, polygon)
         toks = robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena, own_target)
         accel, valid = self._forward(toks[None])
         return Action(accel[0], bool(valid[0]))

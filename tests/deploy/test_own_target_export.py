@@ -118,6 +118,20 @@ def test_the_robot_runtime_marks_the_target_its_team_gives_it(exported, name):
         assert np.abs(np.array(unmarked) - want).max() > 1e-4      # 10x the tolerance: the mark counts
 
 
+@pytest.mark.parametrize("lost", [np.nan, np.inf, 1e200])
+def test_a_target_the_robot_cannot_place_makes_it_brake_at_once(exported, lost):
+    """One target not finite (a tracker that lost it), or so far that its squared path overflows:
+    the robot brakes (zero, invalid) at once. Before, the Hungarian search never ended and the
+    robot's control loop hung."""
+    policy = RobotPolicy(exported["onnx"])
+    targets = np.array([[0.2, 0.2], [lost, 0.2], [0.5, 0.9]])
+    action = policy.act([0.1, 0.5], [0.0, 0.0], targets, [[0.3, 0.7], [0.7, 0.7]], np.zeros((2, 2)),
+                        SCENARIO.polygon, SCENARIO.arena)
+    assert action.accel.tolist() == [0.0, 0.0] and not action.valid
+    with pytest.raises(ValueError, match="every path length must be finite"):
+        least_squares_assignment(np.array([[1.0, np.inf], [2.0, 1.0]]))
+
+
 def test_a_policy_without_the_mark_refuses_an_own_target_and_a_bad_one_is_refused(exported, tmp_path):
     export_policy(own_actor(own=False), tmp_path / "plain", dt=0.05, trained_robots=5, formats=("onnx",))
     policy = RobotPolicy(tmp_path / "plain.onnx")
