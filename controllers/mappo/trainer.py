@@ -422,7 +422,10 @@ class MAPPOTrainer:
         data = load_checkpoint(path)
         source = checkpoint_config(data)
         mine, theirs = self.config.actor.to_dict(), source.actor.to_dict()
-        for key in ("variant", "embed_dim", "num_heads", "embed_hidden", "hidden_sizes", "input_scale"):
+        # every setting the source network computes with (init_log_std only starts a fresh one;
+        # token_layers may grow, below): the actor is rebuilt from the source's settings
+        for key in ("variant", "embed_dim", "num_heads", "embed_hidden", "hidden_sizes", "input_scale",
+                    "velocity_damping", "frame", "own_target"):
             if mine[key] != theirs[key]:
                 raise CheckpointError(f"init_from: actor.{key} is {theirs[key]!r} in {path!r} but {mine[key]!r} "
                                       "here; use the source run's actor settings")

@@ -236,6 +236,17 @@ def test_a_run_with_token_blocks_starts_from_a_checkpoint_without_them(tmp_path)
         MAPPOTrainer(tiny(init_from=str(back)), tmp_path / "drop")
 
 
+@pytest.mark.parametrize("change", [{"velocity_damping": 3.0}, {"frame": "world"}, {"own_target": True}])
+def test_a_transfer_refuses_an_actor_that_would_compute_otherwise_than_its_source(tmp_path, change):
+    """The transferred actor is rebuilt from the source's settings, and the checkpoint records this
+    run's: a setting the network computes with must agree, or export, eval and resume would load
+    another network than the one trained (before, a damping of 3 trained as 0 and was loaded as 3)."""
+    ckpt = MAPPOTrainer(tiny(), tmp_path / "three").save()
+    key = next(iter(change))
+    with pytest.raises(CheckpointError, match=f"actor.{key} is"):
+        MAPPOTrainer(tiny(scenario="paper-5", init_from=str(ckpt), actor=SMALL_NET | change), tmp_path / "five")
+
+
 def test_typed_zero_shot_policy_is_the_trained_one(tmp_path):
     source = MAPPOTrainer(tiny(), tmp_path / "three")
     ckpt = source.save()
