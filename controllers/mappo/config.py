@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -12,6 +11,7 @@ from controllers.policy.config import (
     CriticConfig,
     PolicyConfigError,
     dataclass_from_dict,
+    is_number,
 )
 
 TRAINING_REWARD = {"w_dist": 0.0, "w_assigned": 1.0, "assignment_power": 2.0, "w_arrive": 0.5,
@@ -245,7 +245,7 @@ class MAPPOConfig:
         if unknown:
             raise TrainConfigError(f"unknown reward_weights field(s) {unknown}; known: {sorted(known)}")
         for name, value in self.reward_weights.items():
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+            if not (is_number(value) and value >= 0):
                 raise TrainConfigError(f"reward_weights.{name} must be a number >= 0, got {value!r}")
         return RewardWeights(**{k: float(v) for k, v in self.reward_weights.items()})
 
@@ -266,31 +266,35 @@ class MAPPOConfig:
         if self.num_minibatches > self.num_envs * self.rollout_steps:
             raise TrainConfigError(f"num_minibatches ({self.num_minibatches}) must be <= num_envs * "
                                    f"rollout_steps ({self.num_envs * self.rollout_steps})")
+        for name in ("bootstrap_time_limit", "anneal_lr", "norm_adv", "value_norm", "stop_at_convergence",
+                     "tensorboard", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                raise TrainConfigError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name, lo, hi in (("gamma", 0.0, 1.0), ("gae_lambda", 0.0, 1.0), ("success_threshold", 0.0, 1.0)):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and lo <= value <= hi):
+            if not (is_number(value) and lo <= value <= hi):
                 raise TrainConfigError(f"{name} must be in [{lo}, {hi}], got {value!r}")
         for name in ("clip_coef", "lr", "max_grad_norm", "lr_after_success"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            if not (is_number(value) and value > 0):
                 raise TrainConfigError(f"{name} must be a positive number, got {value!r}")
         for name in ("ent_coef", "vf_coef", "penalty_curriculum"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+            if not (is_number(value) and value >= 0):
                 raise TrainConfigError(f"{name} must be a number >= 0, got {value!r}")
         for name in ("critic_lr", "value_clip", "target_kl"):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, int | float) and value > 0):
+            if value is not None and not (is_number(value) and value > 0):
                 raise TrainConfigError(f"{name} must be a positive number or null, got {value!r}")
-        if not (isinstance(self.policy_ema, int | float) and 0.0 <= self.policy_ema < 1.0):
+        if not (is_number(self.policy_ema) and 0.0 <= self.policy_ema < 1.0):
             raise TrainConfigError(f"policy_ema must be in [0, 1) (0 = no averaging; 0.9 averages "
                                    f"~10 updates), got {self.policy_ema!r}")
-        if not (isinstance(self.init_keep, int | float) and 0.0 < self.init_keep <= 1.0):
+        if not (is_number(self.init_keep) and 0.0 < self.init_keep <= 1.0):
             raise TrainConfigError(f"init_keep must be in (0, 1] (1 = keep the init_from weights as they "
                                    f"are), got {self.init_keep!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise TrainConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
-        if not isinstance(self.torch_threads, int) or self.torch_threads < 0:
+        if not isinstance(self.torch_threads, int) or isinstance(self.torch_threads, bool) or self.torch_threads < 0:
             raise TrainConfigError(f"torch_threads must be an integer >= 0 (0 = leave as is), "
                                    f"got {self.torch_threads!r}")
         self._validate_team_sizes()

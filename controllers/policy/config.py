@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +18,19 @@ class PolicyConfigError(ValueError):
 def _check_positive_int(owner: str, name: str, value: Any) -> None:
     if not isinstance(value, int) or isinstance(value, bool) or value < 1:
         raise PolicyConfigError(f"{owner}.{name} must be a positive integer, got {value!r}")
+
+
+def is_number(value: Any) -> bool:
+    """A finite int or float, not a bool (JSON's true is no learning rate)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_range(owner: str, name: str, value: Any, lo: float, hi: float, unit: str = "") -> None:
+    """``lo <= value <= hi`` (``lo`` excluded when it is 0 and ``hi`` is inf: > 0)."""
+    positive = lo == 0.0 and hi == math.inf
+    if not (is_number(value) and (value > 0 if positive else lo <= value <= hi)):
+        want = "> 0" if positive else f"in [{lo:g}, {hi:g}]{unit}"
+        raise PolicyConfigError(f"{owner}.{name} must be a number {want}, got {value!r}")
 
 
 def _check_hidden(owner: str, hidden: Any) -> tuple[int, ...]:
@@ -129,12 +143,9 @@ class ActorConfig:
         if self.embed_hidden and self.variant != "typed":
             raise PolicyConfigError(f"actor.embed_hidden applies to the typed actor only; set it to 0 for "
                                     f"variant {self.variant!r}")
-        if not -5.0 <= float(self.init_log_std) <= 2.0:
-            raise PolicyConfigError(f"actor.init_log_std must be in [-5, 2], got {self.init_log_std!r}")
-        if not float(self.input_scale) > 0:
-            raise PolicyConfigError(f"actor.input_scale must be > 0, got {self.input_scale!r}")
-        if not 0.0 <= float(self.velocity_damping) <= 100.0:
-            raise PolicyConfigError(f"actor.velocity_damping must be in [0, 100] 1/s, got {self.velocity_damping!r}")
+        _check_range("actor", "init_log_std", self.init_log_std, -5.0, 2.0)
+        _check_range("actor", "input_scale", self.input_scale, 0.0, math.inf)
+        _check_range("actor", "velocity_damping", self.velocity_damping, 0.0, 100.0, " 1/s")
         _check_frame("actor", self.frame, self.variant, "typed")
         if not isinstance(self.token_layers, int) or isinstance(self.token_layers, bool) or not 0 <= self.token_layers <= 4:
             raise PolicyConfigError(f"actor.token_layers must be an integer in [0, 4], got {self.token_layers!r}")
@@ -205,11 +216,8 @@ class CriticConfig:
         if self.embed_hidden and self.variant != "attention":
             raise PolicyConfigError("critic.embed_hidden applies to the attention critic only; set it to 0 "
                                     f"for variant {self.variant!r}")
-        if not 0.0 <= float(self.value_mixing) <= 1.0:
-            raise PolicyConfigError(f"critic.value_mixing must be in [0, 1] (1 = no mixing), "
-                                    f"got {self.value_mixing!r}")
-        if not float(self.input_scale) > 0:
-            raise PolicyConfigError(f"critic.input_scale must be > 0, got {self.input_scale!r}")
+        _check_range("critic", "value_mixing", self.value_mixing, 0.0, 1.0, " (1 = no mixing)")
+        _check_range("critic", "input_scale", self.input_scale, 0.0, math.inf)
         _check_frame("critic", self.frame, self.variant, "attention")
 
     @property
