@@ -164,9 +164,12 @@ class MAPPOTrainer:
         self.scalars = TensorBoardLog(self.run_dir) if cfg.tensorboard else None
         if resume:
             self._resume()
-        elif self.train_log.read() or (self.run_dir / CHECKPOINT_NAME).exists():
+        elif (self.run_dir / CHECKPOINT_NAME).exists():
             raise TrainConfigError(f"run_dir {str(self.run_dir)!r} already holds a run; resume it "
                                    "(resume=True) or choose an empty directory")
+        elif self.train_log.read() or self.eval_log.read():   # stopped before its first checkpoint:
+            self.train_log.truncate(0)                        # nothing to resume, so it starts over
+            self.eval_log.truncate(0)
         write_json_atomic(self.run_dir / "config.json", cfg.to_dict())
         self.provenance = provenance()
         write_json_atomic(self.run_dir / "run.json", self.provenance)
@@ -384,6 +387,10 @@ class MAPPOTrainer:
         return path
 
     def _resume(self) -> None:
+        if not (self.run_dir / CHECKPOINT_NAME).exists():
+            raise TrainConfigError(f"cannot resume {str(self.run_dir)!r}: it holds no checkpoint yet (one is "
+                                   f"written every checkpoint_interval = {self.config.checkpoint_interval} "
+                                   "iterations); start it again without resume, in the same directory")
         data = load_checkpoint(self.run_dir / CHECKPOINT_NAME)
         saved = checkpoint_config(data)
         mine, theirs = self.config.to_dict(), saved.to_dict()

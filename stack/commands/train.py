@@ -4,7 +4,8 @@ Every run writes, in its folder: ``config.json`` (the resolved configuration, it
 ``--config`` file), ``run.json`` (git commit, package versions, threads, host), ``train.csv`` /
 ``train.jsonl`` (per iteration), ``eval.csv`` / ``eval.jsonl`` (the convergence evaluations),
 ``checkpoint.pt`` (atomic, resumable) and ``result.json``. Ctrl-C keeps the last checkpoint;
-``--resume`` continues the same curve.
+``--resume`` continues the same curve (a run stopped before its first checkpoint, written every
+``checkpoint_interval`` iterations, has none: started again in the same folder, it starts over).
 
 The configuration is :class:`controllers.mappo.MAPPOConfig`: its defaults (with ``--resume``:
 the run's own ``config.json``), then ``--config`` (a .json or .toml file of any of its fields,

@@ -164,6 +164,21 @@ def test_resume_rejects_a_changed_config_and_a_fresh_run_refuses_a_used_director
         train(tiny(), tmp_path)
 
 
+def test_a_run_stopped_before_its_first_checkpoint_starts_over_in_its_directory(tmp_path):
+    """Ctrl-C before the first checkpoint leaves logs and nothing to resume: resuming says so, and
+    a fresh start in the same directory starts over (before, both were refused and the user had
+    to delete the folder)."""
+    early = MAPPOTrainer(tiny(checkpoint_interval=100), tmp_path)
+    early._evaluate()
+    early._iteration()
+    assert early.train_log.read() and not (tmp_path / "checkpoint.pt").exists()
+    with pytest.raises(TrainConfigError, match="holds no checkpoint yet"):
+        train(tiny(), tmp_path, resume=True)
+    result = train(tiny(total_episodes=4), tmp_path)
+    assert result.episodes == 4
+    assert [r["iteration"] for r in rows(tmp_path / "train.jsonl")] == list(range(1, result.iterations + 1))
+
+
 @pytest.mark.parametrize("variant", ["typed", "slot"])
 def test_three_robot_checkpoint_starts_four_and_five_robot_runs(tmp_path, variant):
     source = MAPPOTrainer(tiny(actor=SMALL_NET | {"variant": variant}), tmp_path / "three")
