@@ -58,6 +58,7 @@ from deploy.export.contract import (
     MAX_ROBOTS,
     TOKEN_FEATURES,
     PolicyContract,
+    check_io_shapes,
 )
 from deploy.export.formats import (
     FORMATS,
@@ -109,7 +110,7 @@ class ExportedPolicy:
     training = False            # a file is deployed: eval mode for good (train() is a no-op)
 
     def __init__(self, path: Path, runner: Runner, meta: dict[str, Any]):
-        self.path, self.run, self.meta = path, runner, meta
+        self.path, self.meta, self._runner = path, meta, runner
         self.file_format = str(meta["file_format"])
         self.accel_limit = float(meta["accel_limit"])
         counts = meta["robot_counts"]
@@ -118,6 +119,12 @@ class ExportedPolicy:
                                   and len(counts) == max(counts) - min(counts) + 1 else str(counts))
         self.own_target = bool(meta.get("own_target", False))
         self.num_robots = counts[0] if len(counts) == 1 and meta["variant"] != "TypedSDPAActor" else -1
+
+    def run(self, tokens: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The file on ``tokens`` (B, T, 4) and ``mask`` (B, T), shapes checked first (a file fed
+        other shapes may broadcast them and answer valid actions)."""
+        check_io_shapes(tokens, mask, self.robot_counts)
+        return self._runner(tokens, mask)
 
     def eval(self) -> ExportedPolicy:
         return self
@@ -257,7 +264,7 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
     contract = PolicyContract(actor).eval()             # the actor's own rows: the reference
     fixed_n = int(getattr(actor, "num_robots", -1))
     counts = VERIFY_COUNTS if fixed_n < 0 else (fixed_n,)
-    golden = golden_path(stem.with_suffix(".pt"))
+    golden = stem.with_name(stem.name + ".golden.npz")       # the stem may hold dots of its own
     buffer = io.BytesIO()
     own_target = bool(getattr(actor, "own_target", False))
     np.savez(buffer, **golden_cases(contract, GOLDEN_COUNTS if fixed_n < 0 else counts, scenario, seed,
@@ -278,7 +285,7 @@ def export_policy(actor: nn.Module, out: str | Path, *, dt: float, trained_robot
         tmp_golden.write_bytes(buffer.getvalue())
         base["golden_sha256"] = sha256_file(tmp_golden)
         for name in formats:
-            fmt, path = FORMATS[name], stem.with_suffix(FORMATS[name].suffix)
+            fmt, path = FORMATS[name], stem.with_name(stem.name + FORMATS[name].suffix)
             tmp = publish.enter_context(atomic_path(path))
             try:
                 fmt.write(exported, tmp, base | {"file_format": name}, fixed_n if fixed_n > 0 else None)

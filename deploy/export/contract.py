@@ -119,6 +119,21 @@ class PolicyContract(nn.Module):
         return torch.where(valid.unsqueeze(-1), a, torch.zeros((), dtype=a.dtype)), valid
 
 
+def check_io_shapes(tokens: Any, mask: Any, robot_counts: frozenset[int] | None = None) -> None:
+    """Raise ValueError unless ``tokens`` is (B, T, 4) and ``mask`` (B, T) with ``T = 2N + 1`` for
+    a team of N robots the file runs (``robot_counts``; default 1..MAX_ROBOTS)."""
+    shape, mask_shape = getattr(tokens, "shape", None), getattr(mask, "shape", None)
+    if shape is None or len(shape) != 3 or shape[2] != TOKEN_DIM:
+        raise ValueError(f"policy input: tokens must be (B, T, {TOKEN_DIM}), got shape {shape}")
+    n, odd = divmod(shape[1] - 1, 2)
+    counts = robot_counts or frozenset(range(1, MAX_ROBOTS + 1))
+    if odd or n not in counts:
+        raise ValueError(f"policy input: T = {shape[1]} tokens a row is not 2N + 1 for a team this file runs "
+                         f"(N in {min(counts)}..{max(counts)})")
+    if mask_shape is None or tuple(mask_shape) != tuple(shape[:2]):
+        raise ValueError(f"policy input: mask must be (B, T) = {tuple(shape[:2])}, got shape {mask_shape}")
+
+
 def archive_digest(path: Path, meta: dict[str, Any]) -> str:
     """``content_sha256`` of a zip-archive format (TorchScript, .pt2): sha256 over the canonical
     metadata and every member but the metadata itself and torch's random serialization id, in
@@ -152,5 +167,5 @@ def check_meta(meta: Any, where: str, error: type[Exception]) -> dict[str, Any]:
     return meta
 
 
-__all__ = ["EXPORT_FORMAT", "EXPORT_FORMAT_VERSION", "HASH_FIELD", "IO_SPEC", "MAX_ROBOTS",
+__all__ = ["check_io_shapes", "EXPORT_FORMAT", "EXPORT_FORMAT_VERSION", "HASH_FIELD", "IO_SPEC", "MAX_ROBOTS",
            "PolicyContract", "TOKEN_FEATURES", "archive_digest", "canonical_json", "check_meta"]

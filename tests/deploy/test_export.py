@@ -173,6 +173,21 @@ def test_non_finite_rows_are_flagged_with_zero_acceleration(exported, name):
     assert np.abs(accel[3] - want[0]).max() <= 1e-6
 
 
+@pytest.mark.parametrize("name", DEFAULT_FORMATS)
+def test_a_file_refuses_input_of_the_wrong_shape_by_name(exported, name):
+    """Before, .pt and .onnx broadcast a (1, T) mask over every row and answered T = 6 or T = 1
+    with valid actions; T = 2N + 1 for N = 1..21, a mask of the tokens' (B, T), 4 features."""
+    policy = load_exported(exported[1][name])
+    toks, mask = np.zeros((3, 7, 4), np.float32), np.ones((3, 7), dtype=bool)
+    for bad_toks, bad_mask, message in ((toks, mask[:1], r"mask must be \(B, T\) = \(3, 7\)"),
+                                        (toks[:, :6], mask[:, :6], "T = 6 tokens a row is not 2N \\+ 1"),
+                                        (toks[:, :1], mask[:, :1], "T = 1 tokens"),
+                                        (np.zeros((2, 45, 4), np.float32), np.ones((2, 45), bool), "T = 45"),
+                                        (np.zeros((3, 7, 5), np.float32), mask, r"tokens must be \(B, T, 4\)")):
+        with pytest.raises(ValueError, match=message):
+            policy.run(bad_toks, bad_mask)
+
+
 def test_torch_files_run_in_any_grad_mode(exported):
     """The stack calls under inference_mode; a user may call with gradients on first."""
     _, files, _ = exported
@@ -361,6 +376,10 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path, capsys):
         assert meta["trained_robots"] == 3 and meta["source"].endswith("ck.pt")
         assert meta["scenario"]["name"] == config.scenario_name
         assert meta["config"]["scenario"] == config.scenario_name
+    # a stem with dots of its own keeps them (it was cut at its last dot: p.v1.npz)
+    rc, _ = formation_here(capsys, "export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "p.v1.0"),
+                           "--format", "npz")
+    assert rc == 0 and (tmp_path / "p.v1.0.npz").exists() and (tmp_path / "p.v1.0.golden.npz").exists()
     # the refusals in this process (an exception escaping main would fail the test as it is)
     rc, err = formation_here(capsys, "export", str(tmp_path / "ck.pt"), "--out", str(tmp_path / "q"),
                              "--format", "tflite")
