@@ -39,7 +39,8 @@ the machine (93 GFLOP/s, one thread) that alone is 0.048 and 0.111 s an episode,
 measured runs at 19-26 % of that rate.
 
 Run directory: ``config.json``, ``run.json`` (git commit, package versions, torch threads, host:
-:func:`sim.provenance.provenance`), ``train.jsonl/.csv`` (one row per iteration),
+:func:`sim.provenance.provenance`; a resumed run keeps the record before it under
+``before_resume``), ``train.jsonl/.csv`` (one row per iteration),
 ``eval.jsonl/.csv`` (one row per evaluation), ``checkpoint.pt`` (latest), ``result.json`` (at the
 end, with the same provenance).
 """
@@ -86,6 +87,7 @@ from controllers.mappo.losses import (
 from controllers.mappo.rollout import TeamGroup, collect
 from controllers.policy import build_actor, build_critic, gaussian_entropy, gaussian_log_prob
 from sim.batched_env import BatchedFormationEnv
+from sim.files import read_config
 from sim.provenance import provenance
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -172,6 +174,8 @@ class MAPPOTrainer:
             self.eval_log.truncate(0)
         write_json_atomic(self.run_dir / "config.json", cfg.to_dict())
         self.provenance = provenance()
+        if resume and (self.run_dir / "run.json").exists():   # the run so far came from elsewhere, maybe
+            self.provenance["before_resume"] = read_config(self.run_dir / "run.json", "run.json")
         write_json_atomic(self.run_dir / "run.json", self.provenance)
 
     # ------------------------------------------------------------------ main loop

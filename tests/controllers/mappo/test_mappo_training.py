@@ -90,11 +90,13 @@ def test_resume_continues_the_same_curve(tmp_path, ema):
     parts = tmp_path / "parts"
     first = train(tiny(total_episodes=4, policy_ema=ema), parts)
     assert first.iterations == 4
+    started = json.loads((parts / "run.json").read_text())
     # a crash after the checkpoint leaves rows the checkpoint does not cover: resume drops them
     with open(parts / "train.jsonl", "a") as f:
         f.write(json.dumps(rows(parts / "train.jsonl")[-1] | {"iteration": 5}) + "\n")
     second = train(tiny(total_episodes=8, policy_ema=ema), parts, resume=True)
     assert second.iterations == 8 and second.episodes == 8
+    assert json.loads((parts / "run.json").read_text())["before_resume"] == started   # kept, not overwritten
     assert rows(parts / "train.jsonl") == rows(whole / "train.jsonl")
     assert rows(parts / "eval.jsonl") == rows(whole / "eval.jsonl")
     assert len((parts / "train.csv").read_text().splitlines()) == 9
