@@ -277,9 +277,6 @@ class FleetSim:
         if robot.estopped:
             robot.mode = "estop"
             return brake, StateStatus.ESTOPPED
-        if robot.estop_unknown:
-            robot.mode = "estop_unknown"
-            return brake, StateStatus(0)
         if robot.cmd_tick is None:
             robot.mode = "idle"
             return brake, StateStatus.WATCHDOG_BRAKING
@@ -294,6 +291,9 @@ class FleetSim:
         if unanswered >= wd.brake_after_ticks or expired:
             robot.mode = "watchdog"
             return brake, StateStatus.WATCHDOG_BRAKING
+        if robot.estop_unknown:           # would move, but cannot know yet whether it may
+            robot.mode = "estop_unknown"
+            return brake, StateStatus(0)
         if robot.stop_held or robot.flags & CmdFlags.BRAKE:
             robot.mode = "stop"
             return brake, StateStatus(0)
