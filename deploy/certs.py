@@ -57,7 +57,22 @@ class NodeFiles:
             raise FileNotFoundError(f"certificates for {node!r} not found: {', '.join(missing)}; "
                                     f"run: formation certs --out {folder} (names: controller, "
                                     "fleet-sim, router, operator, tracker and the robots given with --robots)")
+        for path in (files.ca, files.cert):
+            _load(path, x509.load_pem_x509_certificate, f"run: formation certs --out {folder}")
+        _load(files.key, _private_key, f"run: formation certs --out {folder}")
         return files
+
+
+def _private_key(data: bytes):
+    return serialization.load_pem_private_key(data, password=None)
+
+
+def _load(path: Path, parse, fix: str):
+    """``parse(path's bytes)``; a ValueError names the file and the fix."""
+    try:
+        return parse(path.read_bytes())
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a PEM certificate or key ({exc}); {fix}") from None
 
 
 def _write(path: Path, data: bytes, secret: bool) -> None:
@@ -75,10 +90,14 @@ def _key_bytes(key: ec.EllipticCurvePrivateKey) -> bytes:
 def _ca(folder: Path, days: int) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
     """The folder's CA, made on first use."""
     cert_path, key_path = folder / "ca.pem", folder / "ca.key"
-    if cert_path.is_file() and key_path.is_file():
-        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
-        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
-        return cert, key
+    if cert_path.is_file() != key_path.is_file():   # a new CA would orphan every node's certificate
+        missing = key_path if cert_path.is_file() else cert_path
+        raise FileNotFoundError(f"{missing} is missing beside {cert_path if missing == key_path else key_path}: "
+                                "put it back to sign with the fleet's CA (or remove both to make a new CA, "
+                                "then issue every node again)")
+    if cert_path.is_file():
+        fix = "restore it, or remove ca.pem and ca.key to make a new CA (then issue every node again)"
+        return _load(cert_path, x509.load_pem_x509_certificate, fix), _load(key_path, _private_key, fix)
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "formation fleet CA")])
     now = dt.datetime.now(dt.UTC)

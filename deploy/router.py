@@ -56,7 +56,7 @@ class RouterConfig:
     count: bool = False
 
     def __post_init__(self) -> None:
-        check_name(self.fleet)
+        check_name(self.fleet, "fleet name (--fleet)")
         object.__setattr__(self, "robots", tuple(self.robots))
         for rid in self.robots:
             check_name(rid)
