@@ -50,7 +50,9 @@ def seeds_arg(text: str) -> list[int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a count (5), a range (2-4) or a list (0,3,7), "
                                          f"got {text!r}") from None
-    if not seeds or min(seeds) < 0 or len(set(seeds)) != len(seeds):
+    if not seeds:
+        raise argparse.ArgumentTypeError(f"a count of seeds must be >= 1, got {text!r} (seed 0 alone: --seeds 0,)")
+    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
         raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0, got {text!r}")
     return seeds
 
@@ -77,6 +79,15 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _saved_options(saved: Path) -> dict:
+    """The options a sweep folder's ``sweep.json`` records; a damaged file is named."""
+    try:
+        return json.loads(saved.read_text())["options"]
+    except (json.JSONDecodeError, KeyError, TypeError, OSError) as exc:
+        raise SweepError(f"{saved} is not a sweep's file ({type(exc).__name__}: {exc}); remove it to "
+                         "start this folder's sweep anew, or give another --out") from None
+
+
 def _options(args) -> dict:
     """The sweep's options: from ``<out>/sweep.json`` with --resume, else from the flags."""
     if args.resume:
@@ -85,7 +96,7 @@ def _options(args) -> dict:
         saved = args.out / OPTIONS_FILE
         if not saved.exists():
             raise SweepError(f"--resume: {saved} does not exist; start the sweep without --resume")
-        return json.loads(saved.read_text())["options"]
+        return _saved_options(saved)
     base = read_config(args.config, "--config") if args.config else {}
     if args.episodes is not None:
         if args.episodes < 1:
@@ -110,7 +121,12 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     saved = out / OPTIONS_FILE
-    if saved.exists() and json.loads(saved.read_text())["options"] != json.loads(json.dumps(options)):
+    try:
+        other = saved.exists() and _saved_options(saved) != json.loads(json.dumps(options))
+    except SweepError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if other:
         print(f"error: {out} holds another sweep; continue it with --resume --out {out}, or give "
               "another --out", file=sys.stderr)
         return 2

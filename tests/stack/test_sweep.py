@@ -40,9 +40,21 @@ def test_grid_options_read_values_as_json_and_keep_other_text():
 
 def test_seeds_are_a_count_a_range_or_a_list():
     assert seeds_arg("3") == [0, 1, 2] and seeds_arg("2-4") == [2, 3, 4] and seeds_arg("0,7") == [0, 7]
-    for bad in ("x", "1,1", "0"):
+    for bad in ("x", "1,1"):
         with pytest.raises(argparse.ArgumentTypeError):
             seeds_arg(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match=r"a count of seeds must be >= 1.*--seeds 0,"):
+        seeds_arg("0")                        # it said 'seeds must be ... >= 0, got 0'
+    assert seeds_arg("0,") == [0]
+
+
+def test_a_damaged_sweep_file_is_named_not_a_traceback(tmp_path, capsys):
+    from stack.cli import main
+
+    (tmp_path / "sweep.json").write_text("{bad")
+    for args in (["--resume"], ["--seeds", "1", "--episodes", "4"]):
+        assert main(["sweep", *args, "--out", str(tmp_path)]) == 2
+        assert f"{tmp_path / 'sweep.json'} is not a sweep's file" in capsys.readouterr().err
 
 
 def test_the_grid_is_the_cross_product_with_nested_keys_and_checked_fields(tmp_path):
