@@ -166,7 +166,7 @@ class ControlStack:
         self._row_masks: dict[int, np.ndarray] = {}
         self._mask_optional = False
         kernel = ModuleKernel.of(self.network) if self.network is not None and self.config.policy_kernel else None
-        self._rows = self._exported.run if self._exported is not None else kernel
+        self._rows = self._exported.runner if self._exported is not None else kernel   # own tokens: unchecked
         if self.network is not None:
             scripted = isinstance(self.network, torch.jit.ScriptModule)
             self._forward = self.network.forward if scripted else self.network

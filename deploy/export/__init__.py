@@ -110,7 +110,8 @@ class ExportedPolicy:
     training = False            # a file is deployed: eval mode for good (train() is a no-op)
 
     def __init__(self, path: Path, runner: Runner, meta: dict[str, Any]):
-        self.path, self.meta, self._runner = path, meta, runner
+        self.path, self.meta = path, meta
+        self.runner = runner        # the file itself, shapes unchecked: for callers that build them (the stack)
         self.file_format = str(meta["file_format"])
         self.accel_limit = float(meta["accel_limit"])
         counts = meta["robot_counts"]
@@ -124,7 +125,7 @@ class ExportedPolicy:
         """The file on ``tokens`` (B, T, 4) and ``mask`` (B, T), shapes checked first (a file fed
         other shapes may broadcast them and answer valid actions)."""
         check_io_shapes(tokens, mask, self.robot_counts)
-        return self._runner(tokens, mask)
+        return self.runner(tokens, mask)
 
     def eval(self) -> ExportedPolicy:
         return self
