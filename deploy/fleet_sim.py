@@ -227,7 +227,7 @@ class FleetSim:
         if link is None:
             return
         # until the controller has answered the query for its latched e-stop, the robot cannot
-        # know whether one is engaged: it brakes as if one were (wire-format.md, What a robot must do)
+        # know whether one is engaged: where it would move, it brakes (:meth:`_choose`)
         robot.estopped = link.estopped
         robot.estop_unknown = link.controller_alive and not link.estop_synced
         if self.config.playout_ticks:

@@ -5,8 +5,8 @@
 ``engage`` latches the fleet e-stop at once (reason :data:`ESTOP_OPERATOR`); ``release`` clears it
 only while no live robot is silent past ``estop_after_s`` (the rule that raises it would raise it
 again at once), and publishes the clearing ESTOP even if this controller never raised one (the
-robots may hold the latch of the controller before a restart); ``status`` reports. Every answer carries the e-stop state and the live robot
-silent longest at the bridge's last tick.
+robots may hold the latch of the controller before a restart); ``status`` reports. Every answer
+carries the e-stop state and the live robot silent longest at the bridge's last tick.
 """
 
 from __future__ import annotations

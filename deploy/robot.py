@@ -356,10 +356,8 @@ class RobotPolicy:
 
     def _own_target(self, team: np.ndarray, targets, polygon) -> int | None:
         """The first robot's target under :func:`own_targets`; None (nothing marked) where the
-        picture is not finite or has no assignment: the policy then brakes on its invalid input."""
-        given = (team, np.asarray(targets, dtype=np.float64), np.asarray(polygon, dtype=np.float64))
-        if not all(np.isfinite(x).all() for x in given):
-            return None
+        picture has no assignment (a path length that is not finite): the policy then brakes on
+        its invalid input."""
         try:
             return int(own_targets(team, targets, polygon, self.own_target_margin)[0])
         except ValueError:

@@ -167,5 +167,6 @@ def check_meta(meta: Any, where: str, error: type[Exception]) -> dict[str, Any]:
     return meta
 
 
-__all__ = ["check_io_shapes", "EXPORT_FORMAT", "EXPORT_FORMAT_VERSION", "HASH_FIELD", "IO_SPEC", "MAX_ROBOTS",
-           "PolicyContract", "TOKEN_FEATURES", "archive_digest", "canonical_json", "check_meta"]
+__all__ = ["EXPORT_FORMAT", "EXPORT_FORMAT_VERSION", "HASH_FIELD", "IO_SPEC", "MAX_ROBOTS",
+           "PolicyContract", "TOKEN_FEATURES", "archive_digest", "canonical_json", "check_io_shapes",
+           "check_meta"]

@@ -82,8 +82,8 @@ def register(sub) -> None:
 def _saved_options(saved: Path) -> dict:
     """The options a sweep folder's ``sweep.json`` records; a damaged file is named."""
     try:
-        return json.loads(saved.read_text())["options"]
-    except (json.JSONDecodeError, KeyError, TypeError, OSError) as exc:
+        return read_config(saved, "sweep.json")["options"]
+    except (ConfigFileError, KeyError) as exc:
         raise SweepError(f"{saved} is not a sweep's file ({type(exc).__name__}: {exc}); remove it to "
                          "start this folder's sweep anew, or give another --out") from None
 
