@@ -144,7 +144,8 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
                     got[i] += 1
                     pongs.notify_all()
 
-        threading.Thread(target=drain, daemon=True).start()
+        drainer = threading.Thread(target=drain, daemon=True)
+        drainer.start()
         pubs = [declare_data_publisher(session, f"fleetloop/raw/{i}/ping", zenoh.CongestionControl.DROP)
                 for i in range(n)]
         time.sleep(0.3)
@@ -166,7 +167,13 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
         for _ in range(20):
             raw()
         result["raw"] = paced(ticks, raw)
+        for pub in pubs:
+            pub.undeclare()
         subscriber.undeclare()
+        # A thread still on its way out of Zenoh's recv when the interpreter finalises is
+        # ended inside a Rust frame, and glibc aborts the process ("FATAL: exception not
+        # rethrown") after the result is printed: wait for it.
+        drainer.join(timeout=5.0)
     print(json.dumps(result), flush=True)
     return 0
 
@@ -221,7 +228,8 @@ def measure(n: int, ticks: int) -> dict:
                 echo_pubs[key] = declare_data_publisher(session, key, zenoh.CongestionControl.DROP)
             echo_pubs[key].put(sample.payload)
 
-    threading.Thread(target=echo, daemon=True).start()
+    echoer = threading.Thread(target=echo, daemon=True)
+    echoer.start()
     loop = threading.Thread(target=bridge.run, daemon=True)
     loop.start()
     child = subprocess.run([sys.executable, __file__, "--robot-process", str(n), "--port",
@@ -230,6 +238,7 @@ def measure(n: int, ticks: int) -> dict:
     bridge.stop()
     loop.join(timeout=2)
     echo_sub.undeclare()
+    echoer.join(timeout=5.0)
     for pub in echo_pubs.values():
         pub.undeclare()
     bridge.close()
