@@ -49,12 +49,20 @@ def run(args) -> int:
             if args.checkpoint is not None or args.out is not None:
                 print("error: --check takes only the policy file", file=sys.stderr)
                 return 2
+            if not args.check.is_file():
+                print(f"error: --check: no file {args.check}; give an exported policy "
+                      "(policy.onnx, .pt, .pt2 or .npz)", file=sys.stderr)
+                return 2
             report = check_export(args.check)
             print(f"OK {report.path} ({report.meta['file_format']}): golden file {report.golden.name} "
                   f"reproduced ({report.cases} comparisons, max abs diff {report.max_abs_diff:.3g})")
             return 0
         if args.checkpoint is None or args.out is None:
             print("error: give CKPT and --out policy (or --check policy.onnx)", file=sys.stderr)
+            return 2
+        if not args.checkpoint.is_file():
+            print(f"error: CKPT: no file {args.checkpoint}; give a training checkpoint "
+                  "(<run>/checkpoint.pt)", file=sys.stderr)
             return 2
         try:
             formats = None if args.format is None else _formats(args.format)

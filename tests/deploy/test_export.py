@@ -385,10 +385,12 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path, capsys):
                              "--format", "tflite")
     assert rc == 2 and "tflite" in err
     rc, err = formation_here(capsys, "export", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q"))
-    assert rc == 1 and "does not exist" in err
+    assert rc == 2 and "no file" in err and "nope.pt" in err       # a bad argument, as --help says
+    rc, err = formation_here(capsys, "export", "--check", str(tmp_path / "nope.onnx"))
+    assert rc == 2 and "no file" in err and "nope.onnx" in err
     (tmp_path / "random.pt").write_bytes(np.random.default_rng(1).bytes(3000))
     torch.jit.save(torch.jit.script(actor.eval()), str(tmp_path / "script.pt"))
-    for wrong in (tmp_path / "p.pt2", tmp_path / "p.golden.npz", tmp_path / "random.pt",
+    for wrong in (tmp_path / "p.npz", tmp_path / "p.golden.npz", tmp_path / "random.pt",
                   tmp_path / "script.pt"):                         # not a checkpoint: no traceback
         rc, err = formation_here(capsys, "export", str(wrong), "--out", str(tmp_path / "r"))
         assert rc == 1 and "checkpoint" in err and "weights_only" not in err and "Traceback" not in err
