@@ -27,6 +27,17 @@ def positive(text: str) -> int:
     return value
 
 
+def lease_ms(text: str) -> int:
+    """A Zenoh link lease [ms]: an integer >= 100 (what :class:`deploy.network.TransportConfig` takes)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected milliseconds (an integer >= 100), got {text!r}") from None
+    if value < 100:
+        raise argparse.ArgumentTypeError(f"a lease shorter than 100 ms drops healthy links; got {value}")
+    return value
+
+
 def int_list(text: str) -> list[int]:
     """A comma-separated list of positive integers (``3,4,5``) or a range (``3-5``)."""
     try:
@@ -107,7 +118,7 @@ def add_transport_flags(parser: argparse.ArgumentParser, identity: str) -> None:
     parser.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help="a Zenoh configuration file (JSON5) as the base for any Zenoh setting; "
                              "the flags above are written over it where given")
-    parser.add_argument("--lease-ms", type=int, default=None, metavar="MS",
+    parser.add_argument("--lease-ms", type=lease_ms, default=None, metavar="MS",
                         help="Zenoh link lease: a frozen peer counts as gone after about this long "
                              "(default Zenoh's 10000)")
 

@@ -26,6 +26,7 @@ import zenoh
 from deploy.fleet_sim import robot_names, write_json
 from deploy.router import Router, router_config
 from sim.scenario import make_scenario
+from stack.commands.argtypes import lease_ms
 
 
 def register(sub) -> None:
@@ -36,7 +37,8 @@ def register(sub) -> None:
     p.add_argument("--certs", required=True, help="folder made by `formation certs`")
     p.add_argument("--listen", action="append", default=[], metavar="tls/HOST:PORT",
                    help="endpoint to listen on (default tls/127.0.0.1:7447); repeat for several")
-    p.add_argument("--lease-ms", type=int, default=None, help="link lease [ms] (Zenoh default 10000)")
+    p.add_argument("--lease-ms", type=lease_ms, default=None, metavar="MS",
+                   help="link lease [ms], >= 100 (Zenoh default 10000)")
     p.add_argument("--report", type=Path, default=None, help="write the JSON exit report here too")
     p.add_argument("--no-count", dest="count", action="store_false",
                    help="do not count denied messages and refused links")

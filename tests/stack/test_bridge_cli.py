@@ -89,3 +89,18 @@ def test_a_recorded_stack_closes_a_record_per_episode_and_chunk_and_survives_a_f
     (tmp_path / "file").write_text("x")
     assert main(["bridge", "--fleet", "f", "--policy", "scripted", "--record", str(tmp_path / "file")]) == 2
     assert "--record" in capsys.readouterr().err
+
+
+def test_the_lease_flag_is_refused_below_100_ms_by_every_command_that_takes_it(capsys):
+    import pytest
+
+    from stack.cli import build_parser
+
+    parser = build_parser()
+    for base in (["bridge", "--fleet", "f", "--policy", "scripted"], ["fleet-sim", "--fleet", "f"],
+                 ["router", "--fleet", "f", "--certs", "c"]):
+        assert parser.parse_args([*base, "--lease-ms", "100"]).lease_ms == 100
+        for bad in ("-5", "99", "1.5"):
+            with pytest.raises(SystemExit) as done:
+                parser.parse_args([*base, "--lease-ms", bad])
+            assert done.value.code == 2 and "--lease-ms" in capsys.readouterr().err, (base, bad)
