@@ -36,7 +36,24 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from sim.files import atomic_path
 
 CONTROLLER, FLEET_SIM, ROUTER, OPERATOR, TRACKER = "controller", "fleet-sim", "router", "operator", "tracker"
+ROLES = (ROUTER, CONTROLLER, FLEET_SIM, OPERATOR, TRACKER)
+CA = "ca"                                # ca.pem, ca.key: no node may take this name
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_\-]{0,62}")
+
+
+def check_robot_ids(robots: Iterable[str]) -> list[str]:
+    """``robots`` as a list, each an id a robot's certificate can carry: 1-63 letters, digits,
+    '-' or '_', and neither a role's name (its certificate would be that role's, with its rights
+    at the router) nor ``ca`` (the CA's files). Raises ValueError naming the ids and the fix."""
+    robots = list(robots)
+    bad = [r for r in robots if not isinstance(r, str) or not _NAME_RE.fullmatch(r)]
+    if bad:
+        raise ValueError(f"robot ids must be 1-63 letters, digits, '-' or '_' (ids in certificates): got {bad}")
+    taken = [r for r in robots if r in (*ROLES, CA)]
+    if taken:
+        raise ValueError(f"robot ids {taken} are names of the fleet's own nodes or CA "
+                         f"({', '.join((*ROLES, CA))}): name the robots otherwise, e.g. r0, r1")
+    return robots
 
 
 @dataclass(frozen=True)
@@ -134,6 +151,8 @@ def make_certs(folder: str | Path, nodes: Iterable[str], hosts: Iterable[str] = 
     bad = [n for n in nodes if not isinstance(n, str) or not _NAME_RE.fullmatch(n)]
     if bad:
         raise ValueError(f"node names must be 1-63 letters, digits, '-' or '_': got {bad}")
+    if CA in nodes:     # its files would overwrite the CA's and lose the fleet's trust root
+        raise ValueError(f"no node may be named {CA!r}: {CA}.pem and {CA}.key are the fleet CA's")
     if not isinstance(days, int) or days < 1:
         raise ValueError(f"days must be a positive integer, got {days!r}")
     folder.mkdir(parents=True, exist_ok=True)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import zenoh
 
 from deploy.access_log import DIRECTIVES, AccessLog
-from deploy.certs import ROUTER, NodeFiles
+from deploy.certs import ROUTER, NodeFiles, check_robot_ids
 from deploy.network import ENDPOINT_RE
 from deploy.reject_log import RejectLog
 from deploy.security import fleet_acl, tls_block
@@ -60,6 +60,7 @@ class RouterConfig:
         object.__setattr__(self, "robots", tuple(self.robots))
         for rid in self.robots:
             check_name(rid)
+        check_robot_ids(self.robots)
         object.__setattr__(self, "listen", tuple(self.listen))
         if not self.listen:
             raise ValueError("router: give at least one --listen endpoint, e.g. tls/0.0.0.0:7447")

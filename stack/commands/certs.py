@@ -13,7 +13,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from deploy.certs import CONTROLLER, FLEET_SIM, OPERATOR, ROUTER, TRACKER, make_certs
+from deploy.certs import (
+    CONTROLLER,
+    FLEET_SIM,
+    OPERATOR,
+    ROUTER,
+    TRACKER,
+    check_robot_ids,
+    make_certs,
+)
 from deploy.fleet_sim import robot_names
 from sim.scenario import make_scenario
 
@@ -34,8 +42,8 @@ def register(sub) -> None:
 
 def run(args) -> int:
     try:
-        robots = (args.robots.split(",") if args.robots
-                  else list(robot_names(make_scenario(args.scenario).num_robots)))
+        robots = check_robot_ids(args.robots.split(",") if args.robots
+                                 else robot_names(make_scenario(args.scenario).num_robots))
         files = make_certs(args.out, [ROUTER, CONTROLLER, FLEET_SIM, OPERATOR, TRACKER, *robots], args.host, args.days)
     except (ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -41,3 +41,28 @@ def test_a_bad_fleet_name_is_reported_as_the_fleet_name(tmp_path):
     make_certs(tmp_path, [ROUTER])
     with pytest.raises(ValueError, match=r"fleet name \(--fleet\) 'f/1' is not allowed"):
         RouterConfig("f/1", ("r0",), NodeFiles.in_dir(tmp_path, ROUTER))
+
+
+def test_no_node_may_take_the_ca_files_and_no_robot_a_role_name(tmp_path, capsys):
+    """Before, a robot named 'ca' wrote its certificate and key over ca.pem and ca.key (every
+    node's certificate then stopped verifying), and a robot named 'controller' was handed the
+    controller's certificate, rights and all."""
+    from deploy.router import RouterConfig
+    from stack.cli import main
+
+    make_certs(tmp_path, [ROUTER])
+    ca = (tmp_path / "ca.pem").read_bytes(), (tmp_path / "ca.key").read_bytes()
+    with pytest.raises(ValueError, match="'ca'.*fleet CA"):
+        make_certs(tmp_path, ["r0", "ca"])
+    assert ((tmp_path / "ca.pem").read_bytes(), (tmp_path / "ca.key").read_bytes()) == ca
+    for robots in ("r0,ca", "r0,controller", "fleet-sim"):
+        assert main(["certs", "--out", str(tmp_path), "--robots", robots]) == 2
+        assert "name the robots otherwise" in capsys.readouterr().err
+    assert ((tmp_path / "ca.pem").read_bytes(), (tmp_path / "ca.key").read_bytes()) == ca
+    assert not (tmp_path / "controller.pem").exists()
+    for robots in (("r0", "operator"), ("ca",)):
+        with pytest.raises(ValueError, match="name the robots otherwise"):
+            RouterConfig("f", robots, NodeFiles.in_dir(tmp_path, ROUTER))
+    # an id the wire takes but a certificate cannot carry is refused where the router is made
+    with pytest.raises(ValueError, match=r"robot ids must be .*'r\.0'"):
+        RouterConfig("f", ("r.0",), NodeFiles.in_dir(tmp_path, ROUTER))
