@@ -64,7 +64,7 @@ def _pair(name: str, value: Any, lo: float, hi: float, integer: bool = False) ->
     try:
         a, b = value
         a, b = (int(a), int(b)) if integer else (float(a), float(b))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):          # OverflowError: int(inf)
         raise DistributionError(f"{name} must be a [low, high] pair, got {value!r}") from None
     if integer and (a != value[0] or b != value[1]):
         raise DistributionError(f"{name} must be a pair of integers, got {value!r}")
@@ -181,7 +181,9 @@ class ScenarioDistribution:
         pool = n if self.slot_pool == (0, 0) else int(rng.integers(max(n, self.slot_pool[0]),
                                                                    max(n, self.slot_pool[1]) + 1))
         canonical = transport_scenario(pool, object_vertices=turn_points(vertices, -angle, centre),
-                                       start_jitter=jitter, spacing=spacing, dynamics=base.dynamics)
+                                       start_jitter=jitter, spacing=spacing, dynamics=base.dynamics,
+                                       arena=base.arena, robot_radius=base.robot_radius,
+                                       target_tolerance=base.target_tolerance)
         starts, targets = np.asarray(canonical.starts), np.asarray(canonical.targets)
         if pool > n:
             starts = starts[np.sort(rng.choice(pool, n, replace=False))]

@@ -36,6 +36,20 @@ class ScenarioError(ValueError):
     """A scenario that cannot be run; the message names the field and the fix."""
 
 
+def _number(value: object, name: str, integer: bool = False) -> float | int:
+    """``value`` as the number a field ``name`` holds, or ScenarioError naming the field: a real
+    number (not a bool, a string or null); with ``integer`` an integral one, returned as int."""
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ScenarioError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
+    if integer:
+        if not (math.isfinite(value) and int(value) == value):
+            raise ScenarioError(f"{name} must be an integer, got {value!r}")
+        return int(value)
+    return value
+
+
 class ScenarioSourceError(ScenarioError):
     """A scenario name or file that cannot be resolved; the message begins with the name or file
     ("scenario file 'x.json': ...", "unknown scenario 'x' ..."), so callers need not prefix it."""
@@ -58,6 +72,11 @@ class Dynamics:
     accel_limit: float = 1.0
     speed_limit: float = 0.4
     damping: float = 0.5
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = _number(getattr(self, f.name), f"dynamics.{f.name}", integer=f.name == "episode_steps")
+            object.__setattr__(self, f.name, value)
 
     def step_np(self, pos: np.ndarray, vel: np.ndarray,
                 acc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -91,7 +110,7 @@ class Dynamics:
                 f"dynamics.damping * dynamics.dt = {self.damping * self.dt} must be < 1 "
                 "(the explicit damping step would reverse the velocity); lower damping or dt"
             )
-        if int(self.episode_steps) != self.episode_steps or self.episode_steps < 1:
+        if self.episode_steps < 1:
             raise ScenarioError(f"dynamics.episode_steps must be a positive integer, got {self.episode_steps!r}")
 
 
@@ -153,6 +172,13 @@ class Scenario:
     dynamics: Dynamics = field(default_factory=Dynamics)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "num_robots", _number(self.num_robots, "num_robots", integer=True))
+        for name in ("robot_radius", "target_tolerance", "start_jitter"):
+            _number(getattr(self, name), name)
+        arena = self.arena
+        if isinstance(arena, str) or not hasattr(arena, "__len__") or len(arena) != 2:
+            raise ScenarioError(f"arena must be a (width, height) pair [m], got {arena!r}")
+        object.__setattr__(self, "arena", tuple(_number(c, "arena") for c in arena))
         # Accept lists (e.g. from JSON) but store tuples so the scenario stays hashable.
         for name in ("start_slots", "target_slots", "object_vertices"):
             value = getattr(self, name)
@@ -163,6 +189,8 @@ class Scenario:
         object.__setattr__(self, "arena", tuple(float(c) for c in self.arena))
         if isinstance(self.dynamics, dict):
             object.__setattr__(self, "dynamics", Dynamics(**self.dynamics))
+        if not isinstance(self.dynamics, Dynamics):
+            raise ScenarioError(f"dynamics must be a mapping of Dynamics fields, got {self.dynamics!r}")
         self.validate()
 
     # ------------------------------------------------------------------ arrays
@@ -218,6 +246,11 @@ class Scenario:
         poly = self.polygon
         if len(poly) < 3:
             raise ScenarioError("object_vertices needs at least 3 vertices")
+        edge = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
+        for i in np.flatnonzero(edge < 1e-9):
+            raise ScenarioError(
+                f"object_vertices[{i}] and object_vertices[{(i + 1) % len(poly)}] are the same point: "
+                "list each vertex once (the polygon closes itself; do not repeat the first vertex)")
         if polygon_signed_area(poly) <= 0:
             raise ScenarioError(
                 "object_vertices must be listed counter-clockwise with a non-zero area; reverse the list"
@@ -236,10 +269,13 @@ class Scenario:
                         + "; move it inward"
                     )
             sd = point_polygon_signed_distance_np(pts, poly)
-            for i in np.flatnonzero(sd < reach):
+            clear = r + math.sqrt(2) * slack         # the jitter is per axis: up to sqrt(2) j away
+            for i in np.flatnonzero(sd < clear):
                 raise ScenarioError(
                     f"{name}[{i}] = ({pts[i, 0]:.3f}, {pts[i, 1]:.3f}) is inside or touching the object "
-                    f"(clearance {sd[i]:.3f} m < {reach:.3f} m); move it away from the object"
+                    f"(clearance {sd[i]:.3f} m < {clear:.3f} m"
+                    + (f", a radius plus sqrt(2) x start jitter {j}" if slack else "")
+                    + "); move it away from the object"
                 )
             d = np.linalg.norm(pts[:, None] - pts[None], axis=-1) + np.eye(n) * 1e9
             i, k = np.unravel_index(np.argmin(d), d.shape)
@@ -270,9 +306,11 @@ class Scenario:
         return cls(**data)
 
     def with_robots(self, n: int) -> Scenario:
-        """The default layout of this arena and object for ``n`` robots."""
+        """The default layout of this arena and object for ``n`` robots, with this scenario's
+        robots (radius), tolerance, jitter and dynamics."""
         return transport_scenario(n, object_vertices=self.object_vertices, dynamics=self.dynamics,
-                                  start_jitter=self.start_jitter)
+                                  start_jitter=self.start_jitter, arena=self.arena,
+                                  robot_radius=self.robot_radius, target_tolerance=self.target_tolerance)
 
 
 def polygon_signed_area(poly: np.ndarray) -> float:
@@ -290,11 +328,15 @@ def polygon_centroid(poly: np.ndarray) -> np.ndarray:
 
 
 def transport_scenario(n: int, *, object_vertices=None, dynamics: Dynamics | None = None,
-                       start_jitter: float = 0.015, spacing: float = 0.125, name: str | None = None) -> Scenario:
+                       start_jitter: float = 0.015, spacing: float = 0.125, name: str | None = None,
+                       arena: tuple[float, float] = (1.0, 1.0), robot_radius: float = 0.04,
+                       target_tolerance: float = 0.05) -> Scenario:
     """The default layout for ``n`` robots: slots in columns right (start) and left (target) of the object.
 
     The object's bounding box sets the columns: starts at ``right edge + 0.07``, targets at
     ``left edge - 0.07`` (robot radius 0.04, jitter 0.015, 0.015 clearance), one column per 7 robots.
+    ``arena``, ``robot_radius`` and ``target_tolerance`` are the scenario's fields (a larger
+    radius or jitter than the slots allow is refused by :meth:`Scenario.validate`).
     """
     if not isinstance(n, int | np.integer) or not 1 <= n <= MAX_ROBOTS:
         raise ScenarioError(f"num_robots must be an integer in 1..{MAX_ROBOTS}, got {n!r}")
@@ -308,6 +350,9 @@ def transport_scenario(n: int, *, object_vertices=None, dynamics: Dynamics | Non
         start_slots=column_slots(n, xmax + 0.07, yc, spacing, side=+1),
         target_slots=column_slots(n, xmin - 0.07, yc, spacing, side=-1),
         object_vertices=tuple(map(tuple, poly)),
+        arena=tuple(arena),
+        robot_radius=robot_radius,
+        target_tolerance=target_tolerance,
         start_jitter=start_jitter,
         dynamics=dynamics or Dynamics(),
     )

@@ -337,6 +337,14 @@ class MAPPOConfig:
                                    "given; use actor.variant 'typed' and critic.variant 'attention'")
         if isinstance(sizes, tuple):
             object.__setattr__(self, "team_sizes", list(sizes))
+        if self.distribution is None:         # each size's layout of the scenario's arena and object
+            from sim.scenario import ScenarioError
+
+            try:
+                self.build_team_scenarios()
+            except ScenarioError as exc:
+                raise TrainConfigError(f"team_sizes: the layout of a team size does not fit the scenario: "
+                                       f"{exc}; give sizes that fit, or a distribution") from None
 
     # ---------------------------------------------------------------- (de)serialise
     def to_dict(self) -> dict[str, Any]:

@@ -223,3 +223,22 @@ def test_inline_json_longer_than_a_file_name_is_read_and_long_junk_is_refused_by
     assert load_distribution(text).slot_spacing == (0.12, 0.14)
     with pytest.raises(DistributionError, match="neither a name"):
         load_distribution("b" * 300)
+
+
+def test_layouts_are_drawn_in_the_base_scenarios_arena_with_its_robots():
+    """The canonical layout was checked against the default 1 x 1 arena: a valid 2 x 2 scenario
+    drew nothing at all."""
+    from sim.scenario import Scenario
+
+    d = make_scenario("paper-3").to_dict()
+    shift = lambda pts: [[x + 0.5, y + 0.5] for x, y in pts]   # noqa: E731
+    d.update(arena=[2.0, 2.0], start_slots=shift(d["start_slots"]), target_slots=shift(d["target_slots"]),
+             object_vertices=shift(d["object_vertices"]), robot_radius=0.035, target_tolerance=0.03)
+    drawn = ScenarioDistribution(object_width=(0.2, 0.21)).layout(Scenario.from_dict(d), 3, np.random.default_rng(0))
+    assert drawn.arena == (2.0, 2.0) and (drawn.robot_radius, drawn.target_tolerance) == (0.035, 0.03)
+    assert np.allclose(drawn.object_center, [1.0, 1.0], atol=1e-9)
+
+
+def test_an_infinite_integer_range_is_named():
+    with pytest.raises(DistributionError, match="delay_ticks must be a"):
+        ScenarioDistribution(delay_ticks=(0, float("inf")))

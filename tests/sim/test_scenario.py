@@ -172,3 +172,71 @@ def test_a_bad_scenario_file_names_the_file_and_field(tmp_path, content, message
 def test_a_name_longer_than_a_file_name_is_an_unknown_scenario_not_an_os_error():
     with pytest.raises(ScenarioError, match="unknown scenario"):
         make_scenario("paper" * 60)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"arena": [1.0]}, "arena must be a (width, height) pair"),
+    ({"arena": "11"}, "arena must be a (width, height) pair"),
+    ({"robot_radius": "0.04"}, "robot_radius must be a number"),
+    ({"target_tolerance": None}, "target_tolerance must be a number"),
+    ({"start_jitter": True}, "start_jitter must be a number"),
+    ({"num_robots": True}, "num_robots must be an integer"),
+    ({"num_robots": 3.5}, "num_robots must be an integer"),
+    ({"dynamics": {"dt": "0.05"}}, "dynamics.dt must be a number"),
+    ({"dynamics": {"episode_steps": float("inf")}}, "dynamics.episode_steps must be an integer"),
+    ({"dynamics": {"episode_steps": float("nan")}}, "dynamics.episode_steps must be an integer"),
+    ({"dynamics": {"episode_steps": 12.5}}, "dynamics.episode_steps must be an integer"),
+    ({"dynamics": [1, 2]}, "dynamics must be a mapping"),
+])
+def test_a_field_of_the_wrong_type_is_named_not_a_traceback(change, message):
+    """Before: the arena was unpacked unchecked (a traceback), int(inf) overflowed, and
+    float('x') errors named no field."""
+    data = make_scenario("paper-3").to_dict() | change
+    with pytest.raises(ScenarioError) as err:
+        Scenario.from_dict(data)
+    assert message in str(err.value)
+
+
+def test_an_integral_episode_length_is_kept_as_an_integer():
+    """128.0 (a TOML or JSON float) was kept as a float, which training could not range over."""
+    data = make_scenario("paper-3").to_dict()
+    data["dynamics"]["episode_steps"] = 128.0
+    steps = Scenario.from_dict(data).dynamics.episode_steps
+    assert steps == 128 and type(steps) is int
+
+
+def test_a_start_slot_clears_the_object_by_the_diagonal_jitter():
+    """The jitter is per axis, so a start may move sqrt(2) j: a slot diagonal to a corner
+    needs r + sqrt(2) j. Before, r + j was enough, and 3.6 % of such starts overlapped the box."""
+    import math
+
+    data = make_scenario("paper-3").to_dict()
+    r, j = data["robot_radius"], data["start_jitter"]
+    corner = np.array([0.6, 0.65])                       # upper-right corner of the default box
+    for clearance, ok in ((r + j + 1e-4, False), (r + math.sqrt(2) * j + 1e-4, True)):
+        slot = corner + clearance / math.sqrt(2)
+        data["start_slots"] = [slot.tolist(), [0.67, 0.45], [0.67, 0.3]]
+        if ok:
+            Scenario.from_dict(data)
+        else:
+            with pytest.raises(ScenarioError, match=r"start_slots\[0\].*sqrt\(2\) x start jitter"):
+                Scenario.from_dict(data)
+
+
+def test_a_repeated_vertex_is_named():
+    """A ring-closed polygon (first vertex repeated last) passed validation, then made the
+    safety filter's ear clipping raise on its first tick and its closed forms return NaN."""
+    data = make_scenario("paper-3").to_dict()
+    data["object_vertices"] = [*data["object_vertices"], data["object_vertices"][0]]
+    with pytest.raises(ScenarioError, match=r"object_vertices\[4\] and object_vertices\[0\] are the same"):
+        Scenario.from_dict(data)
+
+
+def test_another_team_size_keeps_the_arena_radius_and_tolerance():
+    """with_robots (every team size of a team_sizes run) fell back to the defaults."""
+    base = make_scenario("paper-3")
+    small = Scenario.from_dict(base.to_dict() | {"robot_radius": 0.035, "target_tolerance": 0.02})
+    four = small.with_robots(4)
+    assert (four.robot_radius, four.target_tolerance, four.arena, four.num_robots) == (0.035, 0.02, (1.0, 1.0), 4)
+    big = transport_scenario(3, object_vertices=rectangle((1.0, 1.0), (0.2, 0.3)), arena=(2.0, 2.0))
+    assert big.with_robots(5).arena == (2.0, 2.0)

@@ -34,3 +34,17 @@ def test_a_wrongly_typed_setting_is_refused_by_name(fields, message):
 def test_a_wrongly_typed_actor_setting_is_refused_by_name(actor, message):
     with pytest.raises(PolicyConfigError, match=message):
         MAPPOConfig.from_dict({"scenario": "paper-3", "actor": actor})
+
+
+def test_every_team_size_keeps_the_scenarios_robots_and_a_size_that_cannot_fit_is_named():
+    """Other team sizes fell back to the default radius and tolerance (an easier task, counted
+    in the run's worst-size success); a size whose layout leaves the arena raised uncaught."""
+    from sim.scenario import make_scenario, rectangle, transport_scenario
+
+    strict = make_scenario("paper-3").to_dict() | {"robot_radius": 0.035, "target_tolerance": 0.02}
+    config = MAPPOConfig(scenario=strict, team_sizes=[3, 4, 5])
+    assert {(s.num_robots, s.robot_radius, s.target_tolerance) for s in config.build_team_scenarios()} == {
+        (3, 0.035, 0.02), (4, 0.035, 0.02), (5, 0.035, 0.02)}
+    narrow = transport_scenario(3, object_vertices=rectangle((0.5, 0.5), (0.2, 0.3)), arena=(1.0, 0.7)).to_dict()
+    with pytest.raises(TrainConfigError, match="team_sizes: the layout of a team size does not fit"):
+        MAPPOConfig(scenario=narrow, team_sizes=[3, 5])
