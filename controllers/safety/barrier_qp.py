@@ -330,6 +330,7 @@ class SafetyFilter:
         fused = self.config.geometry == "fused"
         fixed = None
         if prediction is not None:
+            prediction.require_rows(n, "SafetyFilter.filter")
             pos, vel, fixed = prediction.pos, prediction.vel, prediction.fixed
             if np.count_nonzero(fixed):
                 a_nom = np.where(fixed[:, None], 0.0, a_nom)

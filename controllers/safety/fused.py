@@ -53,7 +53,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.jit import f64
+from controllers.jit import f64, require_shapes
 from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
 from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
@@ -205,6 +205,10 @@ class FusedScene:
         dropped (bound -inf).
         """
         p, k, n = self.p, self.k, self.n
+        if not pos.shape == vel.shape == (n, 2):
+            require_shapes("FusedScene.terms", pos=(pos, (n, 2)), vel=(vel, (n, 2)))
+        if prediction is not None:
+            prediction.require_rows(n, "FusedScene.terms")
         if polygon is not self._polygon:
             self._set_polygon(polygon)
         normal, dist, h = np.empty((2, k)), np.empty(k), np.empty(k)
@@ -265,6 +269,9 @@ class FusedScene:
         :meth:`failing`, compiled (:func:`controllers.safety.fused_kernels.sweep_rows`): ``clear``
         when the travel bound rules every pair and wall out (``hit``, ``wall_hit`` then all False)."""
         n = self.n
+        if not (pos.shape == vel.shape == acc.shape == (n, 2) and widen.shape == (n,)):
+            require_shapes("FusedScene check", pos=(pos, (n, 2)), vel=(vel, (n, 2)), acc=(acc, (n, 2)),
+                           widen=(widen, (n,)))
         end, bulge, travel = np.empty((n, 2)), np.empty(n), np.empty(n)
         hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
         clear = fused_kernels.sweep_rows(

@@ -10,6 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from controllers.jit import require_shapes
+
 
 @dataclass
 class Prediction:
@@ -47,6 +49,23 @@ class Prediction:
     velocity_error: np.ndarray | None = None
     unsure: np.ndarray | None = None
     covers: tuple[tuple[int, np.ndarray, np.ndarray], ...] = ()
+
+    def require_rows(self, n: int, where: str) -> None:
+        """Raise ValueError naming the first field that does not hold ``n`` rows: the compiled
+        kernels that read a prediction do not check their bounds."""
+        plane, vector = (n, 2), (n,)
+        if (self.pos.shape == self.vel.shape == plane
+                and self.grow.shape == self.closing.shape == self.fixed.shape == self.horizon.shape == vector
+                and (self.brake_vel is None or self.brake_vel.shape == plane)
+                and (self.velocity_error is None or self.velocity_error.shape == vector)
+                and (self.unsure is None or self.unsure.shape == vector)):
+            return                                  # the tick's path: no message to build
+        vectors = {name: (getattr(self, name), (n,)) for name in
+                   ("grow", "closing", "fixed", "horizon", "velocity_error", "unsure")
+                   if getattr(self, name) is not None}
+        planes = {name: (getattr(self, name), (n, 2)) for name in ("pos", "vel", "brake_vel")
+                  if getattr(self, name) is not None}
+        require_shapes(f"{where}: the prediction (one row per robot of pos)", **planes, **vectors)
 
     def with_covers(self) -> Prediction:
         """The prediction over ``N + V`` rows for the filter: each covered row takes its first

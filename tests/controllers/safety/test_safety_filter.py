@@ -196,3 +196,37 @@ def test_a_robot_on_both_wall_curves_of_a_corner_can_still_meet_both(zx, zy):
         assert (result.solver != "daqp") is feasible, (share, result.solver, result.reason)
         if feasible:
             assert result.max_slack == 0.0
+
+
+_MISMATCH = """
+import numpy as np
+from controllers.safety import SafetyConfig, SafetyFilter
+from controllers.safety.prediction import Prediction
+from sim.scenario import make_scenario
+f = SafetyFilter(make_scenario("paper-3"), SafetyConfig(geometry={geometry!r}))
+pos = np.array([[0.15, 0.2], [0.85, 0.8], [0.2, 0.85]]); vel = np.zeros((3, 2)); a = np.full((3, 2), 0.1)
+for m in (2, 4):      # a row short, a row over
+    rows = np.vstack([pos, [[0.5, 0.1]]])[:m]
+    pred = Prediction.as_measured(rows, np.zeros((m, 2)), np.zeros(m, bool))
+    try:
+        f.filter(pos, vel, a, prediction=pred)
+        print("accepted", m)
+    except ValueError as err:
+        print("refused", m, err)
+"""
+
+
+@pytest.mark.parametrize("geometry", ["fused", "analytic"])
+def test_a_prediction_with_another_row_count_than_pos_is_refused_by_name(geometry):
+    """Before, the fused path ran its unchecked kernels on the prediction's rows: a row short read
+    past the arrays (a robot stopped in open space, or IndexError), a row over wrote past them
+    (free(): invalid pointer). In a child process: the parent must survive the old behaviour."""
+    import subprocess
+    import sys
+
+    child = subprocess.run([sys.executable, "-c", _MISMATCH.format(geometry=geometry)], capture_output=True,
+                           text=True, timeout=120)
+    assert child.returncode == 0, child.stderr[-2000:]
+    lines = child.stdout.strip().splitlines()
+    assert [line.split()[:2] for line in lines] == [["refused", "2"], ["refused", "4"]], child.stdout
+    assert all("the prediction (one row per robot of pos): pos must have shape (3, 2)" in line for line in lines)
