@@ -256,9 +256,7 @@ class LatencyPredictor:
     def __init__(self, dynamics: Dynamics, config: LatencyConfig | None = None):
         self.dynamics = dynamics
         self.config = config or LatencyConfig()
-        # deep enough for the commands a robot may still act on when it first counts as stale
-        max_age = self.config.stale_after_s + dynamics.dt
-        self.depth = int(horizon_ticks(np.array([max_age]), self._max_delay(None), dynamics.dt)[0]) + 2
+        self.depth = self._depth_for(self._max_delay(None))
         # the kernel's scalars, typed once (a new type would compile a new kernel mid-run)
         cfg = self.config
         self._kernel_consts = tuple(float(x) for x in (
@@ -279,6 +277,23 @@ class LatencyPredictor:
 
     def _max_delay(self, measured: float | None) -> float:
         return self.config.delay_bound(measured)
+
+    def _depth_for(self, delay: float) -> int:
+        """History rows deep enough for the commands a robot may still act on when it first
+        counts as stale, at a latency bound ``delay`` [s]."""
+        max_age = self.config.stale_after_s + self.dynamics.dt
+        return int(horizon_ticks(np.array([max_age]), delay, self.dynamics.dt)[0]) + 2
+
+    def _deepen(self, delay: float) -> None:
+        """Grow the history for a measured bound above the configured one (older rows: nothing
+        recorded), so no horizon is cut to the configured depth."""
+        extra = self._depth_for(delay) - self.depth
+        if extra <= 0:
+            return
+        n = len(self._ids)
+        self._history = np.concatenate([np.zeros((extra, n, 2)), self._history])
+        self._braked = np.concatenate([np.zeros((extra, n), dtype=bool), self._braked])
+        self.depth += extra
 
     def _align(self, ids: tuple[str, ...]) -> None:
         """Re-key the rows to ``ids`` (kept for known ids; new ones: no command, any acceleration)."""
@@ -339,6 +354,7 @@ class LatencyPredictor:
         cfg, dyn = self.config, self.dynamics
         self._align(tuple(ids))
         delay = self._max_delay(measured_delay_s)
+        self._deepen(delay)
         n = len(ages)
         pending = (np.full(n, -1, dtype=np.int64) if pending is None
                    else np.ascontiguousarray(pending, dtype=np.int64))
