@@ -11,7 +11,9 @@ Shapes (arena metres, the plane z = 0 embedded in 3-D for FCL):
   simple non-convex one (distances outside are exact; a penetration depth inside is the depth into
   the deepest triangle, which has the right sign but may be shallower than the true depth).
 * The walls x = 0, x = W, y = 0, y = H: four thick ``fcl.Box`` slabs just outside the arena
-  (not ``fcl.Halfspace``: its distance query crashes python-fcl 0.7).
+  for the broadphase (not ``fcl.Halfspace``: its distance query crashes python-fcl 0.7); their
+  distances are the half-planes' closed form, ``x - r``, ``W - x - r``, ..., which a slab gets
+  wrong for a centre past its far face (1 m out: it read clear).
 
 FCL facts this module works around (python-fcl 0.7.0.11): a *signed* distance query runs GJK
 even for sphere-box and is off by up to 7e-4 m, while the plain query is exact for sphere-sphere
@@ -333,11 +335,9 @@ class CollisionScene:
                 d, pts = self._signed(self.robots[i], part)
                 if d < obj_d[i]:
                     obj_d[i], obj_pts[i] = d, pts
-        wall_d = np.empty((n, 4))
-        for i in range(n):
-            for w, wall in enumerate(self.walls):
-                wall_d[i, w], _ = self._signed(self.robots[i], wall)
         pos = self.positions
+        (w, h), x, y = self.arena, pos[:, 0], pos[:, 1]
+        wall_d = np.stack([x, w - x, y, h - y], axis=1) - r
         normal, centre_dist = _unit(pos[pi] - pos[pj])
         # GJK's witness points on the object are good to ~1e-5 m only: keep FCL's choice of the
         # nearest edge and its inside/outside verdict, and project the centre onto that edge.

@@ -177,3 +177,15 @@ def test_robots_touching_the_objects_corners_are_measured_without_aborting_the_p
         print(json.dumps(worst))
     """)
     assert worst < 1e-5
+
+
+def test_a_robot_far_outside_the_arena_is_past_the_wall_on_every_geometry():
+    """The FCL walls are 1 m slabs: a centre past a slab's far face measured a positive distance
+    to it (x = -1.2: +0.160 m where the wall is 1.240 m behind the robot) and the filter passed
+    its command unchanged where the other geometries pushed it back."""
+    pos = np.array([[-1.2, 0.5], [0.5, 2.3], [0.2, 0.2]])
+    want = np.array([[-1.2 - R, 2.2 - R, 0.5 - R, 0.5 - R], [0.5 - R, 0.5 - R, 2.3 - R, -1.3 - R],
+                     [0.2 - R, 0.8 - R, 0.2 - R, 0.8 - R]])
+    np.testing.assert_allclose(scene_at(pos).distances().wall_distance, want, atol=1e-12)
+    analytic = analytic_distances(pos, R, SCENARIO.arena, SCENARIO.polygon)
+    np.testing.assert_allclose(analytic.wall_distance, want, atol=1e-12)
