@@ -25,6 +25,16 @@ def all_finite(x):
 
 
 @kernel
+def all_rows_within(x, limit):
+    """Every row of an (N, 2) array finite with norm <= ``limit`` (False for NaN or inf)."""
+    limit2 = limit * limit
+    for i in range(x.shape[0]):
+        if not x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1] <= limit2:
+            return False
+    return True
+
+
+@kernel
 def non_finite_rows(pos, vel, out):
     """``out = ~(isfinite(pos).all(1) & isfinite(vel).all(1))`` (N,) bool for (N, 2) ``pos``,
     ``vel``; returns how many rows are not finite."""
@@ -64,9 +74,10 @@ def clip_norm_rows(x: np.ndarray, limit: float) -> np.ndarray:
 def _warm_up() -> None:
     x = np.zeros((2, 2))
     all_finite(x)
+    all_rows_within(x, 1.0)
     non_finite_rows(x, x, np.empty(2, dtype=bool))
     clip_factor(3.0, 4.0, 1.0)
     clip_rows(x, 1.0, np.empty((2, 2)))
 
 
-__all__ = ["all_finite", "clip_factor", "clip_norm_rows", "clip_rows", "non_finite_rows"]
+__all__ = ["all_finite", "all_rows_within", "clip_factor", "clip_norm_rows", "clip_rows", "non_finite_rows"]

@@ -95,8 +95,10 @@ stands out of the noise: less compensation, never a random walk. A robot's first
 Estimates are keyed by robot id (``ids`` of :meth:`ModelErrorCompensator.step`): a robot that
 leaves takes its estimate with it, a robot that joins starts afresh, and rows may reorder.
 
-A robot whose velocity is not finite keeps its prediction (no update) and the tick reports
-``INVALID_MEASUREMENT``; a non-finite ``a_safe`` row gives a zero command for that robot and
+A robot whose velocity is not finite, or faster than ``PLAUSIBLE_SPEED`` times the speed limit
+(a glitch no robot can reach: one 1000 m/s reading held its noise estimate up for the rest of
+an episode, one of 1e160 overflowed its score and gated it for good), keeps its prediction (no
+update) and the tick reports ``INVALID_MEASUREMENT``; a non-finite ``a_safe`` row gives a zero command for that robot and
 ``INVALID_COMMAND``. The output is never NaN.
 """
 
@@ -112,7 +114,7 @@ import numpy as np
 import scipy.linalg
 
 from controllers import mec_kernels
-from controllers.array_kernels import all_finite
+from controllers.array_kernels import all_rows_within
 from controllers.checks import check_numbers
 from controllers.jit import f64
 from sim.scenario import Dynamics
@@ -122,6 +124,7 @@ NOISE_FORGET = 0.95     # forgetting factor of the innovation variance that pick
 FALSE_ALARM = 1e-6      # chance per robot and tick that wander alone exceeds the threshold
 SIGNIFICANCE = math.sqrt(-2.0 * math.log(FALSE_ALARM))   # 5.26: |d_hat| of pure wander is Rayleigh
 WARMUP_UPDATES = 1      # a robot's first updates only estimate: its noise level is not known yet
+PLAUSIBLE_SPEED = 10.0  # a measured speed above this many speed limits is a glitch, not a measurement
 NOISE_UPPER_SIGMAS = 3.0  # the noise variance counted: its estimate + 3 of its standard deviations
 
 
@@ -324,8 +327,10 @@ class ModelErrorCompensator:
         if len(ids) != n:
             raise ValueError(f"ModelErrorCompensator.update: {len(ids)} ids for {n} robots")
         vel = f64(vel)
-        self._all_valid = all_finite(vel)
-        valid = np.ones(n, dtype=bool) if self._all_valid else np.isfinite(vel).all(axis=1)
+        plausible = PLAUSIBLE_SPEED * self.dynamics.speed_limit
+        self._all_valid = all_rows_within(vel, plausible)
+        valid = (np.ones(n, dtype=bool) if self._all_valid
+                 else np.isfinite(vel).all(axis=1) & (np.hypot(vel[:, 0], vel[:, 1]) <= plausible))
         fresh = self._align(ids, vel, valid) if ids != self.ids else np.zeros(n, dtype=bool)
         self._reset_tick = np.count_nonzero(fresh) == n
         if not self._all_valid:

@@ -224,3 +224,26 @@ def test_a_robot_whose_noise_rests_on_few_samples_is_counted_noisier(monkeypatch
     assert compensated() <= 50
     monkeypatch.setattr("controllers.mec.NOISE_UPPER_SIGMAS", 2.0)
     assert compensated() >= 58
+
+
+@pytest.mark.parametrize("glitch", [1e3, 1e160])
+def test_one_impossible_velocity_reading_is_no_measurement_and_the_robot_is_compensated_again(glitch):
+    """Before: a reading of 1e160 m/s overflowed the innovation score to inf, gating the robot
+    for good; one of 1000 m/s held its noise estimate up past the end of a 20 s run. Both now
+    count as no measurement, as NaN does, and the run matches a run with a NaN there."""
+    dyn = Dynamics()
+
+    def run(reading):
+        mec, v, out = ModelErrorCompensator(dyn), np.zeros((1, 2)), []
+        for k in range(400):
+            res = mec.step(np.array([[reading, 0.0]]) if k == 50 else v.copy(), np.array([[0.2, 0.0]]))
+            if k == 50:
+                assert res.status == MecStatus.INVALID_MEASUREMENT
+            v = np.clip(v + dyn.dt * (0.7 * res.a_cmd - dyn.damping * v), -0.4, 0.4)   # gain 0.7
+            out.append((bool(res.gated[0]), res.compensation[0].copy()))
+        return out
+
+    got, want = run(glitch), run(np.nan)
+    assert not any(gated for gated, _ in got[51:])
+    assert got[-1][1][0] < -0.05                        # compensating the 0.7 gain again
+    np.testing.assert_array_equal(np.array([c for _, c in got]), np.array([c for _, c in want]))
