@@ -22,7 +22,8 @@ observations, actions epsilon-greedy from ``Q``, next observations and rewards f
 (never terminal: the task has no terminal state).
 
 **Exploration**: epsilon-greedy, epsilon annealed linearly from ``epsilon_start`` to
-``epsilon_end`` over ``epsilon_anneal_episodes``.
+``epsilon_end`` over the run's first ``epsilon_anneal_episodes`` finished episodes (the loop's
+count, as ``total_episodes``), set after every collection.
 
 **Hyper-parameters** and their source: K = 5 planning steps (the DDQ paper's DDQ(5), its main
 setting), epsilon-greedy (0.1 in the paper's dialogue task, here annealed from 1.0 to 0.05 for
@@ -175,8 +176,6 @@ class DDQAgent:
     def __init__(self, scenario: Scenario, config: DDQConfig, action_spec=None):
         n = scenario.num_robots
         self.config = config
-        self.episodes_per_collection = max(1, config.num_envs * config.steps_per_collection
-                                           // scenario.dynamics.episode_steps)
         table = action_table(scenario.dynamics.accel_limit)
         self.q_net = _mlp(4 * n + 2, config.hidden, NUM_ACTIONS)
         self.target = copy.deepcopy(self.q_net).requires_grad_(False)
@@ -228,10 +227,11 @@ class DDQAgent:
             self.target.load_state_dict(self.q_net.state_dict())
         return float(loss.detach())
 
-    def after_collection(self) -> None:
+    def after_collection(self, episodes: int) -> None:
+        """Epsilon for the run's ``episodes`` finished so far (the schedule: module docstring)."""
         cfg = self.config
         self.collections += 1
-        progress = min(1.0, self.collections * self.episodes_per_collection / cfg.epsilon_anneal_episodes)
+        progress = min(1.0, episodes / cfg.epsilon_anneal_episodes)
         self.greedy.epsilon = cfg.epsilon_start + progress * (cfg.epsilon_end - cfg.epsilon_start)
 
     def log_row(self) -> dict[str, Any]:

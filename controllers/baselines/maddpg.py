@@ -24,7 +24,8 @@ with Adam on each loss and gradient norms clipped to 0.5 (the MADDPG reference c
 **Data**: ``num_envs`` environments of :class:`sim.torchrl_env.FormationTorchRLEnv` collected by
 :class:`~torchrl.collectors.Collector`, the actor's action plus Gaussian noise of
 standard deviation ``sigma`` (annealed linearly from ``noise_start`` to ``noise_end`` times
-``a_max`` over ``noise_anneal_episodes``; :class:`~torchrl.modules.AdditiveGaussianModule`,
+``a_max`` over the run's first ``noise_anneal_episodes`` finished episodes, set after every
+collection; :class:`~torchrl.modules.AdditiveGaussianModule`,
 clipped to the action box), into a :class:`~torchrl.data.TensorDictReplayBuffer`; one update
 per ``samples_per_update`` transitions added.
 
@@ -177,12 +178,10 @@ def build_maddpg(scenario: Scenario, config: MADDPGConfig, action_spec) -> MADDP
     policy = TensorDictModule(actor, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "action")])
     value = TensorDictModule(critic, in_keys=[(GROUP, "observation"), (GROUP, "action")],
                              out_keys=[(GROUP, "state_action_value")])
-    episodes_per_collection = max(1, config.num_envs * config.steps_per_collection
-                                  // scenario.dynamics.episode_steps)
     noise = AdditiveGaussianModule(spec=action_spec, sigma_init=config.noise_start * a_max,
                                    sigma_end=config.noise_end * a_max,
-                                   annealing_num_steps=max(1, config.noise_anneal_episodes // episodes_per_collection),
-                                   action_key=(GROUP, "action"))
+                                   annealing_num_steps=config.noise_anneal_episodes,   # set by episode:
+                                   action_key=(GROUP, "action"))                       # noise_sigma()
     explore = TensorDictSequential(policy, noise)
     loss = DDPGLoss(actor_network=policy, value_network=value, delay_value=True, delay_actor=True,
                     loss_function="l2")
@@ -195,6 +194,14 @@ def build_maddpg(scenario: Scenario, config: MADDPGConfig, action_spec) -> MADDP
         "loss_value": torch.optim.Adam(loss.value_network_params.flatten_keys().values(), lr=config.critic_lr),
     }
     return MADDPGParts(actor, critic, policy, explore, noise, loss, target_update, optimizers)
+
+
+def noise_sigma(noise, episodes: int) -> float:
+    """The exploration std after ``episodes`` finished episodes: linear from ``sigma_init`` to
+    ``sigma_end`` over ``noise.annealing_num_steps`` (= ``noise_anneal_episodes``) episodes."""
+    progress = min(1.0, episodes / noise.annealing_num_steps)
+    start, end = float(noise.sigma_init), float(noise.sigma_end)
+    return start + progress * (end - start)
 
 
 def maddpg_update(parts: MADDPGParts, batch: TensorDict, max_grad_norm: float) -> dict[str, float]:
@@ -235,8 +242,9 @@ class MADDPGAgent:
         shaped = self.gasil.shape(batch) if self.gasil is not None else {}
         return maddpg_update(self.parts, batch, self.config.max_grad_norm) | shaped
 
-    def after_collection(self) -> None:
-        self.parts.noise.step()
+    def after_collection(self, episodes: int) -> None:
+        """The noise for the run's ``episodes`` finished so far (:func:`noise_sigma`)."""
+        self.parts.noise.sigma.fill_(noise_sigma(self.parts.noise, episodes))
 
     def log_row(self) -> dict[str, Any]:
         row = {"noise_sigma": float(self.parts.noise.sigma)}
@@ -266,4 +274,4 @@ def train_maddpg(config: MADDPGConfig, run_dir: str | Path, *, resume: bool = Fa
 
 
 __all__ = ["BoundedActor", "CentralCritic", "MADDPGAgent", "MADDPGConfig", "MADDPGConfigError", "MADDPGParts",
-           "build_maddpg", "maddpg_update", "train_maddpg"]
+           "build_maddpg", "maddpg_update", "noise_sigma", "train_maddpg"]

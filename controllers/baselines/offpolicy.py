@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -51,6 +52,11 @@ buffer goes with them, up to 400 MB for 10^6 transitions of three robots."""
 
 class BaselineConfigError(ValueError):
     """A baseline setting that cannot work; the message names the field and the fix."""
+
+
+class RunDirError(BaselineConfigError, CheckpointError):
+    """A run folder that already holds a run, started again without resume (MAPPO's refusal;
+    a :class:`CheckpointError` too, so ``formation train`` reports it and exits 2)."""
 
 
 @dataclass(frozen=True)
@@ -153,6 +159,9 @@ class Agent(Protocol):
         action_keys: what the replay buffer keeps of the action (besides :data:`TRANSITION`).
         loss_names: the keys of :meth:`update`'s answer, logged per collection (None until the
             first update).
+
+    ``after_collection(episodes)`` follows each collection with the run's episodes finished so
+    far (the loop's count, the unit of ``total_episodes``): exploration schedules run on it.
     """
 
     explore: Any
@@ -162,7 +171,7 @@ class Agent(Protocol):
 
     def record(self, data: TensorDict) -> None: ...
     def update(self, batch: TensorDict) -> dict[str, float]: ...
-    def after_collection(self) -> None: ...
+    def after_collection(self, episodes: int) -> None: ...
     def log_row(self) -> dict[str, Any]: ...
     def state_dict(self) -> dict: ...
     def load_state_dict(self, state: dict) -> None: ...
@@ -199,6 +208,9 @@ class OffPolicyTrainer:
         self.config = cfg = config
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        if not resume and (self.run_dir / "checkpoint.pt").exists():      # as MAPPOTrainer
+            raise RunDirError(f"run_dir {str(self.run_dir)!r} already holds a run; resume it "
+                              "(resume=True) or choose an empty directory")
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
@@ -218,7 +230,7 @@ class OffPolicyTrainer:
         self.train_log, self.eval_log = MetricsLog(self.run_dir, "train"), MetricsLog(self.run_dir, "eval")
         if resume:
             self._restore()
-        else:
+        else:                  # at most a run stopped before its first checkpoint: it starts over
             self.train_log.truncate(0)
             self.eval_log.truncate(0)
             write_json_atomic(self.run_dir / "config.json", cfg.to_dict())
@@ -239,7 +251,7 @@ class OffPolicyTrainer:
                 losses = self._updates()
                 self.episodes += finished
                 self.env_steps += data.numel()
-                self.agent.after_collection()
+                self.agent.after_collection(self.episodes)
                 now = time.perf_counter()              # collection, updates and evaluations
                 self.wall_time_s, clock = self.wall_time_s + now - clock, now
                 row = self._log(data, finished, losses)
@@ -291,7 +303,8 @@ class OffPolicyTrainer:
 
     def _evaluate(self) -> None:
         seed = 1_000_000 * (self.config.seed + 1) + 1_000 * self.eval_count
-        result = evaluate(self.agent.actor, self.scenario, episodes=self.config.eval_episodes, seed=seed)
+        result = evaluate(self.agent.actor, self.scenario, episodes=self.config.eval_episodes, seed=seed,
+                          reward_weights=self.env.world.reward_weights)     # the reward it trains on
         converged = self.tracker.add(self.episodes, result.success_rate)
         self.eval_count += 1
         self.last_eval_episodes = self.episodes
@@ -306,7 +319,8 @@ class OffPolicyTrainer:
     def _checkpoint(self) -> None:
         size = len(self.buffer)
         with atomic_path(self.run_dir / "replay.pt") as tmp:
-            torch.save({"size": size, "data": self.buffer.storage[:size].to_dict() if size else {}}, tmp)
+            torch.save({"size": size, "data": self.buffer.storage[:size].to_dict() if size else {},
+                        "writer": self.buffer.writer.state_dict()}, tmp)     # the cursor: the oldest slot
         save_checkpoint(self.run_dir / "checkpoint.pt", {
             "algo": self.config.algo, "config": self.config.to_dict(), "agent": self.agent.state_dict(),
             "tracker": self.tracker.state_dict(),
@@ -337,6 +351,12 @@ class OffPolicyTrainer:
         replay = torch.load(self.run_dir / "replay.pt", map_location="cpu", weights_only=True)
         if replay["size"]:
             self.buffer.extend(TensorDict(replay["data"], batch_size=[replay["size"]]))
+        if "writer" in replay:          # the next transitions replace the oldest, as they would have
+            self.buffer.writer.load_state_dict(replay["writer"])
+        elif replay["size"] >= self.config.buffer_size:
+            warnings.warn(f"{self.run_dir / 'replay.pt'} predates the saved write cursor: the full replay "
+                          "buffer's age order is unknown, so the next transitions replace slots from 0 on, "
+                          "not necessarily the oldest", stacklevel=2)
         self.train_log.truncate(data["log_rows"]["train"])
         self.eval_log.truncate(data["log_rows"]["eval"])
 
@@ -351,4 +371,4 @@ class OffPolicyTrainer:
 
 
 __all__ = ["CHECKPOINT_EVERY", "TRANSITION", "Agent", "BaselineConfigError", "BaselineResult",
-           "OffPolicyTrainer", "RunSettings", "team_flags"]
+           "OffPolicyTrainer", "RunDirError", "RunSettings", "team_flags"]
