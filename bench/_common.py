@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from sim.provenance import git_commit
+from sim.scenario import MAX_ROBOTS
 
 GIT_AT_START = git_commit()
 """The checkout when the benchmark started: the code that ran. A long run outlives commits and
@@ -26,18 +27,24 @@ edits made beside it; what its document records is this, with the checkout at th
 it (``git_at_end``) when they differ."""
 
 
-def int_list(text: str, minimum: int = 1) -> list[int]:
-    """``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be an integer >= ``minimum``."""
+def bounded_int(text: str, minimum: int = 1, maximum: int | None = None) -> int:
+    """A single integer in ``minimum..maximum`` (no upper bound when ``maximum`` is None)."""
     kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+    if maximum is not None:
+        kind = f"an integer in {minimum}..{maximum}"
+    item = text.strip()
+    if not item.isdigit() or int(item) < minimum or (maximum is not None and int(item) > maximum):
+        raise argparse.ArgumentTypeError(f"{text!r} is not {kind}")
+    return int(item)
+
+
+def int_list(text: str, minimum: int = 1, maximum: int | None = None) -> list[int]:
+    """``"1,64,1024"`` -> ``[1, 64, 1024]``; every item must be an integer in ``minimum..maximum``
+    (no upper bound when ``maximum`` is None)."""
     items = [part.strip() for part in text.split(",") if part.strip()]
     if not items:
-        raise argparse.ArgumentTypeError(f"expected a comma-separated list, each {kind}, got {text!r}")
-    values = []
-    for item in items:
-        if not item.isdigit() or int(item) < minimum:
-            raise argparse.ArgumentTypeError(f"{item!r} is not {kind} (expected e.g. '1,64,1024')")
-        values.append(int(item))
-    return values
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of integers >= {minimum}, got {text!r}")
+    return [bounded_int(item, minimum, maximum) for item in items]
 
 
 def positive_int_list(text: str) -> list[int]:
@@ -50,11 +57,36 @@ def nonnegative_int_list(text: str) -> list[int]:
     return int_list(text, 0)
 
 
+def robot_count_list(text: str) -> list[int]:
+    """argparse type of ``--robots``: ``"3,5"`` -> ``[3, 5]``; every item a team size the scenarios
+    can place, 1..:data:`sim.scenario.MAX_ROBOTS`."""
+    return int_list(text, 1, MAX_ROBOTS)
+
+
 def positive_int(text: str) -> int:
     """argparse type: a single positive integer."""
-    if not text.strip().isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return int(text)
+    return bounded_int(text, 1)
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: a single integer >= 0."""
+    return bounded_int(text, 0)
+
+
+def robot_count(text: str) -> int:
+    """argparse type of a single ``--robots``: 1..:data:`sim.scenario.MAX_ROBOTS`."""
+    return bounded_int(text, 1, MAX_ROBOTS)
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (``nan`` and ``inf`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
 
 
 def json_object(text: str) -> dict:
@@ -80,7 +112,8 @@ def add_output_args(parser: argparse.ArgumentParser) -> None:
 def add_tick_args(parser: argparse.ArgumentParser, per: str) -> None:
     """``--robots``, ``--ticks``, ``--warmup`` and ``--seed`` of the control-tick benchmarks
     (``per``: what each timed run is, e.g. "stack")."""
-    parser.add_argument("--robots", type=positive_int, default=5, help="robots in the fleet (5)")
+    parser.add_argument("--robots", type=robot_count, default=5,
+                        help=f"robots in the fleet, 1..{MAX_ROBOTS} (5)")
     parser.add_argument("--ticks", type=positive_int, default=2000, help=f"timed ticks per {per} (2000)")
     parser.add_argument("--warmup", type=positive_int, default=100, help=f"untimed ticks per {per} (100)")
     parser.add_argument("--seed", type=int, default=0)

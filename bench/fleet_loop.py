@@ -59,7 +59,43 @@ from deploy.wire import RobotRegistry  # noqa: E402
 PERIOD_S = 0.02
 ANSWER_TIMEOUT_S = 0.1
 FLEET = "bench"
-RAW_PAYLOAD = bytes(64)
+RAW_PAYLOAD_BYTES = 64
+
+
+def ping_payload(tick: int) -> bytes:
+    """The raw peer's ping of ``tick``: 64 bytes, the tick number in the first 8 (the echo
+    returns the payload unchanged, so the pong names the tick it answers)."""
+    return tick.to_bytes(8, "little").ljust(RAW_PAYLOAD_BYTES, b"\0")
+
+
+def payload_tick(payload: bytes) -> int:
+    """The tick number a ping or pong carries (:func:`ping_payload`)."""
+    return int.from_bytes(payload[:8], "little")
+
+
+class PongCounter:
+    """Which robots answered the raw peer's current tick. A pong counts only when it carries
+    the current tick's number: the late pong of a tick that timed out answers no later tick."""
+
+    def __init__(self, robots: int) -> None:
+        self.robots = robots
+        self.tick = 0
+        self._answered: set[int] = set()
+
+    def start(self) -> int:
+        """Begin the next tick; its number, for :func:`ping_payload`."""
+        self.tick += 1
+        self._answered = set()
+        return self.tick
+
+    def record(self, robot: int, tick: int) -> None:
+        """A pong of ``robot`` carrying ``tick``."""
+        if tick == self.tick:
+            self._answered.add(robot)
+
+    def complete(self) -> bool:
+        """Every robot answered the current tick."""
+        return len(self._answered) == self.robots
 
 
 def names(n: int) -> tuple[str, ...]:
@@ -129,7 +165,7 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
             return 0
 
         pongs = threading.Condition()
-        got = [0] * n
+        counter = PongCounter(n)
         subscriber = session.declare_subscriber("fleetloop/raw/*/pong",
                                                 zenoh.handlers.FifoChannel(4 * n + 16))
 
@@ -141,7 +177,7 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
                     return
                 i = int(str(sample.key_expr).split("/")[2])
                 with pongs:
-                    got[i] += 1
+                    counter.record(i, payload_tick(sample.payload.to_bytes()))
                     pongs.notify_all()
 
         drainer = threading.Thread(target=drain, daemon=True)
@@ -149,20 +185,16 @@ def robot_process(n: int, port: int, ticks: int, certs: str | None = None) -> in
         pubs = [declare_data_publisher(session, f"fleetloop/raw/{i}/ping", zenoh.CongestionControl.DROP)
                 for i in range(n)]
         time.sleep(0.3)
-        sent_count = [0]
 
         def raw() -> float | None:
-            t0 = time.perf_counter()
-            sent_count[0] += 1
-            for pub in pubs:
-                pub.put(RAW_PAYLOAD)
             with pongs:
-                ok = pongs.wait_for(lambda: min(got) >= sent_count[0], ANSWER_TIMEOUT_S)
-            if not ok:
-                with pongs:
-                    got[:] = [sent_count[0]] * n
-                return None
-            return time.perf_counter() - t0
+                payload = ping_payload(counter.start())
+            t0 = time.perf_counter()
+            for pub in pubs:
+                pub.put(payload)
+            with pongs:
+                ok = pongs.wait_for(counter.complete, ANSWER_TIMEOUT_S)
+            return time.perf_counter() - t0 if ok else None
 
         for _ in range(20):
             raw()

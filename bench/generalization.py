@@ -58,11 +58,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench._common import (  # noqa: E402
     add_output_args,
     json_object,
+    nonnegative_int,
     positive_int,
     positive_int_list,
     print_json,
     print_table,
     progress,
+    robot_count_list,
 )
 from stack.sweep import TrialSpec, resolve_fields, run_trials, summarize  # noqa: E402
 
@@ -189,11 +191,11 @@ def main(argv=None) -> int:
                    help="the generalist's team sizes (default 3,4,5)")
     p.add_argument("--budget", type=positive_int, default=3200, help="episode budget of each run (default 3200)")
     p.add_argument("--update-epochs", type=positive_int, default=4, help="PPO epochs per rollout (default 4)")
-    p.add_argument("--robots", type=positive_int_list, default=list(range(1, 11)), help="grid team sizes (default 1..10)")
+    p.add_argument("--robots", type=robot_count_list, default=list(range(1, 11)), help="grid team sizes (default 1..10)")
     p.add_argument("--layouts", type=lambda s: s.split(","), default=list(LAYOUTS),
                    help=f"grid layouts, from {','.join(LAYOUTS)} (default all)")
     p.add_argument("--episodes", type=positive_int, default=100, help="batched episodes per cell (default 100)")
-    p.add_argument("--pymunk-episodes", type=int, default=0, help="pymunk episodes per cell (default 0: skip)")
+    p.add_argument("--pymunk-episodes", type=nonnegative_int, default=0, help="pymunk episodes per cell (default 0: skip)")
     p.add_argument("--distribution", default=None, metavar="NAME_OR_FILE",
                    help="the generalist's scenario distribution: none (default), broad or a file")
     p.add_argument("--penalty-curriculum", type=float, default=3.0, metavar="K",

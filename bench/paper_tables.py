@@ -44,7 +44,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench._common import json_object, positive_int, print_json, print_table, progress  # noqa: E402
+from bench._common import (  # noqa: E402
+    json_object,
+    positive_float,
+    positive_int,
+    print_json,
+    print_table,
+    progress,
+)
 from stack.sweep import TrialSpec, resolve_fields, run_trials  # noqa: E402
 
 PAPER_EPISODES = {"sdpa-3": 1200, "sdpa-4": 1500, "sdpa-5": 3200, "mlp-3": None,
@@ -170,15 +177,13 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3; "
                         f"default: {','.join(DEFAULT_SETTINGS)})")
     p.add_argument("--jobs", type=positive_int, default=2, help="CPUs of the local Ray: trials at a time (default 2)")
-    p.add_argument("--budget-scale", type=float, default=1.0,
+    p.add_argument("--budget-scale", type=positive_float, default=1.0,
                    help="multiply every episode budget (default budgets: twice the paper's episodes)")
     p.add_argument("--config", type=json_object, default={}, help="extra MAPPOConfig fields as JSON for every run")
     p.add_argument("--out", type=Path, default=Path("runs/paper-tables"), help="folder of the runs")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     args = p.parse_args(argv)
     config = args.config
-    if args.budget_scale <= 0:
-        p.error("--budget-scale must be > 0")
     names = list(args.settings)
     if any(setting(n).transfer_from for n in names) and "sdpa-3" not in names:
         names.insert(0, "sdpa-3")

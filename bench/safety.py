@@ -85,10 +85,10 @@ from _common import (  # noqa: E402
     map_episodes,
     nonnegative_int_list,
     positive_int,
-    positive_int_list,
     print_json,
     print_table,
     progress,
+    robot_count_list,
     set_threads,
 )
 from _safety_clutter import clutter_table, run_clutter  # noqa: E402
@@ -314,7 +314,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=positive_int, default=60, help="ticks per invariance episode (60)")
     parser.add_argument("--workers", type=positive_int, default=2, help="processes for (a) (2)")
     parser.add_argument("--mec-episodes", type=positive_int, default=12, help="episodes for (b) (12)")
-    parser.add_argument("--robots", type=positive_int_list, default=[3, 5, 10, 20],
+    parser.add_argument("--robots", type=robot_count_list, default=[3, 5, 10, 20],
                         help="robot counts for (c) (3,5,10,20)")
     parser.add_argument("--ticks", type=positive_int, default=1000, help="timed ticks per N for (c)")
     parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per N for (c)")

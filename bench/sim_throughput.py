@@ -50,6 +50,7 @@ from _common import (  # noqa: E402
     print_json,
     print_table,
     progress,
+    robot_count_list,
     set_threads,
 )
 
@@ -168,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--envs", type=positive_int_list, default=[1, 64, 1024, 4096],
                         help="comma-separated numbers of parallel environments (default: 1,64,1024,4096)")
-    parser.add_argument("--robots", type=positive_int_list, default=[3, 5],
+    parser.add_argument("--robots", type=robot_count_list, default=[3, 5],
                         help=f"comma-separated robot (agent) counts, 1..{MAX_ROBOTS} (default: 3,5)")
     parser.add_argument("--steps", type=positive_int, default=256,
                         help="timed steps per repeat (default: 256, two formation episodes)")
@@ -188,9 +189,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.warmup < 0:
         parser.error(f"--warmup must be >= 0, got {args.warmup}")
-    bad = [n for n in args.robots if n > MAX_ROBOTS]
-    if bad:
-        parser.error(f"--robots values must be in 1..{MAX_ROBOTS}, got {bad}")
     peer = not args.no_peer
     vmas_version = None
     if peer:

@@ -12,8 +12,8 @@ thread, evaluations at their usual interval included, no early stop), timed by t
 ``s_per_episode`` = wall seconds / training episodes; ``update_share`` = the PPO update's part
 of the wall (the rest: rollouts, GAE, evaluations); ``env_steps_per_s`` = environment steps /
 wall seconds; ``vs_mlp`` = the row's seconds per episode over the MLP row's on the same robots
-(paper-5's for the transfer; the peer measured in the same run: machines are noisy, ratios are
-not). Variants run
+(paper-5's for the transfer: without paper-5 in ``--settings`` its MLP row alone is timed too;
+the peer is measured in the same run: machines are noisy, ratios are not). Variants run
 in turn, repeated ``--repeats`` times, the median kept.
 
 The arithmetic floor: ``update_gflop_per_episode`` = the floating-point operations of the PPO
@@ -141,16 +141,26 @@ def source_checkpoint(folder: Path, seed: int) -> str:
     return str(folder / "source" / "checkpoint.pt")
 
 
+def plan(settings: list[str]) -> list[tuple[str, tuple[str, ...]]]:
+    """(setting, variants to time) in order. A transfer's peer is paper-5's MLP row: without
+    paper-5 among ``settings``, that row alone is timed first."""
+    jobs = [(name, tuple(VARIANTS)) for name in settings]
+    if "transfer-3to5" in settings and "paper-5" not in settings:
+        jobs.insert(settings.index("transfer-3to5"), ("paper-5", ("mlp",)))
+    return jobs
+
+
 def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> tuple[list[dict], float]:
     """The rows, and the matrix-product rate [FLOP/s] their floors are worked from."""
     rows, rate_flops = [], matmul_rate()
     with tempfile.TemporaryDirectory() as tmp:
         source = source_checkpoint(Path(tmp), seed) if "transfer-3to5" in settings else None
-        for name in settings:
+        for name, variants in plan(settings):
             scenario, transfer = SETTINGS[name]
-            runs: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+            runs: dict[str, list[dict]] = {v: [] for v in variants}
             for k in range(repeats):
-                for variant, actor in VARIANTS.items():
+                for variant in variants:
+                    actor = VARIANTS[variant]
                     if transfer and variant == "mlp":
                         continue
                     progress(f"{name} {variant} repeat {k + 1}/{repeats}")
@@ -170,6 +180,8 @@ def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> tupl
                              "update_share": statistics.median(r["update_s"] / r["wall_s"] for r in done),
                              "update_gflop_per_episode": gflop,
                              "update_floor_s_per_episode": gflop * 1e9 / rate_flops})
+                if name not in settings:
+                    rows[-1]["note"] = "timed as the peer of transfer-3to5"
     for r in rows:              # the peer: MLP-MAPPO on the same robots (paper-5's for a transfer)
         robots = SETTINGS[r["setting"]][0]
         peer = next((m["s_per_episode"] for m in rows if SETTINGS[m["setting"]][0] == robots

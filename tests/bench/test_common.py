@@ -1,9 +1,14 @@
-"""bench/_common.py: what every benchmark's JSON document records of the code that made it."""
+"""bench/_common.py: what every benchmark's JSON document records of the code that made it, and the
+argparse types the benchmarks share."""
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import json
 import sys
+
+import pytest
 
 from tests.bench import ROOT
 
@@ -23,3 +28,45 @@ def test_a_document_records_the_checkout_it_started_from(monkeypatch, capsys):
     _common.print_json({"x": 1})
     again = json.loads(capsys.readouterr().out)["provenance"]
     assert again["git"] == made["git_at_end"] and "git_at_end" not in again
+
+
+def test_robot_counts_are_bounded_by_max_robots():
+    assert _common.MAX_ROBOTS == 21
+    assert _common.robot_count("21") == 21 and _common.robot_count_list("1, 21") == [1, 21]
+    for bad in ("22", "0", "-3", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="1..21"):
+            _common.robot_count(bad)
+        with pytest.raises(argparse.ArgumentTypeError, match="1..21"):
+            _common.robot_count_list(f"3,{bad}")
+
+
+def test_nonnegative_int_and_positive_float_by_hand():
+    assert _common.nonnegative_int("0") == 0 and _common.nonnegative_int("7") == 7
+    with pytest.raises(argparse.ArgumentTypeError, match=">= 0"):
+        _common.nonnegative_int("-1")
+    assert _common.positive_float("0.25") == 0.25 and _common.positive_float("3") == 3.0
+    for bad in ("nan", "inf", "-inf", "0", "-1", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="finite number > 0"):
+            _common.positive_float(bad)
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_script_{name}", ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("script, argv", [
+    ("tick_kernels", ["--robots", "22", "--ticks", "1", "--warmup", "1"]),
+    ("export_graph", ["--robots", "30", "--ticks", "1", "--warmup", "1"]),
+    ("safety", ["--only", "latency", "--robots", "3,30", "--ticks", "1", "--warmup", "1"]),
+    ("generalization", ["--robots", "3,22", "--policies", str(ROOT / "no-such-checkpoint.pt")]),
+    ("sim_throughput", ["--robots", "22", "--no-peer"]),
+])
+def test_robots_above_max_robots_exit_2_naming_the_flag(script, argv, capsys):
+    """Every --robots the scenarios place: more than MAX_ROBOTS is a usage error, not a traceback."""
+    with pytest.raises(SystemExit) as info:
+        _script(script).main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "argument --robots" in err and "1..21" in err

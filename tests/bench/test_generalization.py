@@ -14,7 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bench.generalization import LAYOUTS, judge, layout  # noqa: E402
+from bench.generalization import LAYOUTS, judge, layout, main  # noqa: E402
 from tests.xdist_groups import RAY  # noqa: E402
 
 
@@ -146,3 +146,11 @@ def test_finetuning_starts_from_the_generalist_and_reports_its_zero_shot_success
     first = json.loads((run / "eval.jsonl").read_text().splitlines()[0])
     assert first["episodes"] == 0 and row["zero_shot_success"] == first["success_rate"]
     assert row["episodes"] == 4 and not row["converged"]      # a 2-episode generalist does not converge
+
+
+def test_a_negative_pymunk_episode_count_exits_2_naming_the_flag(capsys):
+    """At parse time, before any training or judging (the missing --policies file would be the
+    next error)."""
+    with pytest.raises(SystemExit) as info:
+        main(["--pymunk-episodes", "-1", "--policies", str(ROOT / "no-such-checkpoint.pt")])
+    assert info.value.code == 2 and "argument --pymunk-episodes" in capsys.readouterr().err

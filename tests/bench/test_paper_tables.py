@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bench.paper_tables import row, zero_shot  # noqa: E402
+from bench.paper_tables import main, row, zero_shot  # noqa: E402
 from stack.sweep import summarize  # noqa: E402
 from tests.xdist_groups import RAY  # noqa: E402
 
@@ -81,3 +81,11 @@ def test_ratios_divide_the_baselines_median_by_sdpa_3_and_flag_unconverged_ones(
     assert ratios(rows) == [{"baseline": "maddpg-3", "ratio": 5.0, "lower_bound": False, "paper": None},
                             {"baseline": "ddq-3", "ratio": 50.0, "lower_bound": True, "paper": 33.3}]
     assert ratios(rows[1:]) == []
+
+
+@pytest.mark.parametrize("scale", ["nan", "inf", "0", "-1"])
+def test_budget_scale_must_be_finite_and_positive(scale, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--settings", "sdpa-3", "--seeds", "1", "--budget-scale", scale, "--out", str(tmp_path)])
+    assert info.value.code == 2 and "--budget-scale" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())         # no run started

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "bench"))
+import _safety_clutter  # noqa: E402
 
 
 @pytest.mark.slow
@@ -188,3 +190,19 @@ def test_frozen_home_asks_only_where_the_frozen_robot_stopped():
         world = PymunkWorld(sc, ModelError(freeze=(0, tick)))
         run_episode(world, ControlStack(sc, ScriptedController(sc)), 3)
         assert frozen_home(world) == home
+
+
+def test_clutter_stacks_take_turns_to_go_first(monkeypatch):
+    """Going first costs a stack 10-15 %: over 4 ticks of one episode the peer (every disc) and the
+    pruned stack alternate in going first, so each goes first on 2 ticks."""
+    calls: list[str] = []
+
+    class Recording(_safety_clutter.ControlStack):
+        def tick(self, state):
+            calls.append("all" if self.config.all_tracker_discs else "pruned")
+            return super().tick(state)
+
+    monkeypatch.setattr(_safety_clutter, "ControlStack", Recording)
+    rows = _safety_clutter.run_clutter([0], episodes=1, ticks=4, seed=0)
+    assert rows["0"]["ticks"] == 4
+    assert calls == ["all", "pruned", "pruned", "all", "all", "pruned", "pruned", "all"]

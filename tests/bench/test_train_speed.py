@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from bench import train_speed
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -48,3 +50,45 @@ def test_train_speed_rejects_an_unknown_setting():
     out = subprocess.run([sys.executable, str(REPO / "bench" / "train_speed.py"), "--settings", "paper-9"],
                          cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "paper-9" in out.stderr and "transfer-3to5" in out.stderr
+
+
+def _fake_timings(monkeypatch) -> list[tuple]:
+    """No training: a typed run takes 4 s, an MLP run 1 s, each 16 episodes of 128 steps; the
+    calls made (scenario, actor, init_from) are returned."""
+    calls: list[tuple] = []
+
+    def timed_run(scenario, actor, episodes, seed, init_from):
+        calls.append((scenario, actor, init_from))
+        return {"episodes": 16, "env_steps": 16 * 128, "wall_s": {"typed": 4.0, "mlp": 1.0}[actor], "update_s": 0.5}
+
+    monkeypatch.setattr(train_speed, "timed_run", timed_run)
+    monkeypatch.setattr(train_speed, "matmul_rate", lambda: 1e9)
+    monkeypatch.setattr(train_speed, "source_checkpoint", lambda folder, seed: "source.pt")
+    monkeypatch.setattr(train_speed, "update_flops", lambda config: (10**9, 16 * 128))
+    return calls
+
+
+def test_transfer_alone_times_its_mlp_peer_on_paper_5(monkeypatch):
+    """--settings transfer-3to5: the peer, MLP-MAPPO from scratch on paper-5, is timed in the same
+    run; the transfer's vs_mlp = (4 s / 16) / (1 s / 16) = 4."""
+    calls = _fake_timings(monkeypatch)
+    rows, _ = train_speed.measure(["transfer-3to5"], episodes=16, repeats=1, seed=0)
+    assert calls == [("paper-5", "mlp", None), ("paper-5", "typed", "source.pt")]
+    assert [(r["setting"], r["variant"]) for r in rows] == [
+        ("paper-5", "mlp"), ("transfer-3to5", "sdpa"), ("transfer-3to5", "mlp")]
+    peer, transfer, no_mlp = rows
+    assert peer["s_per_episode"] == 1.0 / 16 and peer["vs_mlp"] == 1.0
+    assert transfer["s_per_episode"] == 4.0 / 16 and transfer["vs_mlp"] == 4.0
+    assert no_mlp["s_per_episode"] is None and no_mlp["vs_mlp"] is None and "another N" in no_mlp["note"]
+    # floor: 1 GFLOP an update learning from 2048 steps, 1/16 GFLOP an episode of 128 steps, 1/16 s
+    # at 1 GFLOP/s: as long as the peer's whole episode
+    assert transfer["update_floor_s_per_episode"] == 1.0 / 16 and transfer["floor_vs_mlp"] == 1.0
+
+
+def test_transfer_beside_paper_5_times_the_peer_once(monkeypatch):
+    calls = _fake_timings(monkeypatch)
+    rows, _ = train_speed.measure(["paper-5", "transfer-3to5"], episodes=16, repeats=1, seed=0)
+    assert calls.count(("paper-5", "mlp", None)) == 1
+    assert [(r["setting"], r["variant"]) for r in rows] == [
+        ("paper-5", "sdpa"), ("paper-5", "mlp"), ("transfer-3to5", "sdpa"), ("transfer-3to5", "mlp")]
+    assert rows[2]["vs_mlp"] == 4.0
