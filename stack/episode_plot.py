@@ -15,7 +15,7 @@ how far each robot was from its target.
 
 :func:`plot_episode` draws three panels: the arena with every robot's true path (segments where
 the filter changed its command drawn thick in orange, where it was stale, braked by the link or
-absent dashed grey,
+absent dashed grey, a robot with no position in the whole record left out and named as absent,
 contact onsets marked, a robot frozen by the world hatched at its end, and what a tracker saw
 besides the robots dotted, its disc where it was seen last); a raster of the modes,
 robots x time; and each robot's distance to the target it ended matched to (the episode's
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from sim.scenario import Scenario
-from stack.plots import draw_scene, new_figure, robot_colours, save_figure
+from stack.plots import PlotError, draw_scene, new_figure, robot_colours, save_figure
 from stack.recorder import EpisodeRecord
 from stack.tick_types import FILTER_TOLERANCE, filter_changed
 
@@ -72,6 +72,7 @@ def assigned_distances(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
 
     from sim.metrics import episode_outcome
 
+    _check_ticks(record)
     final, targets = record.positions[-1], record.targets[-1]
     keep = np.flatnonzero(np.isfinite(final).all(-1) & np.isfinite(targets).all(-1))
     dist, column = np.full(record.positions.shape[:2], np.nan), np.full(record.num_robots, -1)
@@ -85,10 +86,12 @@ def assigned_distances(record: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
 
 def plot_episode(record: EpisodeRecord, scenario: Scenario, out_png: str | Path, *,
                  title: str | None = None) -> Path:
-    """Draw ``record`` (an episode of ``scenario``) into ``out_png`` (module docstring)."""
+    """Draw ``record`` (an episode of ``scenario``) into ``out_png`` (module docstring);
+    :class:`stack.plots.PlotError` for a record without ticks."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
+    _check_ticks(record, Path(out_png).name)
     n, s, dt = record.num_robots, record.steps, scenario.dynamics.dt
     modes = robot_modes(record, scenario.dynamics.accel_limit)
     colours = robot_colours(n)
@@ -121,14 +124,19 @@ def _draw_paths(ax, record: EpisodeRecord, scenario: Scenario, modes: np.ndarray
     r = scenario.robot_radius
     pos = record.positions
     onset = record.contacts & ~np.concatenate((np.zeros_like(record.contacts[:1]), record.contacts[:-1]))
+    nowhere = []
     for i in range(record.num_robots):
         path = pos[:, i]
+        placed = path[np.isfinite(path).all(-1)]
+        if not len(placed):             # no position in the whole record (silent, or it reported NaN)
+            nowhere.append(str(record.ids[i]))
+            continue
         ax.plot(path[:, 0], path[:, 1], color=colours[i], lw=1.4, alpha=0.9, zorder=3)
         for mask, style in ((modes[:, i] == Mode.FILTER, {"color": "#ff7f0e", "lw": 5, "alpha": 0.45}),
                             (modes[:, i] >= Mode.STALE, {"color": "0.4", "lw": 1.2, "ls": "--"})):
             for a, b in _runs(mask):        # tick k moves the robot from positions[k] to [k + 1]
                 ax.plot(path[a:b + 1, 0], path[a:b + 1, 1], zorder=2, **style)
-        start, end = path[np.isfinite(path[:, 0])][[0, -1]]
+        start, end = placed[[0, -1]]
         ax.add_patch(Circle(start, r, facecolor=colours[i], alpha=0.3, edgecolor=colours[i], zorder=2))
         frozen = bool(record.frozen[:, i].any())
         ax.add_patch(Circle(end, r, facecolor=colours[i], alpha=0.95, edgecolor="black", lw=0.8, zorder=4,
@@ -136,6 +144,10 @@ def _draw_paths(ax, record: EpisodeRecord, scenario: Scenario, modes: np.ndarray
         ax.text(*end, record.ids[i], ha="center", va="center", fontsize=7, color="white", fontweight="bold", zorder=5)
         hits = np.flatnonzero(onset[:, i].any(-1)) + 1
         ax.plot(pos[hits, i, 0], pos[hits, i, 1], "X", ms=8, mfc="none", mec="red", mew=1.6, zorder=6)
+    if nowhere:
+        ax.text(0.01, 0.01, f"absent (no position in the record): {', '.join(nowhere)}", transform=ax.transAxes,
+                ha="left", va="bottom", fontsize=8, zorder=7,
+                bbox={"facecolor": "white", "edgecolor": "0.5", "alpha": 0.85, "boxstyle": "round,pad=0.3"})
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
 
@@ -192,6 +204,13 @@ def _draw_distances(ax, record: EpisodeRecord, scenario: Scenario, colours: list
     ax.set_xlabel("time [s]")
     ax.set_ylabel("distance to assigned target [m]")
     ax.legend(fontsize=7, ncol=max(1, record.num_robots // 5), loc="lower left")
+
+
+def _check_ticks(record: EpisodeRecord, name: str = "") -> None:
+    """PlotError when ``record`` has no ticks (an episode that stopped before its first)."""
+    if record.steps == 0:
+        raise PlotError(f"{'cannot draw ' + name + ': ' if name else ''}the record has no ticks (the episode "
+                        "stopped before its first tick); record an episode of at least one tick")
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

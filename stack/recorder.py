@@ -46,6 +46,8 @@ episode's metrics (:class:`stack.episodes.EpisodeMetrics`) and anything the call
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -125,6 +127,14 @@ def record_folder(folder: Path, flag: str) -> Path:
     return folder
 
 
+_UNREADABLE = (OSError, ValueError, EOFError, KeyError, NotImplementedError, RuntimeError, zipfile.BadZipFile,
+               zlib.error)
+"""What reading a damaged ``.npz`` raises (empty: EOFError, truncated: BadZipFile, a damaged
+member: zlib.error or a bad CRC, an unknown compression: NotImplementedError, a member flagged
+encrypted: RuntimeError)."""
+_AGAIN = "record the episode again (formation eval --trace DIR, formation bridge --record DIR)"
+
+
 def load_record(path: str | Path) -> EpisodeRecord:
     """The :class:`EpisodeRecord` saved at ``path`` (no pickled objects are read)."""
     try:
@@ -136,10 +146,14 @@ def load_record(path: str | Path) -> EpisodeRecord:
             arrays = {name: data[name] for name in ARRAYS if name in data.files}
             arrays.setdefault("link_braked", np.zeros(arrays["stale"].shape, dtype=bool))
             meta = json.loads(str(data["meta"]))
-    except (OSError, ValueError) as exc:
+    except _UNREADABLE as exc:
         if isinstance(exc, RecordError):
             raise
-        raise RecordError(f"{path}: cannot read an episode record ({exc})") from None
+        raise RecordError(f"{path}: cannot read an episode record ({type(exc).__name__}: {exc}); the file "
+                          f"is damaged or no record: {_AGAIN}") from None
+    if not isinstance(meta, dict):
+        raise RecordError(f"{path}: cannot read an episode record (its meta is a {type(meta).__name__}, "
+                          f"not a JSON object): {_AGAIN}")
     return EpisodeRecord(**arrays, meta=meta)
 
 
@@ -288,7 +302,8 @@ class RecordedStack:
 
     Ticks are recorded as the link brought them (:class:`EpisodeRecorder` without a fleet). A
     record closes when the stack is reset (a new fleet episode, a stall of the bridge), after
-    ``chunk_ticks`` ticks and at :meth:`close`, and a writer thread, off the control loop, saves it
+    ``chunk_ticks`` ticks (at the next tick, or reset or close, so that the link's brake of its
+    last tick, :meth:`sent_braking`, reaches it) and at :meth:`close`, and a writer thread, off the control loop, saves it
     as ``folder/record_KKKKK.npz`` (meta: its index, why it closed, ``meta``). A record that
     cannot be written is reported on stderr and the loop goes on; :meth:`close` waits for the
     writer, so Ctrl-C loses nothing.
@@ -308,10 +323,10 @@ class RecordedStack:
         self._writer.start()
 
     def tick(self, state: FleetState):
+        if len(self._recorder) >= self.chunk_ticks:     # closed here, not after the last tick: the
+            self._close_record("chunk")                 # link's brake of that tick (sent_braking) is in it
         result = self.stack.tick(state)
         self._recorder.tick(state, result)
-        if len(self._recorder) >= self.chunk_ticks:
-            self._close_record("chunk")
         return result
 
     __call__ = tick
@@ -336,7 +351,10 @@ class RecordedStack:
         return getattr(self.stack, name)
 
     def _close_record(self, reason: str) -> None:
+        """Hand the running record to the writer (``reason``: why it closed; "chunk" when it is
+        full, whatever closes it) and start a new one."""
         if len(self._recorder):
+            reason = "chunk" if len(self._recorder) >= self.chunk_ticks else reason
             meta = {**self.meta, "index": self._index, "closed_by": reason}
             self._queue.put((self._recorder, self.folder / f"record_{self._index:05d}.npz", meta))
             self._index += 1

@@ -237,3 +237,71 @@ def test_what_a_tracker_saw_is_recorded_in_its_own_columns_and_drawn(tmp_path):
     old = load_record(tmp_path / "old.npz")
     assert old.obstacle_ids.shape == (0,) and old.obstacles.shape == (3, 0, 4)
     assert plot_episode(old, make_scenario("paper-3"), tmp_path / "old.png").exists()
+
+
+def _damage(path, how: str) -> None:
+    """Damage the record file at ``path``: emptied (a disk that filled), cut in half (a copy
+    that stopped), or one member's compressed bytes overwritten (a bad sector)."""
+    import zipfile
+
+    data = bytearray(path.read_bytes())
+    if how == "empty":
+        data = bytearray()
+    elif how == "truncated":
+        data = data[:len(data) // 2]
+    else:
+        with zipfile.ZipFile(path) as zf:
+            info = zf.getinfo("positions.npy")
+        name_len, extra_len = (int.from_bytes(data[info.header_offset + k:info.header_offset + k + 2], "little")
+                               for k in (26, 28))          # the local header's own lengths
+        start = info.header_offset + 30 + name_len + extra_len
+        data[start + 2:start + 12] = b"\xff" * 10
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("how", ["empty", "truncated", "member"])
+def test_a_damaged_record_file_is_a_clear_error_and_plot_exits_2(tmp_path, capsys, how):
+    """An empty .npz (EOFError), a cut one (BadZipFile) and one with a damaged member (zlib or
+    CRC error) are a RecordError naming the file; `formation plot` exits 2 with that message."""
+    rec = EpisodeRecorder(make_scenario("paper-3"))
+    for k in range(3):
+        rec.tick(_state(("r0", "r1"), k), _tick(2))
+    path = rec.finish({"seed": 0}).save(tmp_path / "episode_0.npz")
+    assert load_record(path).steps == 3
+    _damage(path, how)
+    with pytest.raises(RecordError, match=f"{path}: cannot read an episode record .*record the episode again"):
+        load_record(path)
+    assert main(["plot", str(path), "--out", str(tmp_path / "figs")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {path}: cannot read an episode record") and "Traceback" not in err
+    assert not (tmp_path / "figs" / "episode_0.png").exists()
+
+
+@pytest.mark.parametrize("chunk", [1, 2])
+def test_the_link_brake_of_a_chunks_last_tick_is_in_that_chunk(tmp_path, chunk):
+    """formation bridge --record-ticks CHUNK: the bridge calls tick(state) and then
+    sent_braking(state, braked) for the same tick; the last tick of every chunk holds its brake
+    (flag and the braking law in a_cmd) like every other tick, and close() writes the last
+    chunk (5 ticks: no tick lost, none twice)."""
+    from stack.recorder import RecordedStack
+
+    sc = make_scenario("paper-3")
+    stack = RecordedStack(ControlStack(sc, ScriptedController(sc), StackConfig(safety=False, mec=False)),
+                          tmp_path, chunk_ticks=chunk)
+    velocities = np.array([[0.2, 0.0], [0.0, 0.0], [0.0, 0.1]])
+    braked = [np.array([k % 2 == 0, True, False]) for k in range(5)]
+    for k in range(5):
+        state = FleetState(time=0.05 * k, step=k, positions=np.array(sc.starts, dtype=float), velocities=velocities,
+                           targets=np.array(sc.targets, dtype=float), object_pose=np.array([*sc.object_center, 0.0]),
+                           robot_ids=("r0", "r1", "r2"))
+        stack.tick(state)
+        stack.sent_braking(state, braked[k])
+    records = [load_record(p) for p in sorted(stack.close())]
+    assert [r.steps for r in records] == [chunk] * (5 // chunk) + [5 % chunk] * (5 % chunk > 0)
+    assert [r.meta["closed_by"] for r in records] == ["chunk"] * (5 // chunk) + ["exit"] * (5 % chunk > 0)
+    link = np.concatenate([r.link_braked for r in records])
+    np.testing.assert_array_equal(link, braked)
+    a_cmd = np.concatenate([r.a_cmd for r in records])
+    brake = stack.stack.brake(velocities)
+    np.testing.assert_allclose(a_cmd[link], np.broadcast_to(brake, (5, 3, 2))[link], atol=1e-12)
+    assert not np.allclose(a_cmd[~link], np.broadcast_to(brake, (5, 3, 2))[~link])
