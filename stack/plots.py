@@ -16,7 +16,6 @@ that run a policy. Units: metres, seconds.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -52,8 +51,28 @@ class RunCurves:
 
 
 def _read_jsonl(path: Path) -> list[dict]:
-    with path.open() as f:
-        return [json.loads(line) for line in f if line.strip()]
+    """The rows of a run's log (:func:`controllers.mappo.logs.read_jsonl`: a torn last line is
+    skipped); a damaged one is a PlotError naming the file and line."""
+    from controllers.mappo.logs import LogFileError, read_jsonl
+
+    try:
+        return read_jsonl(path)
+    except LogFileError as exc:
+        raise PlotError(str(exc)) from None
+    except OSError as exc:
+        raise PlotError(f"{path}: cannot be read ({exc.strerror}); check the run folder") from None
+
+
+def _read_json(path: Path) -> dict:
+    """An optional JSON file of a run (result.json, config.json) through :func:`sim.files.read_config`;
+    a damaged one is a PlotError naming it."""
+    from sim.files import ConfigFileError, read_config
+
+    try:
+        return read_config(path, str(path))
+    except (ConfigFileError, OSError, UnicodeDecodeError) as exc:
+        raise PlotError(f"{exc}; the file is damaged: remove it (the curves need train.jsonl "
+                        "alone) or give another run folder") from None
 
 
 def load_run(run_dir: str | Path, label: str | None = None) -> RunCurves:
@@ -69,12 +88,16 @@ def load_run(run_dir: str | Path, label: str | None = None) -> RunCurves:
     eval_path, result_path, config_path = (run_dir / n for n in ("eval.jsonl", "result.json", "config.json"))
     evals = _read_jsonl(eval_path) if eval_path.is_file() else []
     converged = next((r["converged_episode"] for r in evals if r.get("converged_episode") is not None), None)
-    if result_path.is_file():
-        converged = json.loads(result_path.read_text()).get("converged_episode", converged)
+    if result_path.exists():
+        converged = _read_json(result_path).get("converged_episode", converged)
     threshold, tolerance = 0.9, None
-    if config_path.is_file():
-        config = json.loads(config_path.read_text())
-        threshold = float(config.get("success_threshold", threshold))
+    if config_path.exists():
+        config = _read_json(config_path)
+        try:
+            threshold = float(config.get("success_threshold", threshold))
+        except (TypeError, ValueError):
+            raise PlotError(f"{config_path}: success_threshold {config['success_threshold']!r} is not a "
+                            "number; fix or remove the file") from None
         tolerance = _tolerance(config.get("scenario"))
     return RunCurves(label or run_dir.name, _read_jsonl(train_path), evals, converged, threshold, tolerance)
 

@@ -24,6 +24,35 @@ def _clean(value: Any) -> Any:
     return value
 
 
+class LogFileError(ValueError):
+    """A damaged line in a JSON-lines log (not its last one); the message names the file and line."""
+
+
+def read_jsonl(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of the JSON-lines log ``path`` (each line one JSON object; blank lines skipped).
+
+    A last line that does not parse is what a crash in the middle of an append leaves (the
+    expected crash artifact): it is skipped. A line before it that is not a JSON object raises
+    :class:`LogFileError` naming the file and the line."""
+    path = Path(path)
+    lines = [(k, line) for k, line in enumerate(path.read_text(errors="replace").splitlines(), 1)
+             if line.strip()]
+    rows = []
+    for k, line in lines:
+        try:
+            row = json.loads(line)
+        except ValueError as exc:
+            if k == lines[-1][0]:
+                break                       # torn by a crash while it was appended
+            raise LogFileError(f"{path}, line {k}: not valid JSON ({exc}); the log is damaged: "
+                               "remove that line, or the file to start the run over") from None
+        if not isinstance(row, dict):
+            raise LogFileError(f"{path}, line {k}: expected a JSON object, got {type(row).__name__}; "
+                               "the log is damaged: remove that line, or the file to start the run over")
+        rows.append(row)
+    return rows
+
+
 class MetricsLog:
     """Append-only ``<run_dir>/<name>.jsonl`` + ``.csv`` with a fixed column set."""
 
@@ -38,13 +67,13 @@ class MetricsLog:
     def read(self) -> list[dict[str, Any]]:
         if not self.jsonl.exists():
             return []
-        with self.jsonl.open() as f:
-            return [json.loads(line) for line in f if line.strip()]
+        return read_jsonl(self.jsonl)
 
     def append(self, row: dict[str, Any]) -> None:
         row = {k: _clean(v) for k, v in row.items()}
-        if self.columns is None:
+        if self.columns is None:        # no rows yet: the files start anew (a torn line goes)
             self.columns = list(row)
+            self.jsonl.write_text("")
             with self.csv.open("w", newline="") as f:
                 csv.writer(f).writerow(self.columns)
         elif list(row) != self.columns:

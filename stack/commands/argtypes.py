@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 
 def seed(text: str) -> int:
@@ -53,6 +55,48 @@ def int_list(text: str) -> list[int]:
     return values
 
 
+def _blocked_by_a_file(path: Path) -> str | None:
+    """Why folders up to ``path`` cannot be made, or None: an ancestor that is a file, or the
+    nearest existing folder not writable."""
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"{parent} is a file, not a folder; give a path under a folder"
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return f"cannot create it in {parent} (permission denied); give a folder you can write to"
+            return None
+    return None
+
+
+def out_folder(text: str) -> Path:
+    """An output folder (``--out``): an existing folder or a path where one can be made; an
+    existing file, or a path under one, is refused before any work starts."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{path}: exists and is not a folder; give a new folder "
+                                         "or an existing one")
+    if path.is_dir() and not os.access(path, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{path}: cannot write into this folder (permission denied); "
+                                         "give a folder you can write to")
+    problem = None if path.is_dir() else _blocked_by_a_file(path)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{path}: {problem}")
+    return path
+
+
+def out_file(text: str) -> Path:
+    """An output file (e.g. ``eval --json``): not an existing folder, nor under a file; refused
+    before any work starts."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file name, e.g. "
+                                         f"{path / 'result.json'}")
+    problem = _blocked_by_a_file(path)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{path}: {problem}")
+    return path
+
+
 INTRUDER_HELP = ("a disc the robots must keep clear of, seen by a tracker: radius=R,x=X,y=Y[,vx=VX,vy=VY]"
                  "[,enter=TICK][,leave=TICK][,max_speed=V] in m, m/s and ticks of each episode "
                  "(e.g. radius=0.06,x=0.5,y=1.1,vy=-0.2,enter=20: walks down from above the arena); "
@@ -88,7 +132,7 @@ def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where
                              f"it, through the filter{where} (default {state})")
 
 
-__all__ = ["add_stage_flags", "int_list", "positive", "seed"]
+__all__ = ["add_stage_flags", "int_list", "out_file", "out_folder", "positive", "seed"]
 
 
 def add_shared_clock_flag(parser: argparse.ArgumentParser, peers: str) -> None:

@@ -16,14 +16,16 @@
 
 Convergence: evaluations of 100 deterministic episodes at least every 50 training episodes; the
 first with success >= 0.9 whose next one is also >= 0.9. Everything goes into --out (default
-runs/demo-<timestamp>); stages.json marks finished stages. Ctrl-C stops every process and keeps
-finished stages (exit code 130); `--resume` continues (an interrupted training continues from its
-checkpoint). --quick is the reduced run for CI (tiny budgets, 2 fleet episodes).
+runs/demo-<timestamp>); stages.json marks finished stages. Ctrl-C (or closing its terminal) stops
+every process and keeps finished stages (exit code 130); `--resume` continues (an interrupted
+training continues from its checkpoint); one demo runs in a folder at a time. --quick is the
+reduced run for CI (tiny budgets, 2 fleet episodes).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -38,6 +40,7 @@ from stack.demo.state import (
     DemoError,
     DemoSettings,
     StageBook,
+    folder_lock,
     interrupt_guard,
 )
 
@@ -47,7 +50,7 @@ OPTION_FIELDS = {"seed": "seed", "budget_3": "budget_3", "budget_5": "budget_5",
 
 def register(sub) -> None:
     p = sub.add_parser("demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/demo-<timestamp>)")
+    p.add_argument("--out", type=argtypes.out_folder, default=None, help="output folder (default runs/demo-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out, skipping finished stages")
     p.add_argument("--quick", action="store_true", help="reduced run for CI (tiny budgets, 2 fleet episodes)")
     p.add_argument("--budget-3", type=int, default=None, metavar="EPISODES",
@@ -119,19 +122,26 @@ def run_stage(name: str, book: StageBook, children: Children, background: dict) 
 def run(args) -> int:
     import torch
 
-    from stack.demo.report import save_metrics
-
     torch.set_num_threads(1)
     out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
     if args.resume and args.out is None:
         print("error: --resume needs --out, the folder of the demo to continue", file=sys.stderr)
         return 2
-    try:
-        book = resolve_settings(args, out)
-    except DemoError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    s = book.settings
+    with contextlib.ExitStack() as held:
+        try:
+            book = resolve_settings(args, out)
+            held.enter_context(folder_lock(out))     # one demo at a time in a folder
+        except DemoError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        return run_stages(book)
+
+
+def run_stages(book: StageBook) -> int:
+    """Run the stages ``book`` has not finished, under the interrupt guard; the exit code."""
+    from stack.demo.report import save_metrics
+
+    s, out = book.settings, book.out
     print(f"formation demo -> {out}{' (quick)' if s.quick else ''}: budgets {s.budget_3} / {s.budget_5} / "
           f"{s.budget_generalist} episodes, {s.fleet_episodes} fleet episodes, seed {s.seed}", flush=True)
     children = Children()
@@ -153,9 +163,10 @@ def run(args) -> int:
         except BaseException as exc:        # a Ctrl-C may surface as another error (sim.interrupts)
             children.terminate_all()
             if interrupted["count"] or caused_by_interrupt(exc):
-                print(f"\ninterrupted during stage {current}: every child process stopped; finished "
-                      f"stages are kept in {out / 'stages.json'}. Continue with:\n"
-                      f"  formation demo --out {out} --resume", file=sys.stderr, flush=True)
+                with contextlib.suppress(OSError):     # after SIGHUP the terminal may be gone
+                    print(f"\ninterrupted during stage {current}: every child process stopped; finished "
+                          f"stages are kept in {out / 'stages.json'}. Continue with:\n"
+                          f"  formation demo --out {out} --resume", file=sys.stderr, flush=True)
                 return 130
             if not isinstance(exc, DemoError):
                 raise

@@ -35,7 +35,7 @@ def register(sub) -> None:
                    help="run folders of `formation train`, or episode records (.npz) of `formation eval --trace`")
     p.add_argument("--labels", nargs="+", metavar="LABEL",
                    help="legend label per RUN_DIR (default: the folder names)")
-    p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/plots of the first run)")
+    p.add_argument("--out", type=argtypes.out_folder, help="output folder (default: RUN_DIR/plots of the first run)")
     p.add_argument("--episodes", type=int, default=4, help="episodes in trajectories.png (default 4, at most 16)")
     p.add_argument("--scenario", help="preset, transport-N or scenario file for trajectories and attention (default: the run's own)")
     p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the start jitter (default 0)")

@@ -32,6 +32,7 @@ from pathlib import Path
 from sim.files import ConfigFileError, atomic_write_text, read_config
 from sim.interrupts import caused_by_interrupt
 from sim.provenance import provenance
+from stack.commands import argtypes
 from stack.sweep import SweepError, aggregate, grid_trials, parse_grid_option, run_trials
 
 OPTIONS_FILE = "sweep.json"
@@ -71,7 +72,7 @@ def register(sub) -> None:
     p.add_argument("--address", default=None,
                    help="join the Ray cluster at this address instead of starting a local one "
                         "(which listens on 127.0.0.1 only)")
-    p.add_argument("--out", type=Path, default=None,
+    p.add_argument("--out", type=argtypes.out_folder, default=None,
                    help="sweep folder (default runs/sweep-<timestamp>)")
     p.add_argument("--resume", action="store_true",
                    help="continue the sweep in --out with the options it was started with")
@@ -80,23 +81,79 @@ def register(sub) -> None:
 
 
 def _saved_options(saved: Path) -> dict:
-    """The options a sweep folder's ``sweep.json`` records; a damaged file is named."""
+    """The options a sweep folder's ``sweep.json`` records (``base``, ``grid``, ``seeds``,
+    checked); a damaged or foreign file is named."""
     try:
-        return read_config(saved, "sweep.json")["options"]
-    except (ConfigFileError, KeyError) as exc:
-        raise SweepError(f"{saved} is not a sweep's file ({type(exc).__name__}: {exc}); remove it to "
-                         "start this folder's sweep anew, or give another --out") from None
+        if saved.is_dir():
+            raise SweepError(f"{saved} is a folder, not a sweep's file; remove it or give another --out")
+        options = read_config(saved, "sweep.json")["options"]
+        problem = _options_problem(options)
+    except (ConfigFileError, KeyError, OSError, UnicodeDecodeError) as exc:
+        problem = f"{type(exc).__name__}: {exc}"
+    if problem:
+        raise SweepError(f"{saved} is not a sweep's file ({problem}); remove it to start this folder's "
+                         "sweep anew, or give another --out")
+    return options
+
+
+def _options_problem(options) -> str | None:
+    """What is wrong with the ``options`` of a ``sweep.json``, or None."""
+    if not isinstance(options, dict):
+        return f"'options' is a {type(options).__name__}, not a mapping"
+    missing = [k for k in ("base", "grid", "seeds") if k not in options]
+    if missing:
+        return f"'options' lacks {', '.join(repr(k) for k in missing)}"
+    if not isinstance(options["base"], dict):
+        return "'base' is not a mapping of fields"
+    grid = options["grid"]
+    if not isinstance(grid, list) or not all(
+            isinstance(axis, list) and len(axis) == 2 and isinstance(axis[0], str) and isinstance(axis[1], list)
+            and axis[1] for axis in grid):
+        return "'grid' is not a list of [key, [values]] axes"
+    seeds = options["seeds"]
+    if (not isinstance(seeds, list) or not seeds
+            or not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in seeds)
+            or len(set(seeds)) != len(seeds)):
+        return "'seeds' is not a list of distinct integers >= 0"
+    return None
+
+
+def _resume_options(args) -> dict:
+    """The options saved in ``<out>/sweep.json``; a flag given with --resume must agree with them."""
+    if args.out is None:
+        raise SweepError("--resume needs --out, the folder of the sweep to continue")
+    saved = args.out / OPTIONS_FILE
+    if not saved.exists():
+        raise SweepError(f"--resume: {saved} does not exist; start the sweep without --resume")
+    options = _saved_options(saved)
+    plain = json.loads(json.dumps(options))
+    base = plain["base"]
+    differ = []
+    if args.config:
+        config = json.loads(json.dumps(read_config(args.config, "--config")))
+        if args.episodes is not None or "total_episodes" not in config:
+            # the saved total_episodes may be --episodes' (compared on its own below)
+            config.pop("total_episodes", None)
+            base = {k: v for k, v in base.items() if k != "total_episodes"}
+        if config != base:
+            differ.append("--config")
+    if args.grid and json.loads(json.dumps([parse_grid_option(g) for g in args.grid])) != plain["grid"]:
+        differ.append("--grid")
+    if args.seeds is not None and args.seeds != plain["seeds"]:
+        differ.append("--seeds")
+    if args.episodes is not None and plain["base"].get("total_episodes") != args.episodes:
+        differ.append("--episodes")
+    if differ:
+        raise SweepError(f"{args.out} was started with other options than the {', '.join(differ)} given "
+                         f"now (see its {OPTIONS_FILE}); --resume keeps the saved options: drop those "
+                         "flags, or give another --out for a new sweep")
+    return options
 
 
 def _options(args) -> dict:
     """The sweep's options: from ``<out>/sweep.json`` with --resume, else from the flags."""
     if args.resume:
-        if args.out is None:
-            raise SweepError("--resume needs --out, the folder of the sweep to continue")
-        saved = args.out / OPTIONS_FILE
-        if not saved.exists():
-            raise SweepError(f"--resume: {saved} does not exist; start the sweep without --resume")
-        return _saved_options(saved)
+        return _resume_options(args)
     base = read_config(args.config, "--config") if args.config else {}
     if args.episodes is not None:
         if args.episodes < 1:

@@ -69,7 +69,7 @@ def register(sub) -> None:
                    help="also write TensorBoard scalars to <out>/tensorboard (tensorboard --logdir <out>)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration (a valid --config file) and exit")
-    p.add_argument("--out", type=Path, help="run folder (default runs/train-<scenario>-<timestamp>)")
+    p.add_argument("--out", type=argtypes.out_folder, help="run folder (default runs/train-<scenario>-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-stop", action="store_true", help="keep training after convergence")
     p.set_defaults(func=run)

@@ -11,9 +11,11 @@ A stage is written to the book only once all its files are in place, so a run st
 any moment keeps exactly the stages that finished; ``--resume`` skips them.
 
 Child processes are started in their own process group (``start_new_session``); on Ctrl-C
-(SIGINT) or SIGTERM :func:`interrupt_guard` sends SIGTERM to every group, and
-:meth:`Children.terminate_all` waits for them and SIGKILLs what is left, so no process
-outlives the demo.
+(SIGINT), SIGTERM or SIGHUP (its terminal closed) :func:`interrupt_guard` sends SIGTERM to every
+group, and :meth:`Children.terminate_all` waits for them and SIGKILLs what is left, so no process
+outlives the demo. Should the demo die without that (SIGKILL), the kernel sends each child
+SIGTERM (``PR_SET_PDEATHSIG``, Linux). While a demo runs it holds ``.demo.lock`` in its folder
+(:func:`folder_lock`): a second demo on the same folder is refused.
 """
 
 from __future__ import annotations
@@ -25,16 +27,19 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sim.files import atomic_write_bytes
+from sim.files import ConfigFileError, atomic_write_bytes, read_config
 
 BOOK_FORMAT = "formation-stack/demo"
 BOOK_VERSION = 1
 BOOK_NAME = "stages.json"
+LOCK_NAME = ".demo.lock"   # held by the running demo (folder_lock)
+PR_SET_PDEATHSIG = 1       # <linux/prctl.h>
 STAGES = ("train-3", "train-5", "generalist", "export", "fleet", "fleet-unseen", "report")
 
 
@@ -138,22 +143,40 @@ class StageBook:
 
     @classmethod
     def load(cls, out: Path) -> StageBook:
+        """The book of the demo folder ``out`` (read with :func:`sim.files.read_config`, its types
+        checked); DemoError naming the file and the fix for a missing, damaged or foreign one."""
         path = Path(out) / BOOK_NAME
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
+        if not path.exists():
             raise DemoError(f"{str(path)!r} does not exist: --resume continues a demo folder written "
-                            "by `formation demo --out DIR`; leave out --resume to start one") from None
-        except ValueError as exc:
-            raise DemoError(f"{str(path)!r} is not valid JSON ({exc}); start a new run in an "
-                            "empty --out") from None
+                            "by `formation demo --out DIR`; leave out --resume to start one")
+        if not path.is_file():
+            raise DemoError(f"{str(path)!r} is not a file: --resume continues a demo folder written "
+                            "by `formation demo --out DIR`; start a new run in an empty --out")
+        try:
+            data = read_config(path, f"stage book {path}")
+        except (ConfigFileError, OSError, UnicodeDecodeError) as exc:
+            raise DemoError(f"{exc}; start a new run in an empty --out") from None
         if data.get("format") != BOOK_FORMAT or data.get("version") != BOOK_VERSION:
             raise DemoError(f"{str(path)!r} is not a {BOOK_FORMAT} v{BOOK_VERSION} stage book")
-        unknown = sorted(set(data.get("stages", {})) - set(STAGES))
+        settings, stages = data.get("settings"), data.get("stages", {})
+        created = data.get("created_unix")
+        if not isinstance(settings, dict):
+            raise DemoError(f"{str(path)!r}: 'settings' is {'missing' if settings is None else 'not a mapping'}; "
+                            "the book is damaged: start a new run in an empty --out")
+        if not isinstance(stages, dict) or not all(
+                isinstance(v, dict) and (not v.get("done") or isinstance(v.get("result"), dict))
+                for v in stages.values()):
+            raise DemoError(f"{str(path)!r}: 'stages' is not a mapping of stage records with their "
+                            "results; the book is damaged: start a new run in an empty --out")
+        unknown = sorted(set(stages) - set(STAGES))
         if unknown:
             raise DemoError(f"{str(path)!r} names unknown stages {unknown}")
-        return cls(out, DemoSettings.from_dict(data["settings"]), data.get("stages"),
-                   data.get("created_unix"))
+        if created is not None and (isinstance(created, bool) or not isinstance(created, int | float)):
+            raise DemoError(f"{str(path)!r}: 'created_unix' is not a number; the book is damaged")
+        try:
+            return cls(out, DemoSettings.from_dict(settings), stages, created)
+        except TypeError as exc:
+            raise DemoError(f"{str(path)!r}: its settings cannot be read ({exc})") from None
 
     def done(self, name: str) -> bool:
         return bool(self.stages.get(name, {}).get("done"))
@@ -178,6 +201,24 @@ class StageBook:
                                "settings": self.settings.to_dict(), "stages": ordered})
 
 
+def _die_with_parent():
+    """A ``preexec_fn`` that has the kernel send the child SIGTERM when this process ends
+    (``prctl(PR_SET_PDEATHSIG)``, Linux): a child in its own session gets no SIGHUP from a closed
+    terminal, and no signal at all when the demo is SIGKILLed. libc is looked up here, before
+    the fork; the child only makes the call (and stops at once if the demo already ended)."""
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    parent = os.getpid()
+
+    def preexec() -> None:
+        prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+        if os.getppid() != parent:       # the demo died before the call: nobody to wait for
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return preexec
+
+
 class Children:
     """Child processes of the demo, each the leader of its own process group."""
 
@@ -185,7 +226,10 @@ class Children:
         self.procs: list[subprocess.Popen] = []
 
     def spawn(self, args: list[str], **kwargs: Any) -> subprocess.Popen:
-        proc = subprocess.Popen(args, start_new_session=True, **kwargs)
+        """Start ``args`` in its own process group; on Linux it gets SIGTERM when the demo dies,
+        however it dies (SIGKILL included: :func:`_die_with_parent`)."""
+        preexec = _die_with_parent() if sys.platform.startswith("linux") else None
+        proc = subprocess.Popen(args, start_new_session=True, preexec_fn=preexec, **kwargs)
         self.procs.append(proc)
         return proc
 
@@ -214,9 +258,13 @@ class Children:
             self.procs.remove(proc)
 
 
+GUARDED_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a demo: Ctrl-C, a kill, and its terminal closing (SIGHUP)."""
+
+
 @contextlib.contextmanager
 def interrupt_guard(children: Children):
-    """While active, SIGINT/SIGTERM send SIGTERM to every child group and raise
+    """While active, SIGINT/SIGTERM/SIGHUP send SIGTERM to every child group and raise
     KeyboardInterrupt in the main thread (a second signal sends SIGKILL instead and returns)."""
     interrupted = {"count": 0}
 
@@ -227,9 +275,29 @@ def interrupt_guard(children: Children):
             raise KeyboardInterrupt
         children.signal_all(signal.SIGKILL)
 
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, handler) for sig in GUARDED_SIGNALS}
     try:
         yield interrupted
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def folder_lock(out: Path):
+    """Hold an exclusive lock on ``out/.demo.lock`` (``fcntl.flock``) while the block runs: a
+    second demo on the same folder (a ``--resume`` while one still runs) is refused with a
+    DemoError instead of training beside it. The kernel drops the lock when this process
+    ends, however it ends; the file stays (empty)."""
+    import fcntl
+
+    fd = os.open(Path(out) / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DemoError(f"another `formation demo` is running in {out} (it holds {LOCK_NAME}); "
+                            "wait for it to end or stop it (Ctrl-C), then continue with --resume") from None
+        yield
+    finally:
+        os.close(fd)

@@ -184,3 +184,35 @@ def test_the_zero_shot_table_prints_one_column_per_team_size(capsys):
     assert lines[2].split() == ["success", "0.50", "1.00"]
     assert lines[3].split() == ["collision", "rate", "0.50", "0.00"]
     assert lines[4].split() == ["final", "distance", "[mm]", "12.3", "4.0"]
+
+
+BOOK_HEAD = '"format": "formation-stack/demo", "version": 1'
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("[]", "expected a mapping of fields, got list"),
+    ("", "is not valid JSON"),
+    ("{" + BOOK_HEAD + ', "stages": {}}', "'settings' is missing"),
+    ("{" + BOOK_HEAD + ', "settings": [], "stages": {}}', "'settings' is not a mapping"),
+    ("{" + BOOK_HEAD + ', "settings": {}, "stages": []}', "'stages' is not a mapping of stage records"),
+    ("{" + BOOK_HEAD + ', "settings": {}, "stages": {"train-3": {"done": true}}}', "'stages' is not a mapping"),
+    ("{" + BOOK_HEAD + ', "settings": {}, "stages": {}, "created_unix": "x"}', "'created_unix' is not a number"),
+    (None, "is not a file"),
+])
+def test_a_damaged_or_foreign_stage_book_is_named(tmp_path, text, message):
+    """A stages.json of the wrong type (or a folder of that name) is a DemoError naming the file,
+    not a KeyError / AttributeError / IsADirectoryError traceback."""
+    if text is None:
+        (tmp_path / "stages.json").mkdir()
+    else:
+        (tmp_path / "stages.json").write_text(text)
+    with pytest.raises(DemoError, match="stages.json") as raised:
+        StageBook.load(tmp_path)
+    assert message in str(raised.value) and str(tmp_path / "stages.json") in str(raised.value)
+
+
+def test_resume_on_a_damaged_stage_book_exits_2_naming_it(tmp_path, capsys):
+    (tmp_path / "stages.json").write_text('{"format": "formation-stack/demo", "version": 1, "stages": {}}')
+    assert main(["demo", "--out", str(tmp_path), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and str(tmp_path / "stages.json") in err and "'settings' is missing" in err

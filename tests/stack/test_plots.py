@@ -183,3 +183,126 @@ def test_cli_errors(tmp_path, tiny_run, capsys):
     assert "--labels has 1 labels for 2" in capsys.readouterr().err
     assert main(["plot", str(tiny_run), "--scenario", "paper-99x", "--out", str(tmp_path / "x")]) == 2
     assert "unknown scenario" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+ROW = '{"episodes": 16, "return_mean": -3.0, "final_distance": 0.3}\n'
+
+
+def _run_folder(tmp_path, train_text: str, **files: str):
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "train.jsonl").write_text(train_text)
+    for name, text in files.items():
+        (folder / name.replace("_", ".")).write_text(text)
+    return folder
+
+
+def test_a_torn_last_log_line_is_skipped_and_a_damaged_one_before_it_is_named(tmp_path):
+    """A crash in the middle of an append leaves a cut last line: the rows before it are the log.
+    A bad line before the last is damage: named with its file and line."""
+    torn = _run_folder(tmp_path, ROW + ROW.replace("16", "32") + '{"episodes": 48, "ret')
+    assert [r["episodes"] for r in plots.load_run(torn).train] == [16, 32]
+    (torn / "train.jsonl").write_text(ROW + '{"episodes": 32, "ret\n' + ROW)
+    with pytest.raises(plots.PlotError, match=r"train\.jsonl, line 2: not valid JSON"):
+        plots.load_run(torn)
+    (torn / "train.jsonl").write_text(ROW + "[1, 2]\n" + ROW)
+    with pytest.raises(plots.PlotError, match=r"train\.jsonl, line 2: expected a JSON object, got list"):
+        plots.load_run(torn)
+    (torn / "train.jsonl").write_text(ROW)
+    (torn / "eval.jsonl").write_text('{"episodes": 16}\n\xff\n{"episodes": 32}\n')
+    with pytest.raises(plots.PlotError, match=r"eval\.jsonl, line 2"):
+        plots.load_run(torn)
+
+
+@pytest.mark.parametrize(("name", "text", "message"), [
+    ("result.json", "", "is not valid JSON"),
+    ("config.json", "[]\n", "expected a mapping of fields, got list"),
+    ("config.json", '{"success_threshold": "high"}', "success_threshold 'high' is not a number"),
+])
+def test_a_damaged_result_or_config_file_is_named_exit_2(tmp_path, capsys, name, text, message):
+    folder = _run_folder(tmp_path, ROW)
+    (folder / name).write_text(text)
+    assert main(["plot", str(folder), "--curves-only", "--out", str(tmp_path / "figs")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {folder / name}") and message in err and "Traceback" not in err
+    assert not (tmp_path / "figs").exists()
+
+
+def test_a_log_holding_only_a_torn_line_starts_anew_on_the_first_append(tmp_path):
+    """The trainer appends to a log whose only line a crash cut: the row is read back alone (not
+    glued to the torn text, which would damage the log's first line)."""
+    from controllers.mappo.logs import MetricsLog
+
+    (tmp_path / "train.jsonl").write_text('{"iteration": 1, "epi')
+    log = MetricsLog(tmp_path, "train")
+    assert log.read() == []
+    log.append({"iteration": 1, "episodes": 16})
+    assert MetricsLog(tmp_path, "train").read() == [{"iteration": 1, "episodes": 16}]
+
+
+def _bridge_record(scenario, ticks: int, nan_robot: int | None):
+    """A record as `formation bridge --record` writes it (no fleet: positions are the measured
+    ones), ``ticks`` ticks; robot ``nan_robot`` reports a NaN position on every one."""
+    from sim.fleet import FleetState
+    from stack.recorder import EpisodeRecorder
+    from stack.tick_types import PolicyStatus, TickResult
+
+    n = scenario.num_robots
+    recorder = EpisodeRecorder(scenario)
+    states = []
+    for k in range(max(ticks, 1)):
+        pos = np.array(scenario.starts, dtype=float) + [0.01 * k, 0.0]
+        if nan_robot is not None:
+            pos[nan_robot] = np.nan
+        states.append(FleetState(time=0.05 * k, step=k, positions=pos, velocities=np.zeros((n, 2)),
+                                 targets=np.array(scenario.targets, dtype=float),
+                                 object_pose=np.array([*scenario.object_center, 0.0]),
+                                 robot_ids=tuple(f"r{i}" for i in range(n))))
+    recorder.start(None, states[0])
+    for state in states[:ticks]:
+        a = np.zeros((n, 2))
+        stale = np.zeros(n, bool) if nan_robot is None else np.arange(n) == nan_robot
+        recorder.tick(state, TickResult(a_nom=a, a_safe=a, a_cmd=a, policy_status=PolicyStatus.OK,
+                                        safety_status=None, mec_status=None, stale=stale,
+                                        docking=np.zeros(n, bool), detour=np.zeros(n, bool)))
+    return recorder.finish({"seed": 0})
+
+
+def test_a_robot_without_any_position_is_left_out_of_the_paths_and_named_absent(tmp_path, monkeypatch, capsys):
+    """A robot that reported NaN on every tick (the stack braked it; the record keeps NaN as
+    received) has no path: the figure draws the others and names it absent in the path panel;
+    `formation plot` draws it (exit 0)."""
+    from stack import episode_plot
+
+    scenario = make_scenario("paper-3")
+    record = _bridge_record(scenario, 5, nan_robot=1)
+    assert np.isnan(record.positions[:, 1]).all() and np.isfinite(record.positions[:, [0, 2]]).all()
+    drawn = []
+    real_save = episode_plot.save_figure
+    monkeypatch.setattr(episode_plot, "save_figure", lambda fig, out: drawn.append(fig) or real_save(fig, out))
+    assert_png(episode_plot.plot_episode(record, scenario, tmp_path / "nan.png"))
+    texts = [t.get_text() for t in drawn[0].axes[0].texts]
+    assert "r0" in texts and "r2" in texts and "r1" not in texts          # robot labels at their ends
+    assert [t for t in texts if "absent" in t] == ["absent (no position in the record): r1"]
+    path = record.save(tmp_path / "record_00000.npz")
+    assert main(["plot", str(path), "--out", str(tmp_path / "figs")]) == 0
+    assert_png(tmp_path / "figs" / "record_00000.png")
+
+
+def test_a_record_without_ticks_is_a_plot_error_and_plot_exits_2(tmp_path, capsys):
+    """EpisodeRecorder.start then finish, no tick (an episode that stopped at once): a
+    PlotError "the record has no ticks", and `formation plot` exits 2 with it, drawing nothing."""
+    from stack.episode_plot import assigned_distances, plot_episode
+
+    scenario = make_scenario("paper-3")
+    record = _bridge_record(scenario, 0, nan_robot=None)
+    assert record.steps == 0 and record.positions.shape == (1, 3, 2)
+    with pytest.raises(plots.PlotError, match="cannot draw zero.png: the record has no ticks"):
+        plot_episode(record, scenario, tmp_path / "zero.png")
+    with pytest.raises(plots.PlotError, match="the record has no ticks"):
+        assigned_distances(record)
+    path = record.save(tmp_path / "zero.npz")
+    assert main(["plot", str(path), "--out", str(tmp_path / "figs")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot draw zero.png: the record has no ticks") and "Traceback" not in err
+    assert not (tmp_path / "zero.png").exists() and not (tmp_path / "figs" / "zero.png").exists()

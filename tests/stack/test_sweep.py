@@ -244,3 +244,68 @@ def test_a_ctrl_c_wrapped_by_a_lazy_import_stops_the_sweep_with_130_and_the_resu
     err = capsys.readouterr().err
     assert f"formation sweep --resume --out {tmp_path / 'sweep'}" in err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("doc", [
+    {"options": {}},
+    {"options": []},
+    {"options": {"base": [], "grid": [], "seeds": [0]}},
+    {"options": {"base": {}, "grid": [["lr"]], "seeds": [0]}},
+    {"options": {"base": {}, "grid": [], "seeds": [0, 0]}},
+    {"options": {"base": {}, "grid": [], "seeds": "0"}},
+    [],
+])
+def test_a_sweep_file_of_the_wrong_shape_is_named_not_a_traceback(tmp_path, capsys, monkeypatch, doc):
+    import stack.commands.sweep as sweep_command
+    from stack.cli import main
+
+    monkeypatch.setattr(sweep_command, "run_trials", lambda *a, **k: pytest.fail("trials ran"))
+    (tmp_path / "sweep.json").write_text(json.dumps(doc))
+    assert main(["sweep", "--resume", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'sweep.json'} is not a sweep's file" in err and "remove it" in err
+
+
+def test_a_sweep_json_that_is_a_folder_is_named(tmp_path, capsys):
+    from stack.cli import main
+
+    (tmp_path / "sweep.json").mkdir()
+    assert main(["sweep", "--resume", "--out", str(tmp_path)]) == 2
+    assert f"{tmp_path / 'sweep.json'} is a folder" in capsys.readouterr().err
+
+
+SAVED = {"base": {"total_episodes": 16, "eval_episodes": 4}, "grid": [["lr", [0.001, 0.0003]]], "seeds": [0, 1]}
+
+
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--seeds", "5"], ["--seeds"]),
+    (["--grid", "lr=1e-3"], ["--grid"]),
+    (["--episodes", "4000"], ["--episodes"]),
+    (["--config", '{"scenario": "paper-5"}'], ["--config"]),
+    (["--config", '{"eval_episodes": 4}', "--episodes", "17", "--seeds", "3"], ["--seeds", "--episodes"]),
+])
+def test_resume_refuses_flags_that_differ_from_the_saved_options(tmp_path, capsys, monkeypatch, flags, named):
+    """`sweep --resume` keeps the options of its sweep.json, as `demo --resume` does: a flag given
+    with it that says otherwise is refused by name (it was silently ignored), before any trial."""
+    import stack.commands.sweep as sweep_command
+    from stack.cli import main
+
+    (tmp_path / "sweep.json").write_text(json.dumps({"options": SAVED}))
+    before = (tmp_path / "sweep.json").read_text()
+    monkeypatch.setattr(sweep_command, "run_trials", lambda *a, **k: pytest.fail("trials ran"))
+    assert main(["sweep", "--resume", "--out", str(tmp_path), *flags]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path} was started with other options than the {', '.join(named)} given now" in err
+    assert (tmp_path / "sweep.json").read_text() == before
+
+
+def test_resume_takes_flags_that_agree_with_the_saved_options(tmp_path):
+    from stack.cli import build_parser
+    from stack.commands.sweep import _options
+
+    (tmp_path / "sweep.json").write_text(json.dumps({"options": SAVED}))
+    for flags in ([], ["--seeds", "2"], ["--seeds", "0,1", "--grid", "lr=1e-3,3e-4", "--episodes", "16"],
+                  ["--config", '{"eval_episodes": 4}'],
+                  ["--config", '{"eval_episodes": 4, "total_episodes": 99}', "--episodes", "16"]):
+        args = build_parser(("sweep",)).parse_args(["sweep", "--resume", "--out", str(tmp_path), *flags])
+        assert _options(args) == SAVED, flags
