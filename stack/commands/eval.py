@@ -36,6 +36,7 @@ import torch
 from tqdm import tqdm
 
 from sim.intruders import IntruderFleet, RobotSightings
+from sim.provenance import provenance
 from sim.pymunk_world import ModelError, PymunkWorld
 from sim.scenario import ScenarioError, make_scenario
 from stack.commands import argtypes
@@ -75,7 +76,7 @@ def register(sub) -> None:
                    help="--world pymunk: a tracker over the arena also sees every robot, one tick late, "
                         "within 5 mm and 2 cm/s (motion capture; sim.intruders.RobotSightings): a silent "
                         "robot it sees at rest is bounded by that sighting")
-    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the result as JSON")
+    p.add_argument("--json", type=argtypes.out_file, default=None, metavar="OUT", help="write the result as JSON")
     p.add_argument("--trace", type=Path, default=None, metavar="DIR",
                    help="--world pymunk or zenoh: record every episode into DIR as episode_SEED.npz "
                         "(positions, the commands of each layer, the stack's flags, contacts: "
@@ -91,10 +92,11 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from stack.pipeline import StackError
+    from stack.plots import PlotError
 
     try:
         result = evaluate_from_args(args)
-    except (EvalArgumentError, LinkArgumentError, ScenarioError, StackError) as exc:
+    except (EvalArgumentError, LinkArgumentError, ScenarioError, StackError, PlotError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print_result(result)
@@ -141,9 +143,12 @@ def evaluate_from_args(args) -> dict:
     else:
         _check_trace_dir(args.trace)
         metrics = _stack_episodes(args, scenario, parse_model_error(args.model_error))
+    stack_config = metrics["config"]["stack"]
     return {"scenario": scenario.name, "num_robots": scenario.num_robots, "world": args.world,
             "policy": args.policy or str(args.policy_path), "episodes": args.episodes,
-            "seed": args.seed, **metrics, "notes": notes}
+            "seed": args.seed, **metrics, "steps": metrics["config"]["steps"],
+            "docking": bool(stack_config and stack_config["docking"]["enabled"]), "notes": notes,
+            "provenance": provenance()}
 
 
 def _batched(args, scenario) -> dict:
@@ -154,7 +159,8 @@ def _batched(args, scenario) -> dict:
         from sim.fleet import BatchedFleet
 
         stack = ControlStack(scenario, ScriptedController(scenario), StackConfig(safety=False, mec=False))
-        return _episodes(args, BatchedFleet(scenario), stack, safety=False, mec=False)[0]
+        return _episodes(args, BatchedFleet(scenario), stack, safety=False, mec=False)[0] | {
+            "config": _resolved_config(args, scenario, stack)}
     from controllers.mappo.evaluate import evaluate
 
     if args.steps is not None:
@@ -165,7 +171,7 @@ def _batched(args, scenario) -> dict:
     d = result.to_dict()
     return {k: d[k] for k in ("success_rate", "final_distance", "collision_rate", "robot_collisions",
                               "object_collisions", "wall_collisions", "episode_return")} | {
-        "safety": False, "mec": False, "model_error": None}
+        "safety": False, "mec": False, "model_error": None, "config": _resolved_config(args, scenario, None)}
 
 
 def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
@@ -197,6 +203,7 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
         _draw_traces(traced, scenario)
         out["model_error"] = None         # the fleet's own
         out["command_delay_ms"], out["policy_runtime"] = args.command_delay_ms, stack.policy_runtime
+        out["config"] = _resolved_config(args, scenario, stack)
         return out
     try:             # the world checks the model error against the team (a frozen robot it has)
         world = PymunkWorld(scenario, model_error, seed=args.seed)
@@ -209,7 +216,23 @@ def _stack_episodes(args, scenario, model_error: ModelError) -> dict:
     _draw_traces(traced, scenario)
     out["model_error"] = dataclasses.asdict(model_error)
     out["command_delay_ms"], out["policy_runtime"] = args.command_delay_ms, stack.policy_runtime
+    out["config"] = _resolved_config(args, scenario, stack)
     return out
+
+
+def _resolved_config(args, scenario, stack) -> dict:
+    """The settings the episodes ran with, defaults filled in (the JSON result's and every
+    --trace record's "config"): the scenario, the ticks an episode, the flags, and the
+    StackConfig used (``stack`` None: the policy ran alone, the batched world)."""
+    return {"scenario": scenario.to_dict(), "world": args.world, "policy": args.policy or str(args.policy_path),
+            "episodes": args.episodes, "seed": args.seed,
+            "steps": scenario.dynamics.episode_steps if args.steps is None else args.steps,
+            "model_error": (dataclasses.asdict(parse_model_error(args.model_error)) if args.world == "pymunk"
+                            else None),
+            "command_delay_ms": args.command_delay_ms,
+            "intruder": [dataclasses.asdict(i) for i in args.intruder], "track_robots": args.track_robots,
+            "fleet": args.fleet, "lockstep": args.lockstep,
+            "stack": None if stack is None else dataclasses.asdict(stack.config)}
 
 
 def _check_trace_dir(folder: Path | None) -> None:
@@ -229,7 +252,8 @@ def _trace(args, stack, seed: int, recorder, metrics) -> Path:
                               "policy": args.policy or str(args.policy_path), "metrics": metrics.to_dict(),
                               "model_error": args.model_error, "command_delay_ms": args.command_delay_ms,
                               "safety": stack.safety is not None, "mec": stack.mec is not None,
-                              "docking": stack.docking is not None})
+                              "docking": stack.docking is not None,
+                              "config": _resolved_config(args, stack.scenario, stack), "provenance": provenance()})
     return record.save(args.trace / f"episode_{seed}.npz")
 
 
@@ -313,7 +337,8 @@ def _intruder_metrics(episodes: list[dict]) -> dict:
 def print_result(result: dict) -> None:
     print(f"formation eval: {result['policy']} on {result['scenario']} (N={result['num_robots']}), "
           f"{result['world']} world, {result['episodes']} episodes from seed {result['seed']}")
-    skip = {"scenario", "num_robots", "world", "policy", "episodes", "seed", "notes", "model_error"}
+    skip = {"scenario", "num_robots", "world", "policy", "episodes", "seed", "notes", "model_error", "config",
+            "provenance"}
     width = max(len(k) for k in result if k not in skip)
     for key, value in result.items():
         if key in skip:

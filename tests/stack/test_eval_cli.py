@@ -258,3 +258,48 @@ def test_the_intruder_of_the_help_text_is_traced_and_the_run_survives_it(tmp_pat
     seen = record.obstacles[:, 0]
     assert record.obstacle_ids.tolist() == ["#0"] and np.isnan(seen[:20]).all()
     np.testing.assert_allclose(seen[20:25], [[0.5, 1.1 - 0.01 * k, 0.06, 0.0] for k in range(5)], atol=1e-9)
+
+
+KEYS_BEFORE = {"scenario", "num_robots", "world", "policy", "episodes", "seed", "success_rate", "final_distance",
+               "arrival_rate", "arrival_tick", "collision_rate", "robot_collisions", "object_collisions",
+               "wall_collisions", "interventions_per_episode", "infeasible_per_episode", "fallbacks_per_episode",
+               "braking_per_episode", "tracking_error_m", "tick_p50_ms", "tick_p99_ms", "safety", "mec",
+               "model_error", "command_delay_ms", "policy_runtime", "notes"}
+
+
+def test_the_json_result_and_the_trace_carry_provenance_and_the_resolved_config(tmp_path, capsys):
+    """--json and every --trace record: git commit and package versions (sim.provenance), and
+    the settings the episodes ran with, defaults filled in (the steps, the flags, the
+    StackConfig used); every key the result had before is still there."""
+    import importlib.metadata
+
+    from sim.scenario import make_scenario
+    from stack.recorder import load_record
+
+    out, folder = tmp_path / "eval.json", tmp_path / "trace"
+    assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--steps", "3",
+                 "--no-docking", "--command-delay-ms", "100", "--model-error", "gain=0.9", "--json", str(out),
+                 "--trace", str(folder)]) == 0
+    assert "provenance" not in capsys.readouterr().out                  # in the file, not on the screen
+    data = json.loads(out.read_text())
+    assert KEYS_BEFORE <= set(data)
+    meta = load_record(folder / "episode_0.npz").meta
+    for doc in (data, meta):
+        assert doc["provenance"]["packages"]["numpy"] == importlib.metadata.version("numpy")
+        git = doc["provenance"]["git"]                                  # None outside a git checkout
+        assert git is None or (len(git["commit"]) == 40 and isinstance(git["dirty"], bool))
+        config = doc["config"]
+        assert (config["steps"], config["seed"], config["episodes"], config["world"]) == (3, 0, 1, "pymunk")
+        assert config["scenario"]["name"] == "paper-3" and config["model_error"]["gain"] == 0.9
+        assert (config["intruder"], config["track_robots"], config["command_delay_ms"]) == ([], False, 100.0)
+        stack = config["stack"]
+        assert (stack["safety"], stack["mec"], stack["docking"]["enabled"]) == (True, True, False)
+        assert stack["latency"]["command_delay_s"] == pytest.approx(0.1)
+    assert (data["steps"], data["docking"]) == (3, False)
+    # the batched world: the scenario's episode length resolved, the scripted stack's stages off
+    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert "git" in data["provenance"] and "packages" in data["provenance"]
+    assert data["config"]["steps"] == data["steps"] == make_scenario("paper-3").dynamics.episode_steps
+    assert (data["config"]["stack"]["safety"], data["config"]["stack"]["mec"], data["config"]["model_error"]) == \
+        (False, False, None)
