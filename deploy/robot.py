@@ -304,9 +304,13 @@ class RobotPolicy:
         self.accel_limit = float(self.meta["accel_limit"])
         self.own_target = bool(self.meta.get("own_target", False))
         self.own_target_margin = float(self.meta.get("own_target_margin", 0.0))
+        counts = [int(c) for c in self.meta.get("robot_counts") or ()]
+        self.robot_counts = frozenset(counts)     # the team sizes the file was verified for; empty: any
+        self._counts_text = (f"{min(counts)}..{max(counts)}" if len(counts) > 1 else str(counts[0])) if counts else ""
         self.golden_diff = self._check_golden()
+        n = min(counts) if counts else 5           # a slot file runs its own N only
         for _ in range(warmup):
-            self._forward(np.zeros((1, 2 * 5 + 1, TOKEN_DIM)))
+            self._forward(np.zeros((1, 2 * n + 1, TOKEN_DIM)))
 
     def _check_golden(self) -> float:
         """Replay the golden file through this runtime's token builder and the model."""
@@ -369,12 +373,15 @@ class RobotPolicy:
         :func:`robot_tokens`); never NaN. A policy that reads its own target marked
         (``meta["own_target"]``) gets target ``own_target`` marked, or when None the robot's
         target under :func:`own_targets` of the team it sees (itself and others)."""
+        n = len(np.asarray(targets).reshape(-1, 2))
+        if self.robot_counts and n not in self.robot_counts:
+            raise ValueError(f"{self.path} runs teams of {self._counts_text} robots (meta robot_counts); "
+                             f"this team has {n} targets: export a policy for {n} robots")
         if own_target is not None and not self.own_target:
             raise ValueError(f"{self.path} does not read an own target (its metadata's own_target is "
                              "false); call act without own_target")
-        if own_target is not None and not 0 <= int(own_target) < len(np.asarray(targets).reshape(-1, 2)):
-            raise ValueError(f"own_target must index one of the {len(np.asarray(targets).reshape(-1, 2))} "
-                             f"targets, got {own_target}")
+        if own_target is not None and not 0 <= int(own_target) < n:
+            raise ValueError(f"own_target must index one of the {n} targets, got {own_target}")
         if self.own_target and own_target is None:
             team = np.vstack((np.asarray(own_pos, dtype=np.float64).reshape(1, 2),
                               np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)))

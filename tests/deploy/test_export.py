@@ -340,6 +340,33 @@ def test_slot_actor_exports_for_its_own_n(tmp_path):
         assert check_export(report.path).max_abs_diff <= 1e-5
 
 
+def test_the_robot_runtime_runs_the_team_sizes_a_file_was_verified_for_and_names_the_others(tmp_path):
+    """deploy/robot.py warmed every file up on 5 robots, so a slot file of paper-3 could never
+    start on a robot (onnxruntime: 'invalid dimensions'); a typed file met 22 robots deep in
+    onnxruntime (a Gather out of bounds) and an npz one ran them unverified."""
+    from deploy.robot import RobotPolicy
+
+    scenario = make_scenario("paper-5")
+    rng = np.random.default_rng(0)
+
+    def act(policy, n):
+        pos, targets = rng.uniform(0.1, 0.9, (n, 2)), rng.uniform(0.1, 0.9, (n, 2))
+        return policy.act(pos[0], np.zeros(2), targets, pos[1:], np.zeros((n - 1, 2)), scenario.polygon,
+                          scenario.arena)
+
+    export_policy(make_actor(variant="slot", n=3), tmp_path / "s", dt=0.05, trained_robots=3, formats=("onnx",))
+    slot = RobotPolicy(tmp_path / "s.onnx", warmup=2)
+    assert act(slot, 3).valid
+    with pytest.raises(ValueError, match=r"runs teams of 3 robots .* this team has 4 targets"):
+        act(slot, 4)
+    export_policy(make_actor(), tmp_path / "t", dt=0.05, trained_robots=5, formats=("onnx", "npz"))
+    for name in ("t.onnx", "t.npz"):
+        typed = RobotPolicy(tmp_path / name, warmup=2)
+        assert act(typed, 21).valid
+        with pytest.raises(ValueError, match=r"runs teams of 1..21 robots .* this team has 22 targets"):
+            act(typed, 22)
+
+
 def test_an_actor_with_token_blocks_exports_and_matches_for_every_team(tmp_path):
     """Token-mixing blocks (self-attention over T tokens, T free) through every format."""
     torch.manual_seed(3)
