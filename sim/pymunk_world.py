@@ -22,7 +22,8 @@ Bodies
       ``collision_slop`` is 1e-4 m. Pymunk resolves a contact once shapes overlap: with the
       default 10 substeps a robot driven at full acceleration overlaps a wall or the object by
       under 1 mm and another robot by under 2 mm (1 substep: ~9 mm and ~18 mm). Any overlap
-      beyond 1e-6 m is a collision event, as everywhere else.
+      beyond 1e-6 m is a collision event, as everywhere else: at the end of a tick, and at any
+      substep (a contact pymunk opens and resolves within one tick is one too).
 
 Dynamics per control tick (``dt`` = ``scenario.dynamics.dt``), per robot, with :class:`ModelError`::
 
@@ -53,7 +54,8 @@ freeze is configured, the state carries ``state_age_s``: the age of each deliver
 Every state carries ``commands_pending``, as a robot's STATE carries ``last_cmd_seq``: the
 commands sent after the newest one the robot had acted on when its delivered row was measured.
 Collision events come from :func:`sim.metrics.collision_events` on the true positions after each
-tick, counted as onsets (robot, step) per kind like the batched world.
+tick, joined by every overlap pymunk met at a substep of the tick (its contact depth beyond
+``CONTACT_EPS``), counted as onsets (robot, step) per kind like the batched world.
 
 Randomness: ``reset(seed)`` seeds five independent numpy streams (start jitter, per-robot gain,
 disturbance noise, measurement noise, and the link: delay jitter and dropped states draw from
@@ -81,12 +83,13 @@ from pymunk.autogeometry import convex_decomposition
 
 from sim.fleet import FleetState, check_accelerations
 from sim.geometry import Polygon
-from sim.metrics import EpisodeOutcome, collision_events, episode_outcome
+from sim.metrics import CONTACT_EPS, EpisodeOutcome, collision_events, episode_outcome
 from sim.scenario import Scenario, clip_norm
 
 WALL_THICKNESS = 0.05      # [m] half-thickness of the wall segments, all outside the arena
 FROZEN_HOLD_TICKS = 2      # ticks a frozen robot keeps its last command before its watchdog brakes
 COLLISION_SLOP = 1e-4      # [m] overlap pymunk leaves in resting contact
+ROBOT, WALL, OBJECT = 1, 2, 3   # shape collision types; columns 0, 2, 1 of the contact flags
 
 
 @dataclass(frozen=True)
@@ -270,15 +273,32 @@ class PymunkWorld:
         self.space = pymunk.Space()
         self.space.collision_slop = COLLISION_SLOP
         self._robots: list[pymunk.Body] = []
-        for _ in range(self.scenario.num_robots):
+        self._robot_of: dict[pymunk.Shape, int] = {}
+        for i in range(self.scenario.num_robots):
             body = pymunk.Body(mass=1.0, moment=float("inf"))
             shape = pymunk.Circle(body, self.scenario.robot_radius)
+            shape.collision_type = ROBOT
             self._set_material(shape, *self._material)
             self.space.add(body, shape)
             self._robots.append(body)
+            self._robot_of[shape] = i
         for shape in self._static_shapes():
             self._set_material(shape, *self._material)
             self.space.add(shape)
+        self._substep_contact = np.zeros((self.scenario.num_robots, 3), dtype=bool)
+        self.space.on_collision(ROBOT, None, pre_solve=self._overlap)
+
+    def _overlap(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data) -> None:
+        """Mark the robots of a contact deeper than ``CONTACT_EPS`` at a substep (columns: robot,
+        object, wall, as :class:`Contacts`)."""
+        if min(p.distance for p in arbiter.contact_point_set.points) >= -CONTACT_EPS:
+            return
+        a, b = arbiter.shapes
+        flags = self._substep_contact
+        if b.collision_type == ROBOT:
+            flags[self._robot_of[a], 0] = flags[self._robot_of[b], 0] = True
+        else:
+            flags[self._robot_of[a], 1 if b.collision_type == OBJECT else 2] = True
 
     @staticmethod
     def _set_material(shape: pymunk.Shape, friction: float, elasticity: float) -> None:
@@ -297,7 +317,10 @@ class PymunkWorld:
             pieces = [verts]
         else:
             pieces = [[tuple(v) for v in hull[:-1]] for hull in convex_decomposition(verts + [verts[0]], 0.0)]
-        return walls + [pymunk.Poly(body, piece) for piece in pieces]
+        parts = [pymunk.Poly(body, piece) for piece in pieces]
+        for shape, kind in [(wall, WALL) for wall in walls] + [(part, OBJECT) for part in parts]:
+            shape.collision_type = kind
+        return walls + parts
 
     def _seed_streams(self, seed: int | None) -> None:
         # the first four children are those of spawn(4): adding the link stream changed no draw
@@ -392,12 +415,16 @@ class PymunkWorld:
         for body, vi in zip(self._robots, v, strict=True):
             body.velocity = (float(vi[0]), float(vi[1]))
         h = dyn.dt / self.substeps
+        self._substep_contact[:] = False
         for _ in range(self.substeps):
             self.space.step(h)
 
         self._step += 1
         self._after_motion()
         contact = np.stack((self.contacts.robot, self.contacts.object, self.contacts.wall), -1)
+        if self._substep_contact.any():
+            contact |= self._substep_contact
+            self._contacts = Contacts(robot=contact[:, 0], object=contact[:, 1], wall=contact[:, 2])
         self._counts += (contact & ~self._prev_contact).sum(0)
         self._prev_contact = contact
         return self.read_state()

@@ -407,3 +407,36 @@ def test_a_reset_after_an_episode_in_contact_leaves_robots_at_rest():
     start = world.reset(seed=1)
     world.send_accelerations(np.zeros((3, 2)))
     assert np.array_equal(world.step().positions, start.positions)
+
+
+def test_a_contact_pymunk_resolves_within_one_tick_is_a_collision():
+    """Collisions were judged from the positions at the end of each tick only: a robot grazing
+    the box's top edge 1 mm deep was pushed out within the tick's substeps and nothing was
+    counted; a robot dashing past a neighbour shoved it 24 mm off its slot and the episode
+    read as a success. Both are counted now, as the batched world counts them."""
+    from sim.scenario import make_scenario
+
+    sc = make_scenario("transport-2")
+    world = PymunkWorld(sc)
+    world.reset(seed=0)
+    world.set_state(np.array([[0.30, 0.689], [0.2, 0.2]]), np.array([[0.4, 0.0], [0.0, 0.0]]))
+    touched = []
+    for _ in range(8):                   # along the top edge (y = 0.65), the centre 39 mm above it
+        world.send_accelerations(np.array([[1.0, 0.0], [0.0, 0.0]]))
+        world.step()
+        touched.append(bool(world.contacts.object[0]))
+    assert any(touched) and world.collision_counts.object == 1 and world.collision_counts.robot == 0
+
+    targets = sc.targets
+    world = PymunkWorld(sc)
+    world.reset(seed=0)
+    world.set_state(np.array([[targets[0, 0] - 0.065, 0.085], targets[0]]))
+    for _ in range(sc.dynamics.episode_steps):
+        state = world.true_state()
+        pos, vel = state.positions, state.velocities
+        accel = 4.0 * (targets[[1, 0]] - pos) - 3.0 * vel   # robot 0 to the upper target past robot 1
+        if pos[0, 1] < targets[0, 1] + 0.06:
+            accel[0] = (0.0, 1.0)
+        world.send_accelerations(accel)
+        world.step()
+    assert world.collision_counts.robot == 2 and not world.outcome().success[0]
