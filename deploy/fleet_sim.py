@@ -389,8 +389,8 @@ class FleetSim:
                                                 cfg.intruders, cfg.scenario.robot_radius, cfg.scenario.dynamics.dt,
                                                 cfg.track_robots, self.registry)
             first_event = {}
-            for _, name, kind in sorted(cfg.events):
-                first_event.setdefault(name, kind)
+            for _, name, kind in sorted(cfg.events, key=lambda event: event[0]):   # as _apply_events:
+                first_event.setdefault(name, kind)                                 # a tick's in config order
             for robot in self.robots:
                 if first_event.get(robot.name) != "join":
                     self._open_link(robot)

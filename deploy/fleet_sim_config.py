@@ -3,6 +3,7 @@ run, and the intruders its tracker reports."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from deploy.network import TransportConfig
@@ -29,8 +30,13 @@ class WatchdogConfig:
         if isinstance(self.brake_after_ticks, bool) or not isinstance(self.brake_after_ticks, int) \
                 or self.brake_after_ticks < 1:
             raise ValueError(f"brake_after_ticks must be an integer >= 1, got {self.brake_after_ticks!r}")
-        if not self.stop_after_s > 0:
-            raise ValueError(f"stop_after_s must be > 0 seconds, got {self.stop_after_s!r}")
+        if not _finite_positive(self.stop_after_s):      # inf: the latch would never fire
+            raise ValueError(f"stop_after_s must be a finite number > 0 seconds, got {self.stop_after_s!r}")
+
+
+def _finite_positive(value: object) -> bool:
+    return (not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+            and value > 0)
 
 
 @dataclass
@@ -64,8 +70,14 @@ class FleetSimConfig:
         if self.episodes is not None and (isinstance(self.episodes, bool)
                                           or not isinstance(self.episodes, int) or self.episodes < 1):
             raise ValueError(f"episodes must be a positive integer (or None), got {self.episodes!r}")
-        if self.rate_hz is not None and not self.rate_hz > 0:
-            raise ValueError(f"rate_hz must be > 0 (or None for lock-step), got {self.rate_hz!r}")
+        if self.rate_hz is not None and not _finite_positive(self.rate_hz):  # inf: period 0, no watchdog
+            raise ValueError(f"rate_hz must be a finite number > 0 (or None for lock-step), got {self.rate_hz!r}")
+        for name in ("lockstep_timeout_s", "start_timeout_s"):
+            if not _finite_positive(getattr(self, name)):
+                raise ValueError(f"{name} must be a finite number > 0 seconds, got {getattr(self, name)!r}")
+        if self.max_ticks is not None and (isinstance(self.max_ticks, bool) or not isinstance(self.max_ticks, int)
+                                           or self.max_ticks < 0):
+            raise ValueError(f"max_ticks must be an integer >= 0 (or None: no limit), got {self.max_ticks!r}")
         if isinstance(self.playout_ticks, bool) or not isinstance(self.playout_ticks, int) or self.playout_ticks < 0:
             raise ValueError(f"playout_ticks must be an integer >= 0, got {self.playout_ticks!r}")
         if not 0.0 <= self.drop_commands < 1.0:

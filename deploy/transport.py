@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -151,6 +152,8 @@ class _Link:
     def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
         """Block until ``predicate()`` holds (checked after every update), the timeout passes
         or the link closes; return whether it holds."""
+        if math.isnan(timeout_s):                   # would never time out, and spin a core
+            raise ValueError(f"{type(self).__name__}.wait_for: timeout_s is NaN; give seconds >= 0")
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while not predicate():

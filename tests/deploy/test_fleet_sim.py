@@ -126,3 +126,32 @@ def test_a_robot_brakes_until_it_knows_whether_the_controller_has_an_estop_latch
     assert first_query_ns is not None, "no robot asked for the latched e-stop"
     assert max(report["speeds"]) == 0.0
     assert np.allclose(report["positions"], sim.world.scenario.starts, atol=0.02)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"rate_hz": float("inf")}, "rate_hz must be a finite number"),
+    ({"lockstep_timeout_s": float("nan")}, "lockstep_timeout_s must be a finite number"),
+    ({"lockstep_timeout_s": -1.0}, "lockstep_timeout_s must be a finite number"),
+    ({"start_timeout_s": float("nan")}, "start_timeout_s must be a finite number"),
+    ({"max_ticks": -3}, "max_ticks must be an integer >= 0"),
+])
+def test_settings_that_disable_the_watchdog_or_spin_the_start_are_refused(change, message):
+    """rate_hz inf made the period 0, so a robot's command never aged and its watchdog never
+    latched; stop_after_s inf did the same; a NaN start timeout waited for ever on a full core."""
+    from deploy.fleet_sim_config import WatchdogConfig
+
+    transport = TransportConfig(listen=("tcp/127.0.0.1:7447",))
+    with pytest.raises(ValueError, match=message):
+        FleetSimConfig("f", make_scenario("paper-3"), transport, **change)
+    with pytest.raises(ValueError, match="stop_after_s must be a finite number"):
+        WatchdogConfig(stop_after_s=float("inf"))
+
+
+def test_a_robot_restarted_at_a_tick_is_online_before_it():
+    """--leave r4@2 --join r4@2 (a restart) started r4 offline: its first event was read from
+    the events sorted by name, where 'join' comes before 'leave'."""
+    cfg = FleetSimConfig("sametick", make_scenario("paper-5"),
+                         TransportConfig(listen=(f"tcp/127.0.0.1:{free_tcp_port()}",)), rate_hz=20.0,
+                         max_ticks=4, start_timeout_s=0.2, events=((2, "r4", "leave"), (2, "r4", "join")))
+    modes = [entry["modes"][4] for entry in FleetSim(cfg).run()["trace"]]
+    assert modes[0] != "offline" and modes[1] != "offline", modes
