@@ -50,6 +50,7 @@ import numpy as np
 
 META_MEMBER = "formation.meta"
 HASH_FIELD = "content_sha256"
+TURN_TIE = 1e-5   # [m] controllers.policy.layers.TURN_TIE (this file runs without the project)
 EXPORT_FORMAT = "formation-stack/policy"
 EXPORT_FORMAT_VERSION = 2
 SELF, TARGET, ROBOT, OBJECT = 0, 1, 2, 3
@@ -90,11 +91,11 @@ def _quarter_turn(f: np.ndarray, read: np.ndarray, n: int) -> int:
         m[1] += w * f[t, 1]
         m[2] += w * f[t, 0]
         m[3] += w * -f[t, 1]
-    best = 0
-    for q in range(1, 4):
-        if m[q] > m[best]:
-            best = q
-    return best
+    top = max(m[0], m[1], m[2], m[3])
+    for q in range(4):                  # the first within TURN_TIE of the largest (TypedRows._turn)
+        if m[q] >= top - np.float32(TURN_TIE):
+            return q
+    return 0
 
 
 @numba.njit(cache=True, nogil=True)

@@ -97,6 +97,18 @@ class TypedEmbedding(nn.Module):
                           self.embed_object(tokens[:, 2 * n:])), 1)
 
 
+TURN_TIE = 1e-5
+"""[m] turn scores this close to the largest tie (:func:`formation_turn`); ``deploy/npz_policy.py``
+holds the same number (it runs without the project)."""
+
+
+def first_turn(scores: torch.Tensor, tie: float = TURN_TIE) -> torch.Tensor:
+    """(B,) the first of the (B, 4) quarter-turn ``scores`` within ``tie`` of the largest (an
+    argument, not the global: TorchScript reads no module floats)."""
+    near = scores >= scores.amax(-1, keepdim=True) - tie
+    return near.to(scores.dtype).argmax(-1)                 # argmax: the first largest
+
+
 def formation_turn(tokens: torch.Tensor, read: torch.Tensor | None) -> torch.Tensor:
     """(B, 2, 2): for each row of tokens (B, T = 2N+1, F) in the layout of
     :mod:`sim.observations` (masked tokens already zero; ``read`` (B, T) bool or None: all),
@@ -104,7 +116,11 @@ def formation_turn(tokens: torch.Tensor, read: torch.Tensor | None) -> torch.Ten
 
     With ``m = mean_k (g_k - p) - (c - p) = mean_k g_k - c`` (the targets' centroid seen from the
     object's centroid, the same for every robot of a team), ``k = argmax_k -(R_k m)_x``: the
-    targets come to lie left of the object, as in the presets. The token kinds are found by
+    targets come to lie left of the object, as in the presets. Scores within ``TURN_TIE`` of the
+    largest count as tied and the first of them wins: on a diagonal layout (``|m_x| = |m_y|``)
+    each robot's ``m``, summed from its own float32 tokens, differs in the last bits, and a plain
+    argmax let rounding pick the turn, differently per robot and per exported format (0.5
+    m/s^2 apart). The token kinds are found by
     index (targets 1..N, object 2N), not by slicing at N, so exported graphs keep T dynamic.
     Every token feature pair is a vector in the arena frame (the self token's position is
     relative to the arena's centre, about which the square arena is symmetric), so turning them
@@ -118,7 +134,7 @@ def formation_turn(tokens: torch.Tensor, read: torch.Tensor | None) -> torch.Ten
         target = target * read.to(tokens.dtype)
     weight = target / target.sum(1, keepdim=True).clamp_min(1.0) - (kind == 3).to(tokens.dtype)
     m = (tokens[..., 0:2] * weight.unsqueeze(-1)).sum(1)                      # (B, 2)
-    k = torch.stack((-m[:, 0], m[:, 1], m[:, 0], -m[:, 1]), -1).argmax(-1)    # quarter turns, CCW
+    k = first_turn(torch.stack((-m[:, 0], m[:, 1], m[:, 0], -m[:, 1]), -1))   # quarter turns, CCW
     c = (k == 0).to(tokens.dtype) - (k == 2).to(tokens.dtype)                  # cos, sin of k 90 deg
     s = (k == 1).to(tokens.dtype) - (k == 3).to(tokens.dtype)
     return torch.stack((torch.stack((c, -s), -1), torch.stack((s, c), -1)), 1)

@@ -161,11 +161,15 @@ def random_fleet_rows(n: int, batch: int, generator: torch.Generator, scenario: 
                       masked: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Tokens (batch * n, 2n+1, 4) float32 and mask of ``batch`` random fleets of ``n`` robots on
     ``scenario``'s object: positions and targets uniform in the arena, speeds up to the speed
-    limit (what a policy meets; unit-Gaussian features would be 1.5 m/s and 1.5 m off); with
+    limit (what a policy meets; unit-Gaussian features would be 1.5 m/s and 1.5 m off); the first
+    fleet's targets moved so that their centroid lies on a diagonal from the object's (where the
+    quarter turn of a formation frame ties, :func:`controllers.policy.layers.formation_turn`); with
     ``masked``, 30 % of the tokens after the first masked out."""
     arena = torch.as_tensor(scenario.arena, dtype=torch.float64)
     pos = (0.05 + 0.9 * torch.rand(batch, n, 2, generator=generator, dtype=torch.float64)) * arena
     targets = (0.05 + 0.9 * torch.rand(batch, n, 2, generator=generator, dtype=torch.float64)) * arena
+    centre = torch.as_tensor(scenario.object_center, dtype=torch.float64)
+    targets[0] += centre - 0.2 * arena.min() - targets[0].mean(0)
     angle = 2 * math.pi * torch.rand(batch, n, generator=generator, dtype=torch.float64)
     speed = scenario.dynamics.speed_limit * torch.rand(batch, n, generator=generator, dtype=torch.float64)
     vel = torch.stack((speed * torch.cos(angle), speed * torch.sin(angle)), -1)

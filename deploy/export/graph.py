@@ -55,6 +55,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from controllers.policy.layers import first_turn
 from sim.observations import token_types
 from sim.scenario import MAX_ROBOTS
 
@@ -172,7 +173,7 @@ class TypedRows(nn.Module):
         """(B,) index k of each row's quarter turn (module docstring)."""
         targets = torch.where(read.unsqueeze(-1), table[:, -2:-1], torch.zeros((), dtype=f.dtype))  # (B, T, 1)
         weight = targets / targets.sum(1, keepdim=True).clamp_min(1.0) - table[:, -1:]
-        return (weight * torch.matmul(f, self.pick)).sum(1).argmax(-1)
+        return first_turn((weight * torch.matmul(f, self.pick)).sum(1))
 
     def rows(self, f: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
         """``f`` (B, T, 4) tokens with unread ones zero, ``read`` (B, T) bool -> (B, 2) [m/s^2]."""

@@ -72,7 +72,8 @@ def test_turned_scenes_get_turned_actions_and_non_finite_rows_brake():
 def test_the_onnx_graph_stays_small():
     """An interpreter pays about 1 us per node at 5 robots: the graph's size is its speed. The
     default actor's file keeps B and T free, gathers nothing by N but its one table row, and has
-    no more nodes than at this writing (54; the actor's own graph: 133)."""
+    no more nodes than at this writing (58, 4 of them the quarter turn's tie rule; the actor's
+    own graph: 133)."""
 
     from deploy.export.formats import onnx_model
 
@@ -81,5 +82,5 @@ def test_the_onnx_graph_stays_small():
     nodes = [n.op_type for n in proto.graph.node]
     dims = [[d.dim_param for d in i.type.tensor_type.shape.dim[:2]] for i in proto.graph.input]
     assert dims == [["batch", "tokens"], ["batch", "tokens"]]
-    assert len(nodes) <= 54, nodes
+    assert len(nodes) <= 58, nodes
     assert nodes.count("Shape") == 1 and "Expand" not in nodes
