@@ -437,14 +437,16 @@ class ControlStack:
         p = self._last_prediction
         if p is None:
             return None
-        return np.column_stack([p.pos[p.fixed], self.scenario.robot_radius + p.grow[p.fixed]])
+        keep = p.fixed & np.isfinite(p.pos).all(1) & np.isfinite(p.grow)   # a new robot's NaN row: no disc
+        return np.column_stack([p.pos[keep], self.scenario.robot_radius + p.grow[keep]])
 
     def _runs(self, k: int) -> bool:
         """Whether the policy takes a team of ``k`` robots (silent robots join its view only then)."""
         if self._exported is not None:
             return k in self._exported.robot_counts
-        if self.network is not None:
-            return self.obs_kind == "tokens" and int(getattr(self.network, "num_robots", 0)) == -1
+        if self.network is not None:        # any N (typed), or its own N (slot, flat MLP)
+            num = int(getattr(self.network, "num_robots", 0))
+            return (num == -1 and self.obs_kind == "tokens") or num == k
         return False
 
     def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,

@@ -284,3 +284,55 @@ def test_a_neighbour_reaches_its_goal_beside_a_dropped_robot_counted_as_the_brid
     far, gap_far = _thrust_and_drop("unknown", (0.305, 0.763), 100)[2:][::-1]
     assert near < 0.006 and far > 0.07
     assert gap_near > 0.03 and gap_far > 0.03
+
+
+@pytest.mark.parametrize("variant", ["slot", "mlp"])
+def test_a_network_of_a_fixed_team_size_runs_the_team_with_a_robot_off_the_link(variant):
+    """A 5-robot slot or MLP actor from a checkpoint was handed the 4 rows left when r3 dropped
+    off the link (its exported file got the team of 5): tick raised on every tick the robot was
+    away, and the bridge braked the whole fleet."""
+    from controllers.policy import ActorConfig, build_actor
+
+    sc = make_scenario("paper-5")
+    torch.manual_seed(0)
+    net = build_actor(ActorConfig(variant=variant, embed_dim=16, num_heads=2, hidden_sizes=(32,)), 5).eval()
+    stack = ControlStack(sc, net)
+    full = PymunkWorld(sc).reset(seed=0)
+    stack.tick(full)
+    keep = [0, 1, 2, 4]
+    state = FleetState(time=full.time + 0.05, step=1, positions=full.positions[keep],
+                       velocities=full.velocities[keep], targets=full.targets[keep], object_pose=full.object_pose,
+                       robot_ids=tuple(full.robot_ids[i] for i in keep), state_age_s=np.zeros(4),
+                       commands_pending=np.ones(4, dtype=np.int64),
+                       silent=SilentRobots(("r3",), full.positions[[3]], full.velocities[[3]], np.array([0.05]),
+                                           full.targets[[3]], np.array([1])))
+    result = stack.tick(state)
+    assert result.policy_status == "ok" and result.a_cmd.shape == (4, 2) and np.isfinite(result.a_cmd).all()
+
+
+def test_a_new_robots_non_finite_row_leaves_no_nan_disc_for_the_detour_of_the_next_tick():
+    """A robot never seen before that reports NaN is handled on its tick (nobody moves), but its
+    disc stayed in that tick's prediction with a NaN centre, and a detour planned on the next
+    tick read it: math.floor(NaN) raised out of tick()."""
+    from controllers.scripted import ScriptedController
+
+    sc = make_scenario("paper-5")
+    world = PymunkWorld(sc, ModelError(freeze=(3, 20)))
+    state = world.reset(seed=0)
+    stack, link = ControlStack(sc, ScriptedController(sc), StackConfig()), DroppedFromLink(world, 20, True, 3)
+    plans, plan = [], stack.detour.plan
+    stack.detour.plan = lambda *a, **k: plans.append(step) or plan(*a, **k)
+    for step in range(52):
+        view = link.view(state)
+        newcomer = step == 49                  # a replan tick (detours plan at 39, 49, ...)
+        if newcomer:
+            view = FleetState(time=view.time, step=view.step, positions=np.vstack([view.positions, [np.nan, np.nan]]),
+                              velocities=np.vstack([view.velocities, [0.0, 0.0]]),
+                              targets=np.vstack([view.targets, [0.5, 0.9]]), object_pose=view.object_pose,
+                              robot_ids=view.robot_ids + ("x9",), state_age_s=np.append(view.ages(), 0.0),
+                              silent=view.silent)
+        result = stack.tick(view)
+        assert np.isfinite(result.a_cmd).all()
+        world.send_accelerations(link.commands(result.a_cmd[:-1] if newcomer else result.a_cmd, step))
+        state = world.step()
+    assert 50 in plans                          # the detour did plan on the tick after the NaN row
