@@ -13,7 +13,7 @@ def test_the_rewritten_graph_is_smaller_and_both_match_the_actor():
     assert (document["robots"], document["ticks"]) == (3, 100)
     graphs = document["graphs"]
     assert set(graphs) == {"actor", "rows"}
-    assert graphs["rows"]["nodes"] <= 54 < 100 < graphs["actor"]["nodes"]
+    assert graphs["rows"]["nodes"] <= 58 < 100 < graphs["actor"]["nodes"]
     for g in graphs.values():
         assert g["max_abs_diff"] <= TOLERANCE
         for key in ("call_ms", "tick_ms", "policy_stage_ms"):
