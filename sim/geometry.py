@@ -296,6 +296,10 @@ class DetourField:
         (the control tick's own-target assignment reads it)."""
         if self._table_np is None:
             self._table_np = self.table.numpy()
+        return self._table_np[self.nodes_np(pos)]
+
+    def nodes_np(self, pos: np.ndarray) -> np.ndarray:
+        """(N,) int64 the table row of the grid node nearest each of (N, 2) centres [m]."""
         ix = np.clip(np.rint(pos[:, 0] / self.res), 0, self.nx - 1)
         iy = np.clip(np.rint(pos[:, 1] / self.res), 0, self.ny - 1)
-        return self._table_np[(iy * self.nx + ix).astype(np.int64)]
+        return (iy * self.nx + ix).astype(np.int64)

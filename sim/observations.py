@@ -30,6 +30,7 @@ Flat vector (the paper's Figure 1, for fixed-N baselines)
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from functools import cache
 
 import numpy as np
@@ -123,9 +124,14 @@ def own_target_paths(polygon: Polygon, targets: torch.Tensor, radius: float) -> 
 class FleetOwnTargets:
     """:func:`own_assignment` for one fleet in numpy, as the ControlStack needs it every tick:
     ``(pos (N, 2), targets (N, 2)) -> (N,)`` int, read from the tabulated paths of the batched
-    world (:meth:`sim.geometry.DetourField.lookup_np`) and solved with scipy. The table of a set
-    of targets takes ~0.3-0.5 s to build: ``targets`` given here (the scenario's) are tabulated
-    now, not at the first tick; other targets are tabulated when first seen."""
+    world (:meth:`sim.geometry.DetourField.lookup_np`) and solved with scipy. A target's column
+    of the table (its path lengths from every grid node) takes ~20-100 ms to build and depends on
+    that target alone, so columns are kept per target (the last ``KEPT_COLUMNS``): a robot that
+    leaves or rejoins reorders the set but costs no rebuild inside the tick (it cost 90 ms, past
+    the 50 ms period). ``targets`` given here (the scenario's) are tabulated now, not at the
+    first tick; other targets when first seen."""
+
+    KEPT_COLUMNS = 64
 
     def __init__(self, polygon: np.ndarray, radius: float, arena: tuple[float, float],
                  targets: np.ndarray | None = None):
@@ -135,19 +141,34 @@ class FleetOwnTargets:
         self.polygon = Polygon(torch.as_tensor(np.asarray(polygon), dtype=torch.float64))
         self.radius, self.arena = float(radius), arena
         self._key: bytes | None = None
-        self._field: DetourField | None = None
+        self._table: np.ndarray | None = None                      # (nodes, N) of the set in _key
+        self._columns: OrderedDict[bytes, np.ndarray] = OrderedDict()  # per target, (nodes,)
+        self._grid: DetourField | None = None                      # the grid (one for all targets)
         if targets is not None:
             self._tabulate(np.ascontiguousarray(targets, dtype=np.float64))
 
     def _tabulate(self, targets: np.ndarray) -> None:
-        paths = own_target_paths(self.polygon, torch.from_numpy(targets), self.radius)
-        self._field, self._key = DetourField(paths, self.arena), targets.tobytes()
+        keys = [t.tobytes() for t in targets]
+        missing = [k for k, key in enumerate(keys) if key not in self._columns]
+        if missing:
+            field = DetourField(own_target_paths(self.polygon, torch.from_numpy(targets[missing]), self.radius),
+                                self.arena)
+            table = field.table.numpy()
+            for j, k in enumerate(missing):
+                self._columns[keys[k]] = np.ascontiguousarray(table[:, j])
+            self._grid = field
+        for key in keys:
+            self._columns.move_to_end(key)
+        self._table = np.stack([self._columns[key] for key in keys], 1)
+        while len(self._columns) > max(self.KEPT_COLUMNS, len(keys)):
+            self._columns.popitem(last=False)
+        self._key = targets.tobytes()
 
     def __call__(self, pos: np.ndarray, targets: np.ndarray) -> np.ndarray:
         targets = np.ascontiguousarray(targets, dtype=np.float64)
         if self._key != targets.tobytes():
             self._tabulate(targets)
-        path = self._field.lookup_np(np.asarray(pos, dtype=np.float64))
+        path = self._table[self._grid.nodes_np(np.asarray(pos, dtype=np.float64))]
         rows, cols = self._solve(path * path)
         sigma = np.empty(len(rows), dtype=np.int64)
         sigma[rows] = cols

@@ -125,7 +125,7 @@ def test_the_fleets_own_targets_are_tabulated_before_the_first_tick_and_match_th
 
     sc = make_scenario("paper-5")
     fleet = obs.FleetOwnTargets(sc.polygon, sc.robot_radius, sc.arena, sc.targets)
-    table = fleet._field
+    table = fleet._table
     assert table is not None
     env = BatchedFormationEnv(sc, 1, dtype=torch.float64, own_target=True)
     rng = np.random.default_rng(0)
@@ -133,6 +133,35 @@ def test_the_fleets_own_targets_are_tabulated_before_the_first_tick_and_match_th
         pos = rng.uniform(0.05, 0.95, (5, 2))
         want = obs.own_assignment(env._own_paths(torch.from_numpy(pos)[None]))[0].numpy()
         assert np.array_equal(fleet(pos, sc.targets), want)
-    assert fleet._field is table
+    assert fleet._table is table
     fleet(pos, np.asarray(sc.targets)[::-1])
-    assert fleet._field is not table
+    assert fleet._table is not table
+
+
+def test_fleet_own_targets_keeps_a_column_per_target_so_a_reordered_team_builds_nothing(monkeypatch):
+    """The table was keyed by the whole target array: a robot leaving or rejoining (the team
+    view appends the silent robot last) rebuilt it inside the tick, 90 ms against the 50 ms
+    period. Each target's column depends on that target alone: it is kept, and the answers are
+    those of the whole table."""
+    from scipy.optimize import linear_sum_assignment
+
+    from sim.geometry import DetourField, Polygon
+
+    observations = obs
+
+    sc = make_scenario("paper-5")
+    built = []
+    real = observations.own_target_paths
+    monkeypatch.setattr(observations, "own_target_paths", lambda p, t, r: built.append(len(t)) or real(p, t, r))
+    own = observations.FleetOwnTargets(sc.polygon, sc.robot_radius, sc.arena, sc.targets)
+    rng = np.random.default_rng(0)
+    whole = DetourField(real(Polygon(torch.as_tensor(sc.polygon)), torch.as_tensor(sc.targets), sc.robot_radius),
+                        sc.arena)
+    for perm in ([0, 1, 2, 4, 3], [4, 3, 2, 1, 0], [0, 1, 2, 4], [3]):
+        pos = rng.uniform(0.05, 0.95, (len(perm), 2))
+        sigma = own(pos, sc.targets[perm])
+        rows, cols = linear_sum_assignment(whole.lookup_np(pos)[:, perm] ** 2)
+        assert sigma.tolist() == cols[np.argsort(rows)].tolist()
+    assert built == [5]                          # the scenario's five, at construction only
+    own(rng.uniform(0.05, 0.95, (2, 2)), np.vstack([sc.targets[:1], [[0.2, 0.9]]]))
+    assert built == [5, 1]                       # a new target: its column alone
