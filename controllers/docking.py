@@ -86,7 +86,8 @@ class DockingConfig:
         capture_speed: a robot starts docking only below this speed [m/s] (module docstring).
         stall_radius: a robot this close to its free matched target that has all but stopped
             (slower than ``stall_speed``) starts docking too [m] (module docstring, "How near";
-            0 turns this tier off).
+            0 turns this tier off). A detour ends this close to a target, or within
+            ``capture_radius`` where that is larger (with the tier off).
         stall_speed: see ``stall_radius`` [m/s].
         detour_after_s: a robot held in place (within 2 cm) this long away from every target, its
             policy pushing, is led round what holds it (:mod:`controllers.detour`) [s]; 0 turns

@@ -180,7 +180,7 @@ class ControlStack:
                         if self.config.docking.enabled else None)
         dock = self.config.docking
         self.detour = (Detour(scenario.robot_radius, self.dynamics.accel_limit, scenario.arena, scenario.polygon,
-                              self.dynamics.dt, dock.detour_after_s, dock.stall_radius)
+                              self.dynamics.dt, dock.detour_after_s, max(dock.stall_radius, dock.capture_radius))
                        if dock.enabled and dock.detour_after_s > 0 else None)
         self._last_known = LastKnown()
         self._last_prediction: Prediction | None = None   # the filter's, last tick (its fixed discs)

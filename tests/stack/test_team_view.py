@@ -336,3 +336,26 @@ def test_a_new_robots_non_finite_row_leaves_no_nan_disc_for_the_detour_of_the_ne
         world.send_accelerations(link.commands(result.a_cmd[:-1] if newcomer else result.a_cmd, step))
         state = world.step()
     assert 50 in plans                          # the detour did plan on the tick after the NaN row
+
+
+def test_detours_still_lead_a_robot_home_with_dockings_second_tier_off():
+    """DockingConfig(stall_radius=0) turns docking's second tier off; the detour planner took the
+    same radius as its goal tolerance, found no path to any goal and detours stopped silently
+    (2 of 4 robots home instead of 3). A detour now ends within capture_radius then."""
+    from controllers.docking import DockingConfig
+    from controllers.scripted import ScriptedController
+
+    sc = make_scenario("paper-5")
+    world = PymunkWorld(sc, ModelError(freeze=(3, 20)))
+    state = world.reset(seed=0)
+    cfg = StackConfig(docking=DockingConfig(detour_after_s=1.0, stall_radius=0.0))
+    stack, link, detoured = ControlStack(sc, ScriptedController(sc), cfg), DroppedFromLink(world, 20, True, 3), 0
+    for step in range(240):
+        result = stack.tick(link.view(state))
+        detoured += int(result.detour.any())
+        world.send_accelerations(link.commands(result.a_cmd, step))
+        state = world.step()
+    others = world.true_state().positions[[0, 1, 2, 4]]
+    gaps = np.linalg.norm(others[:, None] - sc.targets[None], axis=2)
+    off = gaps[linear_sum_assignment(gaps)]
+    assert detoured > 0 and np.count_nonzero(off < 0.01) >= 3, (detoured, off)
