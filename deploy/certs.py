@@ -49,6 +49,9 @@ def check_robot_ids(robots: Iterable[str]) -> list[str]:
     bad = [r for r in robots if not isinstance(r, str) or not _NAME_RE.fullmatch(r)]
     if bad:
         raise ValueError(f"robot ids must be 1-63 letters, digits, '-' or '_' (ids in certificates): got {bad}")
+    twice = sorted({r for r in robots if robots.count(r) > 1})
+    if twice:
+        raise ValueError(f"robot ids {twice} are given twice: give each robot id once")
     taken = [r for r in robots if r in (*ROLES, CA)]
     if taken:
         raise ValueError(f"robot ids {taken} are names of the fleet's own nodes or CA "

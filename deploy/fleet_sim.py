@@ -167,8 +167,8 @@ class FleetSim:
         self.ignored_while_latched = 0
         self.ignored_without_controller = 0
         self.lockstep_timeouts = 0
-        # real time without a tick limit may run for days: keep the newest TRACE_TICKS ticks
-        endless = config.rate_hz is not None and config.max_ticks is None
+        # a run without a tick or episode limit may go on for days (lock-step too): keep the newest
+        endless = config.max_ticks is None and config.episodes is None          # TRACE_TICKS ticks
         self.trace: deque[dict[str, Any]] = deque(maxlen=TRACE_TICKS if endless else None)
         self.on_episode = on_episode
         self.episode_ticks = sc.dynamics.episode_steps

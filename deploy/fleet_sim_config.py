@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass, field
 
 from deploy.network import TransportConfig
+from deploy.wire import check_name
 from sim.intruders import Intruder, RobotSightings
 from sim.pymunk_world import ModelError
 from sim.scenario import Scenario
@@ -67,6 +68,7 @@ class FleetSimConfig:
         return self.transport.loopback_only() if self.shared_clock is None else bool(self.shared_clock)
 
     def __post_init__(self) -> None:
+        check_name(self.fleet, "fleet name (--fleet)")
         if self.episodes is not None and (isinstance(self.episodes, bool)
                                           or not isinstance(self.episodes, int) or self.episodes < 1):
             raise ValueError(f"episodes must be a positive integer (or None), got {self.episodes!r}")

@@ -100,8 +100,10 @@ def register(sub) -> None:
                    help="silence [s] of any one live robot that raises the fleet e-stop; also "
                         "the gap that counts as a stall of the bridge itself (after a stall the "
                         "old states are discarded and latched robots re-armed) (default %(default)s)")
-    p.add_argument("--gather", type=float, default=d.gather_s, metavar="S",
-                   help="seconds a tick waits for the rest of a burst of states (default %(default)s)")
+    p.add_argument("--gather", type=argtypes.seconds, default=d.gather_s, metavar="S",
+                   help="seconds a tick waits for the rest of a burst of states, in real time "
+                        "(default %(default)s; --lockstep waits up to 0.2 s of wall time for the whole "
+                        "burst instead)")
     p.add_argument("--delay-percentile", type=float, default=d.delay_percentile, metavar="P",
                    help="the command delay passed to the controller is this percentile of the "
                         "recent command round trips (default %(default)s)")
@@ -110,7 +112,7 @@ def register(sub) -> None:
     p.add_argument("--rearm-alarm-after", type=argtypes.positive, default=d.rearm_alarm_after, metavar="K",
                    help="re-arms in a row a robot leaves unanswered (still in FAULT) before an ERROR names "
                         "it and it is treated as a silent obstacle (default %(default)s)")
-    p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
+    p.add_argument("--ticks", type=argtypes.count, default=None, help="stop after this many ticks")
     p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
                    help="the fleet resets every T ticks: reset the stack, report per episode")
     p.add_argument("--lossless", action="store_true",
@@ -122,7 +124,7 @@ def register(sub) -> None:
                    help="the fleet is lock-stepped (fleet-sim --lockstep): run on sim time, one "
                         "scenario dt per answered burst, so ages, silences and delays count "
                         "fleet ticks and a run repeats however busy the machine; implies --lossless")
-    p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
+    p.add_argument("--report", type=argtypes.out_file, default=None, help="write a JSON summary on exit")
     p.add_argument("--trace", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...], '
                         '"stale": [...], "silent": [...]}')

@@ -32,7 +32,7 @@ def register(sub) -> None:
                       help="release it (refused while a robot is silent)")
     what.add_argument("--status", action="store_const", const="status", dest="request",
                       help="report the e-stop and the longest-silent robot")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the bridge (default 5)")
+    p.add_argument("--timeout", type=argtypes.seconds, default=5.0, help="seconds to wait for the bridge (default 5)")
     argtypes.add_transport_flags(p, "operator")
     p.set_defaults(func=run)
 
@@ -49,7 +49,14 @@ def run(args) -> int:
     with session:
         for reply in session.get(keys.operator, payload=args.request.encode(), timeout=args.timeout):
             if reply.ok is not None:
-                answer = json.loads(reply.ok.payload.to_bytes())
+                try:
+                    answer = json.loads(reply.ok.payload.to_bytes())
+                except ValueError:
+                    answer = None
+                if not isinstance(answer, dict):
+                    print(f"error: the answer on {keys.operator} is not a JSON object: is a bridge of "
+                          f"fleet {args.fleet!r} answering there?", file=sys.stderr)
+                    return 2
                 break
     if answer is None:
         print(f"error: no bridge of fleet {args.fleet!r} answered within {args.timeout} s "

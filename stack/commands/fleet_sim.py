@@ -26,7 +26,6 @@ import argparse
 import json
 import signal
 import sys
-from pathlib import Path
 
 import zenoh
 
@@ -59,7 +58,7 @@ def register(sub) -> None:
     argtypes.add_transport_flags(p, "fleet-sim")
     p.add_argument("--model-error", default=None, metavar="K=V,...", help=MODEL_ERROR_HELP)
     p.add_argument("--seed", type=argtypes.seed, default=0)
-    p.add_argument("--ticks", type=int, default=None, help="stop after this many ticks")
+    p.add_argument("--ticks", type=argtypes.count, default=None, help="stop after this many ticks")
     p.add_argument("--episodes", type=int, default=None,
                    help="run this many episodes (world reset each), then stop")
     p.add_argument("--lockstep-timeout", type=float, default=0.5,
@@ -88,7 +87,7 @@ def register(sub) -> None:
                         "5 mm and 2 cm/s (motion capture; sim.intruders.RobotSightings): the controller bounds a "
                         "silent robot it sees at rest by that sighting")
     argtypes.add_shared_clock_flag(p, "controller")
-    p.add_argument("--report", type=Path, default=None, help="write a JSON summary on exit")
+    p.add_argument("--report", type=argtypes.out_file, default=None, help="write a JSON summary on exit")
     p.set_defaults(func=run)
 
 

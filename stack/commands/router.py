@@ -19,14 +19,13 @@ import argparse
 import json
 import signal
 import sys
-from pathlib import Path
 
 import zenoh
 
 from deploy.fleet_sim import robot_names, write_json
 from deploy.router import Router, router_config
 from sim.scenario import make_scenario
-from stack.commands.argtypes import lease_ms
+from stack.commands.argtypes import lease_ms, out_file
 
 
 def register(sub) -> None:
@@ -39,7 +38,7 @@ def register(sub) -> None:
                    help="endpoint to listen on (default tls/127.0.0.1:7447); repeat for several")
     p.add_argument("--lease-ms", type=lease_ms, default=None, metavar="MS",
                    help="link lease [ms], >= 100 (Zenoh default 10000)")
-    p.add_argument("--report", type=Path, default=None, help="write the JSON exit report here too")
+    p.add_argument("--report", type=out_file, default=None, help="write the JSON exit report here too")
     p.add_argument("--no-count", dest="count", action="store_false",
                    help="do not count denied messages and refused links")
     p.set_defaults(func=run)

@@ -134,7 +134,7 @@ def make_figures(book: StageBook) -> dict[str, Path]:
         scenario = make_scenario(SCENARIO)
         fleet = book.result("fleet")
         plot_trajectories(fleet_trajectories(out), scenario, paths["trajectories"],
-                          title=f"{SCENARIO} in pymunk with model error, over Zenoh: policy.pt -> "
+                          title=f"{SCENARIO} in pymunk with model error, over Zenoh: {fleet['policy']} -> "
                                 f"safety filter -> MEC ({fleet['episodes']} episodes)")
         bar.update(1)
         actor = load_actor(out / "train-5" / "checkpoint.pt")

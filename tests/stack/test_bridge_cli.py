@@ -104,3 +104,53 @@ def test_the_lease_flag_is_refused_below_100_ms_by_every_command_that_takes_it(c
             with pytest.raises(SystemExit) as done:
                 parser.parse_args([*base, "--lease-ms", bad])
             assert done.value.code == 2 and "--lease-ms" in capsys.readouterr().err, (base, bad)
+
+
+def test_node_flags_are_refused_at_start_not_after_the_run(tmp_path, capsys):
+    """--report naming a folder was accepted, and the whole run's report was lost to an
+    IsADirectoryError at exit; --ticks -1 ran nothing and exited 0; estop --timeout nan raised
+    from Zenoh."""
+    import pytest
+
+    from stack.cli import build_parser
+
+    parser = build_parser()
+    nodes = (["bridge", "--fleet", "f", "--policy", "scripted"], ["fleet-sim", "--fleet", "f"],
+             ["router", "--fleet", "f", "--certs", "c"])
+    cases = [([*base, "--report", str(tmp_path)], "--report") for base in nodes]
+    cases += [([*base, "--ticks", "-1"], "--ticks") for base in nodes[:2]]
+    cases += [(["estop", "--fleet", "f", "--timeout", bad], "--timeout") for bad in ("nan", "inf", "-1")]
+    for argv, flag in cases:
+        with pytest.raises(SystemExit) as done:
+            parser.parse_args(argv)
+        assert done.value.code == 2 and f"argument {flag}" in capsys.readouterr().err, argv
+    assert parser.parse_args([*nodes[0], "--report", str(tmp_path / "r.json"), "--ticks", "0"]).ticks == 0
+
+
+def test_fleet_sim_names_a_bad_fleet_and_keeps_a_bounded_trace_in_lock_step():
+    """An empty --fleet surfaced as a traceback from inside the run; a lock-stepped run without
+    a tick or episode limit kept every tick (2.4 GB an hour), as only real-time runs were capped."""
+    import pytest
+
+    from deploy.fleet_sim import TRACE_TICKS, FleetSim, FleetSimConfig
+    from deploy.network import TransportConfig
+    from sim.scenario import make_scenario
+
+    transport = TransportConfig(listen=("tcp/127.0.0.1:7447",))
+    for bad in ("", "a b"):
+        with pytest.raises(ValueError, match=r"fleet name \(--fleet\)"):
+            FleetSimConfig(bad, make_scenario("paper-3"), transport)
+    for rate in (None, 20.0):
+        sim = FleetSim(FleetSimConfig("f", make_scenario("paper-3"), transport, rate_hz=rate))
+        assert sim.trace.maxlen == TRACE_TICKS
+    limited = FleetSim(FleetSimConfig("f", make_scenario("paper-3"), transport, rate_hz=None, max_ticks=50))
+    assert limited.trace.maxlen is None
+
+
+def test_the_router_names_a_robot_given_twice():
+    import pytest
+
+    from deploy.certs import check_robot_ids
+
+    with pytest.raises(ValueError, match=r"\['r0'\] are given twice"):
+        check_robot_ids(["r0", "r1", "r0"])
