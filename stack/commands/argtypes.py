@@ -19,26 +19,25 @@ def seed(text: str) -> int:
     return value
 
 
-def positive(text: str) -> int:
-    """A positive integer (a count)."""
+def _int_at_least(text: str, low: int, what: str) -> int:
+    """``text`` as an integer >= ``low``; ArgumentTypeError saying ``what`` is expected."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
     return value
+
+
+def positive(text: str) -> int:
+    """A positive integer (a count)."""
+    return _int_at_least(text, 1, "a positive integer")
 
 
 def count(text: str) -> int:
     """An integer >= 0 (a number of ticks, episodes...)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
+    return _int_at_least(text, 0, "an integer >= 0")
 
 
 def seconds(text: str) -> float:
@@ -53,14 +52,9 @@ def seconds(text: str) -> float:
 
 
 def lease_ms(text: str) -> int:
-    """A Zenoh link lease [ms]: an integer >= 100 (what :class:`deploy.network.TransportConfig` takes)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected milliseconds (an integer >= 100), got {text!r}") from None
-    if value < 100:
-        raise argparse.ArgumentTypeError(f"a lease shorter than 100 ms drops healthy links; got {value}")
-    return value
+    """A Zenoh link lease [ms]: an integer >= 100 (what :class:`deploy.network.TransportConfig`
+    takes; a shorter lease drops healthy links)."""
+    return _int_at_least(text, 100, "milliseconds, an integer >= 100 (a shorter lease drops healthy links)")
 
 
 def int_list(text: str) -> list[int]:
