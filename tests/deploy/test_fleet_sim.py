@@ -45,7 +45,7 @@ def test_a_robot_obeys_no_command_while_no_controller_token_is_seen():
     assert np.allclose(report["positions"], sim.world.scenario.starts, atol=0.02)
 
 
-def test_a_real_time_run_without_a_tick_limit_keeps_a_bounded_trace():
+def test_a_run_without_a_tick_or_episode_limit_keeps_a_bounded_trace():
     from deploy.fleet_sim import TRACE_TICKS
 
     sc = make_scenario("paper-3")
@@ -53,8 +53,11 @@ def test_a_real_time_run_without_a_tick_limit_keeps_a_bounded_trace():
     for k in range(TRACE_TICKS + 5):
         endless.trace.append({"tick": k})
     assert len(endless.trace) == TRACE_TICKS and endless.trace[0]["tick"] == 5
-    bounded = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=None))
-    assert bounded.trace.maxlen is None              # lock-step (and --ticks) runs keep every tick
+    lockstep = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=None))
+    assert lockstep.trace.maxlen == TRACE_TICKS       # lock-step without a limit may run for days too
+    for limit in ({"max_ticks": 50}, {"episodes": 2}):  # a run with an end keeps every tick
+        kept = FleetSim(FleetSimConfig(fleet="tr", scenario=sc, transport=TransportConfig(), rate_hz=None, **limit))
+        assert kept.trace.maxlen is None
 
 
 def test_fleet_sim_refuses_to_freeze_a_robot_the_team_does_not_have(capsys):
