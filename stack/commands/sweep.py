@@ -126,23 +126,18 @@ def _resume_options(args) -> dict:
     if not saved.exists():
         raise SweepError(f"--resume: {saved} does not exist; start the sweep without --resume")
     options = _saved_options(saved)
-    plain = json.loads(json.dumps(options))
-    base = plain["base"]
-    differ = []
-    if args.config:
-        config = json.loads(json.dumps(read_config(args.config, "--config")))
-        if args.episodes is not None or "total_episodes" not in config:
-            # the saved total_episodes may be --episodes' (compared on its own below)
-            config.pop("total_episodes", None)
-            base = {k: v for k, v in base.items() if k != "total_episodes"}
-        if config != base:
-            differ.append("--config")
-    if args.grid and json.loads(json.dumps([parse_grid_option(g) for g in args.grid])) != plain["grid"]:
-        differ.append("--grid")
-    if args.seeds is not None and args.seeds != plain["seeds"]:
-        differ.append("--seeds")
-    if args.episodes is not None and plain["base"].get("total_episodes") != args.episodes:
-        differ.append("--episodes")
+    plain, given = (json.loads(json.dumps(o)) for o in (options, _flag_options(args)))
+    base, given_base = plain["base"], given["base"]
+    if args.episodes is not None or "total_episodes" not in given_base:
+        # the saved total_episodes may be --episodes' (compared on its own below)
+        base = {k: v for k, v in base.items() if k != "total_episodes"}
+        given_base = {k: v for k, v in given_base.items() if k != "total_episodes"}
+    differ = [flag for flag, given_it, same in (
+        ("--config", args.config, given_base == base), ("--grid", args.grid, given["grid"] == plain["grid"]),
+        ("--seeds", args.seeds is not None, given["seeds"] == plain["seeds"]),
+        ("--episodes", args.episodes is not None,
+         plain["base"].get("total_episodes") == given["base"].get("total_episodes")))
+        if given_it and not same]
     if differ:
         raise SweepError(f"{args.out} was started with other options than the {', '.join(differ)} given "
                          f"now (see its {OPTIONS_FILE}); --resume keeps the saved options: drop those "
@@ -150,10 +145,8 @@ def _resume_options(args) -> dict:
     return options
 
 
-def _options(args) -> dict:
-    """The sweep's options: from ``<out>/sweep.json`` with --resume, else from the flags."""
-    if args.resume:
-        return _resume_options(args)
+def _flag_options(args) -> dict:
+    """The sweep's options from the flags (a new sweep)."""
     base = read_config(args.config, "--config") if args.config else {}
     if args.episodes is not None:
         if args.episodes < 1:
@@ -164,6 +157,11 @@ def _options(args) -> dict:
     if len(set(keys)) != len(keys) or "seed" in keys:
         raise SweepError("--grid: each key once, and not 'seed' (use --seeds)")
     return {"base": base, "grid": grid, "seeds": args.seeds or [0, 1, 2]}
+
+
+def _options(args) -> dict:
+    """The sweep's options: from ``<out>/sweep.json`` with --resume, else from the flags."""
+    return _resume_options(args) if args.resume else _flag_options(args)
 
 
 def run(args) -> int:
