@@ -206,3 +206,12 @@ def test_the_robot_runtime_refuses_an_npz_file_of_another_observation_layout(npz
     old = _rewrite(path, tmp_path / "old.npz", meta_changes={"layout_version": 99}, keep_digest=False)
     with pytest.raises(RobotPolicyError, match="observation layout 99"):
         RobotPolicy(old)
+
+
+def test_the_npz_kernel_breaks_a_turn_tie_with_the_actors_number():
+    """deploy/npz_policy.py runs without the project, so it holds TURN_TIE itself: the two must
+    agree, or a diagonal layout turns one way in the kernel and another in the actor."""
+    from controllers.policy.layers import TURN_TIE
+    from deploy import npz_policy
+
+    assert npz_policy.TURN_TIE == TURN_TIE
