@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,8 +40,6 @@ class ScenarioError(ValueError):
 def _number(value: object, name: str, integer: bool = False) -> float | int:
     """``value`` as the number a field ``name`` holds, or ScenarioError naming the field: a real
     number (not a bool, a string or null); with ``integer`` an integral one, returned as int."""
-    import numbers
-
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ScenarioError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
     if integer:
