@@ -1,6 +1,6 @@
 """Part (d) of bench/safety.py: the safety layer under the imperfections of a real link.
 
-Each condition is a pymunk :class:`~sim.pymunk_world.ModelError` (see :data:`CONDITIONS`):
+Each condition is a pymunk :class:`~sim.model_error.ModelError` (see :data:`CONDITIONS`):
 none at all (``clean``, the reference); command delay of 1, 2, 3 ticks (50-150 ms); a delay
 that jitters 1-3 ticks from command to command (robots acting on the newest command that
 arrived; robots with a 3-tick playout buffer, ``ModelError.playout_ticks``, which turns it into

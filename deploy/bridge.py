@@ -3,26 +3,8 @@
 ``deploy/`` never imports ``stack/``: the controller is a plain callable
 ``controller(FleetState) -> (N, 2)`` accelerations [m/s^2] for the N rows it is given.
 
-Robots, as the bridge sees them at a tick (``now`` = the bridge's monotonic clock):
-    * **row**: liveliness token present and a *usable* state (one not discarded below). Every
-      row is in the ``FleetState`` with ``state_age_s`` = ``now - receive time + uplink
-      excess``, where the uplink excess is how much longer this state took than the fastest
-      transfer seen from that robot (``receive - send_time_ns``, both robot clocks cancel; the
-      floor follows clock drift up to 200 ppm). Stale or not, a robot never leaves the
-      controller's picture while it is live;
-    * **silent**: seen before, but its token is gone (left, crashed, frozen past the link
-      lease), or it is live and its latest state was discarded (it rejoined, or the bridge
-      stalled, and has sent nothing since). Passed as ``FleetState.silent`` (last position,
-      velocity, age, target) so the safety layer keeps it as an obstacle and the controller's
-      policy sees it where it must have stopped (:mod:`stack.team_view`); never commanded. A robot
-      whose token is gone gets its last state discarded, so after a rejoin it is a row again
-      only with a new state (the controller keys its estimates by robot id and resets them); a
-      state of a new link (another epoch) that arrives before the rejoining robot's token is
-      kept, an obstacle until the token comes and a row from then on;
-    * **unknown**: live without a usable state: sent BRAKE (``state_seq`` 0) on each tick;
-    * **obstacles**: what a tracker reports on the fleet's sightings key (:mod:`deploy.tracker`),
-      passed as ``FleetState.obstacles`` with each sighting's age, so the safety filter keeps
-      every robot clear of them; never commanded.
+Robots as the bridge sees them at a tick (rows, silent, unknown, obstacles), the fleet e-stop
+and the controller stall (**the recovery rule**): :mod:`deploy.bridge_picture`.
 
 Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
 own fresh velocity) when its state is older than ``stale_after_s`` when the command goes out
@@ -33,25 +15,6 @@ FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at 
 command without STOP). A robot that leaves ``rearm_alarm_after`` re-arms in a row unanswered
 refuses its commands (:mod:`deploy.rearm_watch`: an alarm is logged): not a row but silent, an
 obstacle, its STATEs answered with STOP until one comes without FAULT.
-
-Fleet e-stop (latched, reason 1 = ``ESTOP_STALE_PICTURE``; an operator clears it): raised when
-any single live robot has been silent longer than ``estop_after_s`` while the bridge runs,
-silence = ``min(state age, time since the bridge could hear it)``, where the bridge can hear a
-robot from the moment its token appeared or the bridge resumed from a stall. While it is
-engaged every row is sent BRAKE: a latched robot ignores motion commands, and the controller is
-told what the robots do.
-
-Controller stall (**the recovery rule**): when two consecutive looks at the fleet lie more than
-``estop_after_s`` apart beyond the tick's own wait (``timeout_s + gather_s``) -- the process was
-frozen (SIGSTOP), starved, or its controller hung -- the bridge does not act on its old picture:
-every state received before the stall is discarded, ``on_stall()`` runs (e.g. reset the
-controller's estimators, which saw no motion meanwhile), the command round trips in flight are
-forgotten, and each robot becomes a row again with its next state. Meanwhile the robots' own
-watchdogs braked them and, past their latch time, latched them (FAULT); once their fresh states
-arrive they are re-armed through FAULT -> STOP -> the next command and the fleet drives on.
-A stall never raises the e-stop by itself; a robot still silent ``estop_after_s`` after the
-resume does. Tested with a 3 s SIGSTOP of the bridge process, 5 runs, one outcome
-(``tests/deploy/test_bridge_stall.py``).
 
 Command delay (:class:`deploy.bridge_timing.RoundTrips`, the rule in its docstring): each
 command's round trip on the bridge's clock gives ``FleetState.command_delay_s`` and the
@@ -86,19 +49,18 @@ stays at one sim time.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from deploy.bridge_picture import ESTOP_STALE_PICTURE, BridgePicture, View, state_key
 from deploy.bridge_timing import RoundTrips, TickClock, UplinkExcess
 from deploy.bridge_types import BridgeConfig, BridgeStats, TickRecord, row_flags
 from deploy.network import TransportConfig
-from deploy.operator_channel import ESTOP_OPERATOR, operator_answer
+from deploy.operator_channel import ESTOP_OPERATOR
 from deploy.rearm_watch import RearmWatch
 from deploy.reject_log import RejectLog
 from deploy.tracker import SightingTable
@@ -110,12 +72,11 @@ from deploy.wire import (
     CmdFlags,
     RobotRegistry,
 )
-from sim.fleet import FleetState, SilentRobots
+from sim.fleet import FleetState
 
 log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
-ESTOP_STALE_PICTURE = 1  # reason code of an e-stop raised because a robot's state is too old
 NO_FLAGS = CmdFlags(0)
 LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
 LATE_PART_WAIT_S = 0.02  # [s] ... and what looks like a burst's late part waits for the next tick
@@ -124,23 +85,10 @@ LATE_PART_WAIT_S = 0.02  # [s] ... and what looks like a burst's late part waits
 QUIET_PERIODS = 1.5   # a live robot unheard for this many fleet periods is not waited for (gather)
 
 
-@dataclass
-class _View:
-    rows: list[ReceivedState] = field(default_factory=list)
-    ages: list[float] = field(default_factory=list)
-    silent: list[tuple[ReceivedState, float]] = field(default_factory=list)
-    unknown: list[str] = field(default_factory=list)
-    silence: tuple[str, float] | None = None  # the live robot silent longest, and for how long
-
-
-def _key(rs: ReceivedState) -> tuple[int, int]:
-    return rs.msg.epoch, rs.msg.seq
-
-
-class Bridge:
+class Bridge(BridgePicture):
     """Controller side of a fleet. ``targets`` maps each robot to its target slot (2,) [m];
-    ``object_pose`` is (3,) [m, m, rad]; ``on_episode(k)`` and ``on_stall()``: see the module
-    docstring."""
+    ``object_pose`` is (3,) [m, m, rad]; ``on_episode(k)``: see the module docstring;
+    ``on_stall()``: :mod:`deploy.bridge_picture`."""
 
     def __init__(self, fleet: str, registry: RobotRegistry,
                  transport: TransportConfig, controller: Controller, *,
@@ -188,8 +136,8 @@ class Bridge:
     # ------------------------------------------------------------------ helpers
     def _unanswered(self, states: Mapping[str, ReceivedState], robot: str) -> bool:
         s = states.get(robot)
-        return s is not None and _key(s) != self._answered.get(robot) \
-            and _key(s) != self._discard.get(robot)
+        return s is not None and state_key(s) != self._answered.get(robot) \
+            and state_key(s) != self._discard.get(robot)
 
     def _wait_burst(self, timeout_s: float) -> bool:
         """Wait for a new state of some live robot, then up to ``gather_s`` for every live one
@@ -217,7 +165,7 @@ class Bridge:
 
             def awaited(robot: str) -> bool:     # heard lately, or live without a usable state yet (a rejoin)
                 rs = states.get(robot)
-                return (robot not in self._heard_since or rs is None or _key(rs) == self._discard.get(robot)
+                return (robot not in self._heard_since or rs is None or state_key(rs) == self._discard.get(robot)
                         or rs.receive_time_ns >= recent)
 
             return all(self._unanswered(states, r) for r in alive if awaited(r))
@@ -241,140 +189,12 @@ class Bridge:
 
     def _mark_answered(self, rs: ReceivedState) -> None:
         """Record the answer to ``rs``; a new state answered joins the lock-step tick's part."""
-        if self.clock is not None and _key(rs) != self._answered.get(rs.robot):
+        if self.clock is not None and state_key(rs) != self._answered.get(rs.robot):
             self.clock.answered.add(rs.robot)
-        self._answered[rs.robot] = _key(rs)
-
-    def _age_s(self, rs: ReceivedState, now: int) -> float:
-        uplink_ns = 0 if self.clock is not None else self.uplink.excess_ns(rs.robot, rs.msg.epoch, rs.msg.send_time_ns,
-                                                                            rs.receive_time_ns)
-        return max(0.0, now - rs.receive_time_ns + uplink_ns) / 1e9
+        self._answered[rs.robot] = state_key(rs)
 
     def stop(self) -> None:
         self._stop.set()
-
-    # ------------------------------------------------------------------ the picture
-    def _check_stall(self, now: int, states: Mapping[str, ReceivedState], timeout_s: float) -> None:
-        """The recovery rule (module docstring): a gap between two looks beyond the tick's own
-        wait and ``estop_after_s`` discards every state received so far."""
-        last, self._last_look_ns = self._last_look_ns, now
-        if last is None:
-            return
-        gap_s = (now - last) / 1e9 - timeout_s - self.config.gather_s
-        if gap_s <= self.config.estop_after_s:
-            return
-        log.warning("the bridge stalled for %.2f s: discarding every state received before, "
-                    "waiting for fresh ones (latched robots are re-armed)", gap_s)
-        self.stats.stalls += 1
-        self.stats.longest_stall_s = max(self.stats.longest_stall_s, gap_s)
-        self._resume_ns = now
-        self._discard.update((r, _key(rs)) for r, rs in states.items())
-        self.round_trips.forget_sent()
-        self._sent_tick.clear()
-        if self.on_stall is not None:
-            self.on_stall()
-
-    def _classify(self, now: int, states: Mapping[str, ReceivedState]) -> _View:
-        """Rows, silent and unknown robots, and the longest silence of a live one."""
-        view = _View()
-        self._forget_departed(states)
-        alive = self.link.alive_robots
-        for robot in self.registry.names:
-            rs = states.get(robot)
-            if robot not in alive:
-                was_alive = self._heard_since.pop(robot, None) is not None
-                if rs is not None:
-                    if was_alive or not self._new_link(robot, rs):
-                        self._discard[robot] = _key(rs)
-                    view.silent.append((rs, self._age_s(rs, now)))
-                continue
-            since = max(self._heard_since.setdefault(robot, now), self._resume_ns)
-            age = self._age_s(rs, now) if rs is not None else math.inf
-            silence = min(age, (now - since) / 1e9)
-            if view.silence is None or silence > view.silence[1]:
-                view.silence = (robot, silence)
-            usable = rs is not None and _key(rs) != self._discard.get(robot)
-            if usable:
-                self._discard.pop(robot, None)
-                self.rearm.state(robot, rs.msg.status)
-            if usable and not self.rearm.refusing(robot):
-                view.rows.append(rs)
-                view.ages.append(age)
-            else:
-                view.unknown.append(robot)
-                if rs is not None:
-                    view.silent.append((rs, age))
-        return view
-
-    def _forget_departed(self, states: Mapping[str, ReceivedState]) -> None:
-        """A robot whose token went since the last look, even if it is back (a restart between
-        two ticks): its state received before it left is discarded, and it is heard anew."""
-        for event in self.link.pop_events():
-            if event.joined:
-                continue
-            self._heard_since.pop(event.robot, None)
-            rs = states.get(event.robot)
-            if rs is not None and rs.receive_time_ns <= event.time_ns:
-                self._discard[event.robot] = _key(rs)
-
-    def _new_link(self, robot: str, rs: ReceivedState) -> bool:
-        """Whether ``rs``, from a robot without a liveliness token, opens a new link: another epoch
-        than the state discarded when it went. A rejoining robot's first STATE can reach the bridge
-        before its token does (they travel apart); kept, it is answered as soon as the token comes
-        (discarded, the robot waited a tick for its next one, and a lock-stepped fleet stalled
-        for its whole timeout). A late STATE of the old link (same epoch) is discarded."""
-        gone = self._discard.get(robot)
-        return gone is None or rs.msg.epoch != gone[0]
-
-    def _check_estop(self, view: _View) -> None:
-        self._silence = view.silence
-        if view.silence is None or view.silence[1] <= self.config.estop_after_s \
-                or self.link.estop_engaged:
-            return
-        robot, silence = view.silence
-        log.error("robot %s has been silent for %.3f s: raising the fleet e-stop", robot, silence)
-        self.link.raise_estop(ESTOP_STALE_PICTURE)
-        self.stats.estops += 1
-        self.stats.estop_robot, self.stats.estop_silence_s = robot, float(silence)
-
-    def operator_request(self, request: str) -> dict:
-        """An operator's e-stop request (``formation estop``), answered on a Zenoh thread by
-        :func:`deploy.operator_channel.operator_answer` with the silence seen last tick."""
-        if request == "engage":
-            self.stats.estops += 1
-        return operator_answer(request, self.link, self._silence, self.config.estop_after_s)
-
-    def _fleet_state(self, view: _View, now: int) -> FleetState:
-        rows = [rs.msg for rs in view.rows]
-        silent = None
-        if view.silent:
-            silent = SilentRobots(tuple(rs.robot for rs, _ in view.silent),
-                                  np.array([rs.msg.position for rs, _ in view.silent]),
-                                  np.array([rs.msg.velocity for rs, _ in view.silent]),
-                                  np.array([age for _, age in view.silent]),
-                                  np.array([self.targets[rs.robot] for rs, _ in view.silent]),
-                                  np.array([self._silent_pending(rs) for rs, _ in view.silent], dtype=np.int64))
-        return FleetState(
-            time=(self.link.clock_ns() - self._start_ns) / 1e9, step=self.stats.ticks,
-            positions=np.array([m.position for m in rows]),
-            velocities=np.array([m.velocity for m in rows]),
-            targets=np.array([self.targets[rs.robot] for rs in view.rows]),
-            object_pose=self.object_pose.copy(), robot_ids=tuple(rs.robot for rs in view.rows),
-            state_age_s=np.array(view.ages), silent=silent,
-            command_delay_s=self.round_trips.bound_s(),
-            commands_pending=np.array([self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
-                                       for rs in view.rows], dtype=np.int64).reshape(-1),
-            obstacles=self.sightings.obstacles(now))
-
-    def _silent_pending(self, rs: ReceivedState) -> int:
-        """A silent robot's ``SilentRobots.commands_pending`` (module docstring, Command delay):
-        the commands sent after the one its last state names, plus the ticks since the last of
-        them; -1 when those are not known."""
-        pending = self.round_trips.pending(rs.robot, rs.msg.last_cmd_seq)
-        last = self._sent_tick.get(rs.robot)
-        if pending < 0 or last is None:
-            return -1
-        return pending + self.stats.ticks - last - 1
 
     def _run_controller(self, state: FleetState) -> tuple[CmdFlags, np.ndarray, float]:
         n = state.num_robots
@@ -404,14 +224,14 @@ class Bridge:
         except Exception:
             log.exception("on_sent failed")
 
-    def _count(self, view: _View) -> None:
+    def _count(self, view: View) -> None:
         s = self.stats
         for counts, value in ((s.robot_counts, len(view.rows)), (s.silent_counts, len(view.silent))):
             if (not counts and value) or (counts and counts[-1][1] != value):
                 counts.append((s.ticks, value))
         s.silent_marks += len(view.silent)
 
-    def _new_episode(self, view: _View) -> None:
+    def _new_episode(self, view: View) -> None:
         if self.config.episode_ticks is None:
             return
         episode = (max(rs.msg.seq for rs in view.rows) - 1) // self.config.episode_ticks
@@ -424,7 +244,7 @@ class Bridge:
         self.stats.rearms += 1
         self.rearm.rearmed(rs.robot, rs.msg.last_cmd_seq)
 
-    def _rearm_refusing(self, view: _View, states: Mapping[str, ReceivedState]) -> None:
+    def _rearm_refusing(self, view: View, states: Mapping[str, ReceivedState]) -> None:
         """Answer each new STATE of a robot that refuses its commands with STOP, its re-arm."""
         for robot in view.unknown:
             if self.rearm.refusing(robot) and self._unanswered(states, robot):

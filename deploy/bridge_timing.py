@@ -1,7 +1,8 @@
 """How the bridge (:mod:`deploy.bridge`) keeps time: lock-step sim time (:class:`TickClock`), how
 much longer a state took than the fastest transfer (:class:`UplinkExcess`, part of its state age)
 and command round trips from the wire (:class:`RoundTrips`, the command delay bound and the
-commands in flight). The rules they serve are in :mod:`deploy.bridge`'s docstring.
+commands in flight). The rules they serve are in the docstrings of :mod:`deploy.bridge` and
+:mod:`deploy.bridge_picture`.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The bridge's settings, its per-row command rule and what it counts (:mod:`deploy.bridge`
-has the loop and the rules in full)."""
+has the loop and the rules in full, with :mod:`deploy.bridge_picture`)."""
 
 from __future__ import annotations
 

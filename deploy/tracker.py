@@ -15,7 +15,7 @@ robot itself.
 
 Controller side (:class:`SightingTable`, in :class:`deploy.transport.FleetLink`): the newest
 sighting of each obstacle, until GONE. Its age at a tick is counted as a robot state's is
-(:mod:`deploy.bridge`): ``now - receive time + uplink excess + capture_age_ms`` (lock-step: no
+(:mod:`deploy.bridge_picture`): ``now - receive time + uplink excess + capture_age_ms`` (lock-step: no
 uplink term, the bridge runs on sim time). An obstacle the tracker stops reporting without GONE
 stays, its disc growing at its top speed with the age of the last sighting: losing sight of a
 person does not mean the person left. The tracker's word is needed to forget one.

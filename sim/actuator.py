@@ -1,6 +1,6 @@
 """Model error in the batched world: per-environment actuator gain, first-order lag and pure delay.
 
-The same law as :class:`sim.pymunk_world.ModelError` (its ``gain``, ``gain_spread``, ``lag_tau``
+The same law as :class:`sim.model_error.ModelError` (its ``gain``, ``gain_spread``, ``lag_tau``
 and ``delay_ticks``), per environment e and robot i, at step k of an episode::
 
     u_k    = c_{k - d_e}             the command clipped in norm, sent d_e steps earlier (0 before the first)

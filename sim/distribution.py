@@ -19,7 +19,7 @@ with ``distribution=``) draws from it every episode:
   ``team_sizes`` (one group each, so every update sees every size).
 * **Dynamics** (per environment, at each of its resets): the actuator's gain (one per
   environment, each robot's spread around it by ``gain_spread``), its first-order lag time
-  constant [s] and a pure command delay [ticks]: the :class:`sim.pymunk_world.ModelError` knobs
+  constant [s] and a pure command delay [ticks]: the :class:`sim.model_error.ModelError` knobs
   of the same names, in the batched world (:mod:`sim.actuator`), so the policy meets model error
   before it meets pymunk.
 

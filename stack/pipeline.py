@@ -80,44 +80,30 @@ and judges the episode.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
-import torch
-from torch import nn
 
 from controllers.array_kernels import all_finite, clip_norm_rows, non_finite_rows
 from controllers.detour import Detour
 from controllers.docking import Docking
 from controllers.jit import f64, warm_up
 from controllers.mec import ModelErrorCompensator
-from controllers.observation_kernels import fleet_tokens
 from controllers.position_estimator import PositionEstimator
 from controllers.safety import SafetyFilter, braking_acceleration
 from controllers.safety.latency import LatencyPredictor, Prediction
 from controllers.safety.recheck import recheck
-from deploy.export import ExportedPolicy
 from sim.fleet import FleetState
-from sim.observations import (
-    FleetOwnTargets,
-    flat,
-    fleet_tokens_np,
-    mark_own_targets_np,
-    object_token_constants,
-)
 from sim.scenario import Dynamics, Scenario, clip_norm
 from stack.episodes import EpisodeMetrics, nominal_step, run_episode
 from stack.last_known import LastKnown
-from stack.policy_io import ModuleKernel, StackError, _mask_is_optional, load_policy
+from stack.policy_io import StackError, load_policy
+from stack.policy_stage import PolicyLike, PolicyStage
 from stack.seen import binding_discs, robot_sightings, with_obstacles
 from stack.team_view import team_view
 from stack.tick_types import PolicyStatus, SafeStage, StackConfig, TickResult
 
-PolicyLike = nn.Module | torch.jit.ScriptModule | ExportedPolicy | str | Path | Callable[[FleetState], np.ndarray]
 
-
-class ControlStack:
+class ControlStack(PolicyStage):
     """observe -> policy -> safety -> MEC for one fleet (see the module docstring).
 
     Args:
@@ -132,45 +118,9 @@ class ControlStack:
         self.scenario = scenario
         self.config = config or StackConfig()
         self.dynamics: Dynamics = scenario.dynamics
-        if isinstance(policy, str | Path):
-            policy = load_policy(policy)
-        self._exported: ExportedPolicy | None = policy if isinstance(policy, ExportedPolicy) else None
-        if self._exported is not None:
-            self.network, self.callable, self.obs_kind = None, None, "tokens"
-        elif isinstance(policy, nn.Module | torch.jit.ScriptModule):
-            policy.eval()
-            self.network: nn.Module | None = policy
-            self.callable: Callable[[FleetState], np.ndarray] | None = None
-            self.obs_kind = str(getattr(policy, "obs_kind", "tokens"))
-            if self.obs_kind not in ("tokens", "flat"):
-                raise StackError(f"policy.obs_kind must be 'tokens' or 'flat', got {self.obs_kind!r}")
-        elif callable(policy):
-            self.network, self.callable, self.obs_kind = None, policy, "callable"
-        else:
-            raise StackError(f"policy must be an nn.Module, a TorchScript/checkpoint path or a "
-                             f"callable FleetState -> (N, 2); got {type(policy).__name__}")
-        own = self._exported.meta.get("own_target", False) if self._exported is not None else (
-            getattr(self.network, "own_target", False) if self.network is not None else False)
-        self.own_target = bool(own)     # the policy reads its own target marked (sim.observations)
-        self._own_targets = (FleetOwnTargets(scenario.polygon, scenario.robot_radius, scenario.arena,
-                                             scenario.targets) if self.own_target else None)
-        self._polygon = scenario.polygon
-        self._token_constants = (*object_token_constants(np.asarray(self._polygon)),
-                                 float(scenario.arena[0] / 2), float(scenario.arena[1] / 2))
+        self._init_policy(scenario, policy)
         self._static_pose_list = [*map(float, scenario.object_center), 0.0]
         self._object_moved = False             # whether a tick ever gave the filter another pose
-        # Per-N buffers of the tick: float32 tokens (numpy and a torch view of the same memory)
-        # and the mask to pass (None when the network accepts it: every token is valid).
-        self._buffers: dict[int, tuple[np.ndarray, torch.Tensor, torch.Tensor | None]] = {}
-        self._forward: Callable[..., torch.Tensor] | None = None
-        self._row_masks: dict[int, np.ndarray] = {}
-        self._mask_optional = False
-        kernel = ModuleKernel.of(self.network) if self.network is not None and self.config.policy_kernel else None
-        self._rows = self._exported.runner if self._exported is not None else kernel   # own tokens: unchecked
-        if self.network is not None:
-            scripted = isinstance(self.network, torch.jit.ScriptModule)
-            self._forward = self.network.forward if scripted else self.network
-            self._mask_optional = _mask_is_optional(self.network)
         self.safety = SafetyFilter(scenario, self.config.safety_config) if self.config.safety else None
         self.mec = ModelErrorCompensator(self.dynamics, self.config.mec_config) if self.config.mec else None
         self.predictor = (LatencyPredictor(self.dynamics, self.config.latency)
@@ -187,13 +137,6 @@ class ControlStack:
         self._ticked: FleetState | None = None             # the state of the last tick that returned
         self.num_robots: int | None = None
         warm_up()                       # compile or load the kernels now, not at the first tick
-
-    @property
-    def policy_runtime(self) -> str:
-        """What runs the policy: ``kernel`` (an eager typed actor, :class:`ModuleKernel`), ``file``
-        (an exported file), ``torch`` (the module as given) or ``callable``."""
-        return ("callable" if self.callable is not None else "file" if self._exported is not None
-                else "kernel" if self._rows is not None else "torch")
 
     def reset(self) -> None:
         """Start a new episode: forget the compensator's estimate and any callable's plan."""
@@ -216,46 +159,6 @@ class ControlStack:
         self.num_robots = None
 
     # ------------------------------------------------------------------ stages
-    def observe(self, state: FleetState) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Policy input of ``state``: tokens (1, N, 2N+1, 4) and mask, or flat (1, N, 4N+2) and None.
-
-        Tokens come from :func:`sim.observations.fleet_tokens_np` (computed in float64, written
-        into a float32 array), the numpy twin of the batched torch layout, several times cheaper
-        for one fleet. Fresh tensors on every call; the tick itself reuses one buffer per N.
-        """
-        if self.obs_kind == "flat":
-            return self._flat(state), None
-        n = state.num_robots
-        out = fleet_tokens_np(state.positions, state.velocities, state.targets, self._polygon,
-                              self.scenario.arena, np.empty((n, 2 * n + 1, 4), dtype=np.float32))
-        if self.own_target:
-            mark_own_targets_np(out, self._own_targets(state.positions, state.targets))
-        return torch.from_numpy(out).unsqueeze(0), torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
-
-    @staticmethod
-    def _flat(state: FleetState) -> torch.Tensor:
-        stacked = torch.from_numpy(np.stack((state.positions, state.velocities, state.targets)))
-        pos, vel, tgt = stacked.to(torch.float32).unsqueeze(1).unbind(0)
-        return flat(pos, vel, tgt)
-
-    def _network_input(self, state: FleetState) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The tick's policy input: tokens written into this N's reused float32 buffer (the
-        returned tensor shares its memory: valid until the next tick) and the mask to pass."""
-        if self.obs_kind == "flat":
-            return self._flat(state), None
-        n = state.num_robots
-        buffers = self._buffers.get(n)
-        if buffers is None:
-            array = np.zeros((n, 2 * n + 1, 4), dtype=np.float32)
-            mask = None if self._mask_optional else torch.ones(1, n, 2 * n + 1, dtype=torch.bool)
-            buffers = self._buffers[n] = (array, torch.from_numpy(array).unsqueeze(0), mask)
-        array, tensor, mask = buffers
-        fleet_tokens(*(np.ascontiguousarray(x) for x in (state.positions, state.velocities, state.targets)),
-                     *self._token_constants, array)
-        if self.own_target:
-            mark_own_targets_np(array, self._own_targets(state.positions, state.targets))
-        return tensor, mask
-
     def brake(self, vel: np.ndarray) -> np.ndarray:
         """(N, 2) maximum-braking command (non-finite velocities -> 0)."""
         return braking_acceleration(vel, self.dynamics)
@@ -384,38 +287,6 @@ class ControlStack:
         estimate, std = self.positions.update(ids, pos, measured_vel, measured_at, news & ~stale, noise)
         return (np.where(stale[:, None], pos, estimate) if any_stale else estimate), vel, std
 
-    def _policy(self, state: FleetState, t0: int) -> tuple[np.ndarray, int, int]:
-        """``a_nom`` (N, 2) of the policy and the times after observing and after the policy."""
-        n = state.num_robots
-        if self.callable is not None:
-            t_obs = t0
-            raw = np.asarray(self.callable(state), dtype=np.float64)
-        elif self._rows is not None:    # numpy in, numpy out; rows it flags count as NaN
-            if self._exported is not None and n not in self._exported.robot_counts:
-                raise StackError(f"{self._exported.path} runs {self._exported.robot_counts_text} "
-                                 f"robots, this fleet has {n}; export a typed actor (any team "
-                                 "a scenario holds) or one trained for this N")
-            self._network_input(state)
-            array, mask = self._buffers[n][0], self._row_masks.get(n)
-            if mask is None:
-                mask = self._row_masks[n] = np.ones(array.shape[:2], dtype=bool)
-            t_obs = time.perf_counter_ns()
-            accel, valid = self._rows(array, mask)
-            valid = np.asarray(valid)
-            raw = (accel.astype(np.float64) if np.count_nonzero(valid) == n
-                   else np.where(valid[:, None], accel, np.nan).astype(np.float64))
-        else:
-            obs, mask = self._network_input(state)
-            t_obs = time.perf_counter_ns()
-            with torch.inference_mode():
-                out = self._forward(obs, mask) if mask is not None else self._forward(obs)
-            raw = out.numpy()[0].astype(np.float64)
-        t_pol = time.perf_counter_ns()
-        if raw.shape != (n, 2):
-            raise StackError(f"the policy returned shape {raw.shape} for {n} robots; it must "
-                             f"return ({n}, 2) accelerations (or (1, {n}, 2) for a network)")
-        return raw, t_obs, t_pol
-
     def _terminal_modes(self, team: FleetState, a_nom: np.ndarray,
                         stale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Docking, then detours, over the team (the N rows, then silent robots, which neither
@@ -439,15 +310,6 @@ class ControlStack:
             return None
         keep = p.fixed & np.isfinite(p.pos).all(1) & np.isfinite(p.grow)   # a new robot's NaN row: no disc
         return np.column_stack([p.pos[keep], self.scenario.robot_radius + p.grow[keep]])
-
-    def _runs(self, k: int) -> bool:
-        """Whether the policy takes a team of ``k`` robots (silent robots join its view only then)."""
-        if self._exported is not None:
-            return k in self._exported.robot_counts
-        if self.network is not None:        # any N (typed), or its own N (slot, flat MLP)
-            num = int(getattr(self.network, "num_robots", 0))
-            return (num == -1 and self.obs_kind == "tokens") or num == k
-        return False
 
     def _safety(self, state: FleetState, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                 unknown: np.ndarray, stale: np.ndarray, a_nom: np.ndarray,

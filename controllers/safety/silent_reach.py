@@ -1,7 +1,7 @@
 r"""Where a robot that stopped reporting can be, from the commands it was actually sent.
 
 A robot whose state has gone stale (silent, frozen, its updates lost) is an obstacle of the
-safety filter (:mod:`controllers.safety.latency`). :func:`~controllers.safety.latency.reach`
+safety filter (:mod:`controllers.safety.latency`). :func:`~controllers.safety.reach.reach`
 bounds where it can be from its last state and the largest acceleration it may have been
 asked: a ball that ignores what was asked. A policy near its target asks for small or
 alternating accelerations, and the ball then grows a robot at rest into a disc of 100-280 mm

@@ -2,7 +2,7 @@
 and the bridge (scripted policy, safety filter and MEC on) over Zenoh on 127.0.0.1.
 
 The bridge process is frozen with SIGSTOP for 3 s mid-run and resumed with SIGCONT. The robots'
-watchdogs brake and latch them meanwhile. The rule (deploy/bridge.py, docs/wire-format.md):
+watchdogs brake and latch them meanwhile. The rule (deploy/bridge_picture.py, docs/wire-format.md):
 the bridge discards its old picture, raises no e-stop for its own stall, and re-arms every
 latched robot through FAULT -> STOP once fresh states arrive; the fleet drives on. Before the
 rule, the same experiment ended e-stopped in about half the runs and drove on in the others.

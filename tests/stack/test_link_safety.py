@@ -1,6 +1,6 @@
 """Forward invariance on an imperfect link: the default stack (filter + MEC) in pymunk, with teeth.
 
-Each condition is a :class:`sim.pymunk_world.ModelError` of a real link: command delay of 1-3
+Each condition is a :class:`sim.model_error.ModelError` of a real link: command delay of 1-3
 ticks, a delay that jitters 1-3 ticks from command to command, measurement noise (1 cm, 2 cm/s),
 20 % of the states lost, a robot that freezes mid-episode. Robots (3-8, random starts inside
 the safe set of the default latency bound) keep adversarial modes: full thrust at the nearest

@@ -1,11 +1,7 @@
-"""ControlStack: finite commands and statuses, safety teeth in pymunk, NaN handling, changing N, TorchScript."""
+"""ControlStack: finite commands and statuses, safety teeth in pymunk, NaN handling, changing N,
+episodes, stale and braked robots. The policy stage (tokens, runtimes, files): test_policy_stage.py."""
 
 from __future__ import annotations
-
-import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,12 +22,10 @@ from stack.pipeline import (
     PolicyStatus,
     StackConfig,
     StackError,
-    load_policy,
     nominal_step,
     run_episode,
 )
 
-REPO = Path(__file__).resolve().parents[2]
 WEAK_ROBOTS = ModelError(gain=0.85, gain_spread=0.15, lag_tau=0.05, floor_friction=0.05)
 
 
@@ -41,16 +35,6 @@ def actor(seed: int = 0) -> torch.nn.Module:
     with torch.no_grad():   # large outputs so that the untrained policy actually moves robots
         for p in net.parameters():
             p.mul_(20.0)
-    return net
-
-
-def exportable_actor(seed: int = 0) -> torch.nn.Module:
-    """Large outputs from the output layer alone: x20 on every weight drives activations to 1e4,
-    where float32 rounding in another runtime (ONNX) differs by 1e-3 and the export refuses."""
-    torch.manual_seed(seed)
-    net = build_actor(ActorConfig(embed_dim=16, num_heads=2, hidden_sizes=(32,)), 3).eval()
-    with torch.no_grad():
-        net.head.mlp[-1].weight.mul_(100.0)
     return net
 
 
@@ -154,7 +138,6 @@ def test_nan_network_output_and_nan_state_brake():
     np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(moving.velocities, sc.dynamics)[0])
 
 
-
 def test_a_robot_that_acts_on_no_new_command_is_braked_though_its_state_is_fresh():
     """Its STATE keeps naming a command 5 ticks old under the 3-tick default bound (its command
     link is down): BRAKE, an obstacle to the others; the same robot with 3 pending is commanded."""
@@ -171,6 +154,7 @@ def test_a_robot_that_acts_on_no_new_command_is_braked_though_its_state_is_fresh
     tick = stack.tick(state)
     assert not tick.stale.any() and np.linalg.norm(tick.a_cmd[0] - braking_acceleration(
         state.velocities, sc.dynamics)[0]) > 1e-3
+
 
 def test_a_repeated_state_is_no_news_and_a_robot_away_keeps_its_last_state():
     """A dropped update repeats the old measurement with a larger age: the MEC must not take it
@@ -207,40 +191,6 @@ def test_robot_count_can_change_between_ticks():
         assert (tick.mec_status is MecStatus.RESET) == expect_reset
     with pytest.raises(StackError, match="shape"):
         ControlStack(sc, lambda s: np.zeros((2, 2))).tick(PymunkWorld(sc).reset(seed=0))
-
-
-@pytest.mark.parametrize("suffix", [".pt", ".pt2", ".onnx"])
-def test_exported_file_gives_the_eager_a_nom_in_this_and_a_fresh_process(tmp_path, suffix):
-    from deploy.export import export_policy
-
-    sc = make_scenario("paper-5")
-    net = exportable_actor(1)
-    name = {".pt": "torchscript", ".pt2": "pt2", ".onnx": "onnx"}[suffix]
-    path = export_policy(net, tmp_path / "policy", dt=0.05, trained_robots=5, formats=(name,))[0].path
-    state = PymunkWorld(sc, seed=2).reset(seed=2)
-    eager = clip_norm(ControlStack(sc, net).tick(state).a_nom, 1.0)   # the file bounds the norm
-    exported = ControlStack(sc, str(path)).tick(state).a_nom
-    assert np.abs(eager).max() > 0.05
-    np.testing.assert_allclose(exported, eager, atol=1e-5)
-    code = ("import json, sys; from sim.pymunk_world import PymunkWorld; from sim.scenario import make_scenario;"
-            "from stack.pipeline import ControlStack; sc = make_scenario('paper-5');"
-            "s = PymunkWorld(sc, seed=2).reset(seed=2);"
-            f"print(json.dumps(ControlStack(sc, {str(path)!r}).tick(s).a_nom.tolist()))")
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
-    np.testing.assert_allclose(np.array(json.loads(out.stdout.strip().splitlines()[-1])), eager, atol=1e-5)
-
-
-def test_bad_policy_inputs_raise_clear_errors(tmp_path):
-    sc = make_scenario("paper-3")
-    with pytest.raises(StackError, match="does not exist"):
-        load_policy(tmp_path / "missing.pt")
-    junk = tmp_path / "junk.pt"
-    junk.write_bytes(b"not a model")
-    with pytest.raises(StackError, match="neither a training checkpoint nor a policy file") as err:
-        ControlStack(sc, junk)
-    assert "weights_only" not in str(err.value)
-    with pytest.raises(StackError, match="callable"):
-        ControlStack(sc, 42)
 
 
 def test_nominal_step_by_hand():
@@ -281,122 +231,6 @@ def test_run_episode_reports_the_first_tick_the_team_stands_on_its_targets():
     assert m.arrival_step == within.index(True) + 1 < sc.dynamics.episode_steps
     idle = run_episode(BatchedFleet(sc), ControlStack(sc, lambda s: np.zeros((3, 2)), off), seed=0)
     assert idle.arrival_step is None and not idle.success
-
-
-@pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
-def test_numpy_tokens_equal_sim_observations_tokens(n):
-    from sim.observations import tokens
-
-    sc = transport_scenario(n)
-    stack = ControlStack(sc, actor())
-    rng = np.random.default_rng(n)
-    for _ in range(5):
-        pos = rng.uniform(0.0, 1.0, (n, 2))
-        pos[0] = sc.object_center + rng.uniform(-0.05, 0.05, 2)      # one robot inside the object
-        vel, targets = rng.normal(0, 0.3, (n, 2)), rng.uniform(0, 1, (n, 2))
-        state = FleetState(time=0.0, step=0, positions=pos, velocities=vel, targets=targets,
-                           object_pose=np.array([0.5, 0.5, 0.0]))
-        got, got_mask = stack.observe(state)
-        as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
-        want, want_mask = tokens(as_t(pos), as_t(vel), as_t(targets),
-                                 torch.tensor(sc.polygon, dtype=torch.float32), sc.arena)
-        assert got.shape == want.shape == (1, n, 2 * n + 1, 4) and got.dtype == torch.float32
-        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
-        assert torch.equal(got_mask, want_mask)
-
-
-# ------------------------------------------------------------------ fast tick path
-def _states(sc, count, seed):
-    world = PymunkWorld(sc, WEAK_ROBOTS, seed=seed)
-    state = world.reset(seed=seed)
-    ctl = ScriptedController(sc)
-    out = []
-    for _ in range(count):
-        out.append(state)
-        world.send_accelerations(ctl(state))
-        state = world.step()
-    return out
-
-
-@pytest.mark.parametrize("runtime", ["kernel", "module", "scripted"])
-def test_tick_without_mask_equals_the_network_on_fresh_tokens_and_full_mask(runtime):
-    """The tick passes mask=None (all tokens valid) and reuses one token buffer per N: its a_nom
-    equals the network on freshly built tokens with the all-true mask, tick after tick, as N
-    changes; the eager actor by default through the compiled kernel, which bounds the norm as an
-    exported file does (the module bounds each component; the filter clips the norm first)."""
-    from sim.observations import tokens
-
-    net = actor(2)
-    module = torch.jit.script(net) if runtime == "scripted" else net
-    # the measured state goes to the policy as is (by default it reads the estimators' state)
-    stack = ControlStack(make_scenario("paper-3"), module, StackConfig(
-        estimated_velocity=False, estimated_position=False, policy_kernel=runtime == "kernel"))
-    for n in (3, 5, 3):
-        sc = transport_scenario(n)
-        for state in _states(sc, 4, seed=n):
-            got = stack.tick(state).a_nom
-            as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
-            obs, mask = tokens(as_t(state.positions), as_t(state.velocities), as_t(state.targets),
-                               torch.tensor(sc.polygon, dtype=torch.float32), sc.arena)
-            with torch.no_grad():
-                want = net(obs, mask)[0].double().numpy()
-            assert np.abs(want).max() > 0.05
-            if runtime == "kernel":
-                want = clip_norm(want, 1.0)
-            np.testing.assert_allclose(got, want, atol=1e-6, rtol=0)
-
-
-def test_exported_policy_runs_in_the_stack_and_foreign_files_are_refused(tmp_path):
-    from deploy.export import ExportedPolicy, export_policy
-    from deploy.export.contract import PolicyContract
-    from deploy.export.formats import FORMATS
-
-    torch.set_num_threads(1)
-    net = exportable_actor(3)
-    reports = export_policy(net, tmp_path / "policy", dt=0.05, trained_robots=3, formats=("torchscript", "onnx"))
-    sc = make_scenario("paper-3")
-    state = _states(sc, 1, seed=4)[0]
-    want = clip_norm(ControlStack(sc, net).tick(state).a_nom, 1.0)
-    for report in reports:
-        module = load_policy(report.path)
-        assert isinstance(module, ExportedPolicy) and module.file_format == report.meta["file_format"]
-        np.testing.assert_allclose(ControlStack(sc, module).tick(state).a_nom, want, atol=1e-5)
-    bare = tmp_path / "bare.pt"                      # a TorchScript actor without metadata
-    torch.jit.save(torch.jit.script(net), str(bare))
-    with pytest.raises(StackError, match="meta.json"):
-        ControlStack(sc, bare)
-    meta = {k: v for k, v in reports[0].meta.items() if k != "content_sha256"}
-    for name, changes, message in (("old_layout", {"layout_version": 99}, "observation layout 99"),
-                                   ("other_version", {"format_version": 1}, "v1 file"),
-                                   ("wide_tokens", {"token_dim": 7}, "7 features per token")):
-        path = tmp_path / f"{name}.pt"
-        FORMATS["torchscript"].write(PolicyContract(net), path, meta | changes, None)
-        with pytest.raises(StackError, match=message):
-            load_policy(path)
-
-
-def test_fleet_tokens_np_into_a_float32_buffer_for_a_rotated_object():
-    """The general polygon path (a rotated box is no longer axis-aligned) against the torch tokens,
-    written into a reused float32 buffer that starts dirty."""
-    from sim.observations import fleet_tokens_np, tokens
-
-    sc = transport_scenario(4)
-    angle = 0.4
-    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    polygon = (sc.polygon - 0.5) @ rot.T + 0.5
-    rng = np.random.default_rng(9)
-    buf = np.full((4, 9, 4), np.nan, dtype=np.float32)
-    for _ in range(3):
-        pos, vel, targets = rng.uniform(0, 1, (4, 2)), rng.normal(0, 0.3, (4, 2)), rng.uniform(0, 1, (4, 2))
-        pos[1] = 0.5 + rng.uniform(-0.05, 0.05, 2)                      # inside the object
-        out = fleet_tokens_np(pos, vel, targets, polygon, sc.arena, out=buf)
-        assert out is buf
-        as_t = lambda x: torch.tensor(x, dtype=torch.float32)[None]  # noqa: E731
-        want, _ = tokens(as_t(pos), as_t(vel), as_t(targets), torch.tensor(polygon, dtype=torch.float32),
-                         sc.arena)
-        torch.testing.assert_close(torch.from_numpy(buf)[None], want, atol=1e-6, rtol=0)
-    with pytest.raises(ValueError, match="out must have shape"):
-        fleet_tokens_np(pos, vel, targets, polygon, sc.arena, out=np.zeros((4, 8, 4)))
 
 
 def test_the_policy_sees_a_frozen_robot_where_it_stopped_not_where_it_last_reported():
