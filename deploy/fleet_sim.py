@@ -207,7 +207,8 @@ class FleetSim:
             robot.link = None
 
     def missed_commands(self) -> int:
-        """Valid commands no robot link saw (gaps in the controller's seq), open and closed links."""
+        """Commands the controller sent that never reached a robot's decoder (gaps in its seq;
+        :class:`deploy.robot_link.CommandGaps`), open and closed links."""
         return self.closed_link_missed + sum(r.link.missed_commands for r in self.robots if r.link is not None)
 
     def rejects(self) -> dict[str, int]:

@@ -17,7 +17,11 @@ from deploy.network import FleetKeys, TransportConfig, declare_data_publisher
 from deploy.streams import Stamper, WireDecoder
 from deploy.transport import NO_STATUS, ReceivedCommand, _Link
 from deploy.wire import (
+    ACCEPTED_VERSIONS,
     BRAKE_OR_STOP,
+    HEADER,
+    HEADER_SIZE,
+    MAGIC,
     ROBOT_ALL,
     CmdMsg,
     EstopMsg,
@@ -40,8 +44,83 @@ MAX_ANSWER_AGE_S = 0.5
 (0.15 s state age plus 0.15 s command delay), a 20 Hz tick's wait, and room for a loaded host."""
 
 PUBLISHED_KEPT = 256
-RECENT_COMMANDS = 16   # accepted commands kept for a playout buffer (:attr:`RobotLink.recent_commands`)
 """STATE send times a link remembers (12.8 s at 20 Hz; older answers are refused anyway)."""
+RECENT_COMMANDS = 16   # accepted commands kept for a playout buffer (:attr:`RobotLink.recent_commands`)
+
+GAP_WINDOW = 1024
+"""Seqs a robot remembers one by one behind and ahead of its newest accepted command (51 s at
+20 Hz): a command that arrives within this many seqs of the newest, late or early, is told
+apart from a missed one; one further off stays counted as missed (the memory stays bounded)."""
+
+
+class CommandGaps:
+    """Missed commands: commands the controller put on the wire that never reached the decoder.
+
+    The controller numbers the commands it sends a robot 1, 2, ... in one epoch (a refused send
+    takes no seq). The counted span of an epoch runs from the first command of it the robot
+    accepts to the newest; a seq in that span is missed unless a command with it reached the
+    decoder, accepted or rejected: a stale answer, an expired or a malformed-but-numbered
+    command is counted once, as a rejection, never also as missed. A command that arrives after
+    a newer one (reordered) takes its seq back off the count, within ``GAP_WINDOW``. A new
+    epoch (a restarted controller) starts a new span; what an old one counted stays counted.
+    Not thread-safe: :class:`RobotLink` calls it under its lock.
+    """
+
+    def __init__(self) -> None:
+        self.missed = 0
+        self._epoch: int | None = None   # epoch of the newest accepted command
+        self._high = 0                   # its seq
+        self._holes: set[int] = set()    # missed seqs in (high - GAP_WINDOW, high)
+        self._hole_order: deque[int] = deque()
+        self._ahead: set[int] = set()    # rejected seqs in (high, high + GAP_WINDOW]
+        self._early: deque[tuple[int, int]] = deque(maxlen=GAP_WINDOW)  # rejected, other epochs
+
+    def accepted(self, epoch: int, seq: int) -> None:
+        """A command the decoder accepted (seq newer than any accepted in its epoch)."""
+        if epoch != self._epoch:
+            self._epoch, self._high = epoch, seq
+            self._holes.clear()
+            self._hole_order.clear()
+            self._ahead = {s for e, s in self._early if e == epoch and seq < s <= seq + GAP_WINDOW}
+            self._early = deque(((e, s) for e, s in self._early if e != epoch), maxlen=GAP_WINDOW)
+            return
+        if seq <= self._high:
+            return
+        seen = {s for s in self._ahead if s < seq}
+        self.missed += seq - self._high - 1 - len(seen)
+        for s in range(max(self._high + 1, seq - GAP_WINDOW + 1), seq):
+            if s not in seen:
+                self._holes.add(s)
+                self._hole_order.append(s)
+        self._high = seq
+        self._ahead -= seen
+        self._ahead.discard(seq)
+        while self._hole_order and self._hole_order[0] <= seq - GAP_WINDOW:
+            self._holes.discard(self._hole_order.popleft())
+
+    def rejected(self, epoch: int, seq: int) -> None:
+        """A numbered command the decoder rejected: it reached the robot, so it is not missed."""
+        if epoch != self._epoch:      # may be the start of an epoch accepted later
+            self._early.append((epoch, seq))
+            return
+        if seq > self._high:
+            if seq - self._high <= GAP_WINDOW:
+                self._ahead.add(seq)
+        elif seq in self._holes:
+            self._holes.discard(seq)
+            self.missed -= 1
+
+
+def numbered_command(payload: bytes, robot_id: int) -> tuple[int, int] | None:
+    """(epoch, seq) from the header of a CMD to ``robot_id``, whatever else about it is wrong;
+    None for anything without such a header (junk, another type or robot, epoch or seq 0)."""
+    if len(payload) < HEADER_SIZE:
+        return None
+    magic, version, msg_type, rid, _flags, epoch, seq, _sent = HEADER.unpack_from(payload)
+    if (magic != MAGIC or version not in ACCEPTED_VERSIONS or msg_type != MsgType.CMD
+            or rid != robot_id or epoch == 0 or seq == 0):
+        return None
+    return epoch, seq
 
 
 class RobotLink(_Link):
@@ -93,7 +172,7 @@ class RobotLink(_Link):
         self._stamper = Stamper(clock_ns)
         self._command: ReceivedCommand | None = None
         self._recent: deque[ReceivedCommand] = deque(maxlen=RECENT_COMMANDS)
-        self.missed_commands = 0   # valid commands never seen: gaps in the controller's seq
+        self._gaps = CommandGaps()   # :attr:`missed_commands`
         self._estopped = False
         self._estop_reason = 0
         self._estop_bytes: bytes | None = None
@@ -127,10 +206,12 @@ class RobotLink(_Link):
         with self._cond:
             msg = self.decoder.decode(payload, MsgType.CMD, self.robot_id,
                                       check=lambda m: self._stale_answer(m, now))
-            if isinstance(msg, CmdMsg):
-                last = self._command.msg if self._command is not None else None
-                if last is not None and last.epoch == msg.epoch:   # the controller numbers 1, 2, ...
-                    self.missed_commands += msg.seq - last.seq - 1
+            if not isinstance(msg, CmdMsg):
+                numbered = numbered_command(payload, self.robot_id)
+                if numbered is not None:
+                    self._gaps.rejected(*numbered)
+            else:
+                self._gaps.accepted(msg.epoch, msg.seq)
                 expires = now + msg.ttl_ms * 1_000_000
                 if self.shared_clock:
                     expires = min(expires, msg.send_time_ns + msg.ttl_ms * 1_000_000)
@@ -213,6 +294,15 @@ class RobotLink(_Link):
 
     # -- tables ---------------------------------------------------------------------------
     @property
+    def missed_commands(self) -> int:
+        """Commands the controller put on the wire that never reached this robot's decoder
+        (lost, or pushed out of a full ring), counted from the first command the robot
+        accepted in each epoch; rejected commands are counted in ``rejects`` only
+        (:class:`CommandGaps`)."""
+        with self._cond:
+            return self._gaps.missed
+
+    @property
     def latest_command(self) -> ReceivedCommand | None:
         """The newest accepted command, expired or not."""
         with self._cond:
@@ -286,4 +376,5 @@ class RobotLink(_Link):
         return msg
 
 
-__all__ = ["COMMAND_RING", "MAX_ANSWER_AGE_S", "RECENT_COMMANDS", "RobotLink"]
+__all__ = ["COMMAND_RING", "GAP_WINDOW", "MAX_ANSWER_AGE_S", "RECENT_COMMANDS", "CommandGaps",
+           "RobotLink", "numbered_command"]

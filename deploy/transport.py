@@ -6,8 +6,9 @@ Threads: Zenoh delivers into bounded :class:`zenoh.handlers.RingChannel` handler
 Python callback, so a Zenoh thread never waits on Python), and one driver thread per channel
 blocks in ``recv()``, validates with :class:`deploy.streams.WireDecoder` and updates the link's
 tables under one lock. A full ring drops its oldest sample (a robot's command ring holds
-``deploy.robot_link.COMMAND_RING`` samples, and a robot counts the valid commands it never saw, from the gaps in
-the controller's ``seq``: ``RobotLink.missed_commands``). Malformed, foreign or stale
+``deploy.robot_link.COMMAND_RING`` samples, and a robot counts the commands that never reached
+its decoder, from the gaps in the controller's ``seq``: ``RobotLink.missed_commands``; a send
+the controller refuses takes no seq). Malformed, foreign or stale
 messages are counted in ``link.rejects`` and dropped; the node keeps running.
 
 Latched e-stop: the controller publishes each ESTOP change and also serves the latest ESTOP
@@ -347,12 +348,14 @@ class FleetLink(_Link):
                      flags: CmdFlags = NO_CMD_FLAGS, state_seq: int = 0) -> CmdMsg:
         """Publish one command: acceleration (x, y) [m/s^2], valid ttl_ms [ms].
 
-        Raises ValueError (nothing is sent) for an unknown robot or an invalid field (NaN...).
+        Raises ValueError (nothing is sent, and no seq is taken) for an unknown robot or an
+        invalid field (NaN...): the robot counts a gap in the seqs as a missed command.
         """
         self._check_open()
         robot_id = self.registry.id_of(robot)
         if robot_id is None:
             raise ValueError(f"robot {robot!r} is not in the registry {self.registry.names}")
+        encode(CmdMsg(robot_id, 1, 1, 0, tuple(acceleration), ttl_ms, flags, state_seq))  # checks only
         epoch, seq, now = self._cmd_stampers[robot].next()
         msg = CmdMsg(robot_id, epoch, seq, now, tuple(acceleration), ttl_ms, flags, state_seq)
         self._cmd_publishers[robot].put(encode(msg))
