@@ -23,7 +23,9 @@ A file whose ``meta["own_target"]`` is true reads robot i's own target marked: t
 ``k = sigma_i`` of the team's one-to-one assignment of least total squared path length round
 the object (:func:`own_targets`, with ``meta["own_target_margin"]``) has features
 ``[d, d min(1, 0.1 m / |d|)]``, ``d = g_k - p``; ``act`` works the assignment out from the
-positions it is given, or takes ``own_target``.
+positions it is given, or takes ``own_target``. Ties are broken as training breaks them, by the
+robots' order: ``act``'s ``index`` is the robot's place in it, so on a tie every robot of the
+team still takes a different target.
 
 The action is the policy's mean acceleration (2,) [m/s^2], bounded in norm by the file's
 ``accel_limit``; with any input non-finite it is (0, 0) and ``valid`` is False: brake.
@@ -32,7 +34,9 @@ The action is the policy's mean acceleration (2,) [m/s^2], bounded in norm by th
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
+import math
 from pathlib import Path
 from typing import NamedTuple
 
@@ -42,6 +46,7 @@ LAYOUT_VERSION = 1
 TOKEN_DIM = 4
 TOLERANCE = 1e-5
 OWN_TARGET_REACH = 0.1               # [m] the own-target mark's length (sim/observations.py)
+ENUMERATE_MAX_N = 4                  # teams up to this size: every matching tried (sim/metrics.py)
 EXPORT_FORMAT = "formation-stack/policy"
 EXPORT_FORMAT_VERSION = 2
 META_KEY = "formation.meta"          # ONNX metadata_props key holding the metadata JSON
@@ -150,47 +155,88 @@ def detour_distances(points, targets, polygon, margin: float) -> np.ndarray:
 
 
 def least_squares_assignment(path) -> np.ndarray:
-    """(N,) int: the column of each row of an (N, N) matrix of path lengths under the one-to-one
-    assignment of least total squared length; the Hungarian method, O(N^3), numpy only."""
+    """(N,) int: the column of each row of an (N, N) matrix of path lengths [m] under the
+    one-to-one assignment of least total squared length, ties broken as training breaks them
+    (``sim.metrics.optimal_assignment``, which ``sim.observations.own_assignment`` solves): up to
+    ``ENUMERATE_MAX_N`` rows the first matching in lexicographic order of least total (squares
+    summed in row order), above that scipy's ``linear_sum_assignment`` step for step. numpy
+    only; ValueError where a squared length is not finite."""
     cost = np.square(np.asarray(path, dtype=np.float64))
-    if not np.isfinite(cost).all():                    # the search below would never end
+    if not np.isfinite(cost).all():                    # NaN or inf: no least total to find
         raise ValueError("least_squares_assignment: every path length must be finite (and its square)")
+    if len(cost) <= ENUMERATE_MAX_N:
+        return _first_least_matching(cost.tolist())
+    return _shortest_augmenting_path(cost)
+
+
+def _first_least_matching(cost: list[list[float]]) -> np.ndarray:
+    """Every matching in ``itertools.permutations`` order; the first whose total, summed from
+    row 0 on as torch sums a row of up to four, is least (torch's ``argmin`` keeps the first)."""
+    best, best_total = None, math.nan
+    for perm in itertools.permutations(range(len(cost))):
+        total = 0.0
+        for i, j in enumerate(perm):
+            total += cost[i][j]
+        if best is None or total < best_total:
+            best, best_total = perm, total
+    return np.array(best, dtype=np.int64)
+
+
+def _shortest_augmenting_path(cost: np.ndarray) -> np.ndarray:
+    """scipy's ``linear_sum_assignment`` of a square finite matrix (Crouse's shortest augmenting
+    path, as ``rectangular_lsap.cpp`` runs it: the same float operations, in the same order, so
+    the same choice on every tie)."""
     n = len(cost)
-    u, v = np.zeros(n + 1), np.zeros(n + 1)
-    owner = np.zeros(n + 1, dtype=np.int64)            # owner[j]: row (1-based) holding column j
-    way = np.zeros(n + 1, dtype=np.int64)
-    for i in range(1, n + 1):
-        owner[0], j0 = i, 0
-        minv = np.full(n + 1, np.inf)
-        used = np.zeros(n + 1, dtype=bool)
-        while owner[j0] != 0:
-            used[j0] = True
-            i0 = owner[j0]
-            free = ~used[1:]
-            cur = cost[i0 - 1] - u[i0] - v[1:]
-            better = free & (cur < minv[1:])
-            minv[1:][better] = cur[better]
-            way[1:][better] = j0
-            j1 = 1 + int(np.argmin(np.where(free, minv[1:], np.inf)))
-            delta = minv[j1]
-            u[owner[used]] += delta
-            v[used] -= delta
-            minv[~used] -= delta
-            j0 = j1
-        while j0:
-            j1 = way[j0]
-            owner[j0] = owner[j1]
-            j0 = j1
-    sigma = np.empty(n, dtype=np.int64)
-    sigma[owner[1:] - 1] = np.arange(n)
-    return sigma
+    c = cost.tolist()
+    u, v = [0.0] * n, [0.0] * n
+    path, col4row, row4col = [-1] * n, [-1] * n, [-1] * n
+    for cur in range(n):
+        remaining = list(range(n - 1, -1, -1))     # reversed: a constant matrix gives the identity
+        rows_seen, cols_seen = [False] * n, [False] * n
+        shortest = [math.inf] * n
+        min_val, i, sink = 0.0, cur, -1
+        while sink == -1:
+            index, lowest = -1, math.inf
+            rows_seen[i] = True
+            for it, j in enumerate(remaining):
+                r = min_val + c[i][j] - u[i] - v[j]
+                if r < shortest[j]:
+                    path[j], shortest[j] = i, r
+                if shortest[j] < lowest or (shortest[j] == lowest and row4col[j] == -1):
+                    lowest, index = shortest[j], it
+            min_val = lowest
+            if index < 0 or min_val == math.inf:
+                raise ValueError("least_squares_assignment: the squared path lengths overflow")
+            j = remaining[index]
+            if row4col[j] == -1:
+                sink = j
+            else:
+                i = row4col[j]
+            cols_seen[j] = True
+            remaining[index] = remaining[-1]
+            remaining.pop()
+        u[cur] += min_val
+        for k in range(n):
+            if rows_seen[k] and k != cur:
+                u[k] += min_val - shortest[col4row[k]]
+        for j in range(n):
+            if cols_seen[j]:
+                v[j] -= min_val - shortest[j]
+        j = sink
+        while True:
+            k = path[j]
+            row4col[j] = k
+            col4row[k], j = j, col4row[k]
+            if k == cur:
+                break
+    return np.array(col4row, dtype=np.int64)
 
 
 def own_targets(pos, targets, polygon, margin: float) -> np.ndarray:
     """(N,) int: each robot's own target for an ``own_target`` policy (the project's
     ``sim.observations.own_assignment``): the assignment of least total squared detour length
     round the polygon inflated by ``margin`` (``meta["own_target_margin"]``), for (N, 2)
-    positions and targets."""
+    positions [m] in the fleet's robot order (it breaks ties) and (N, 2) targets [m]."""
     return least_squares_assignment(detour_distances(pos, targets, polygon, margin))
 
 
@@ -358,21 +404,24 @@ class RobotPolicy:
             accel, valid = self.session.run(None, {"tokens": x, "mask": mask})
         return accel.astype(np.float64), valid
 
-    def _own_target(self, team: np.ndarray, targets, polygon) -> int | None:
-        """The first robot's target under :func:`own_targets`; None (nothing marked) where the
-        picture has no assignment (a path length that is not finite): the policy then brakes on
-        its invalid input."""
+    def _own_target(self, team: np.ndarray, targets, polygon, index: int) -> int | None:
+        """Robot ``index``'s target under :func:`own_targets` of ``team`` (N, 2) [m], in the
+        fleet's robot order; None (nothing marked) where the picture has no assignment (a path
+        length that is not finite): the policy then brakes on its invalid input."""
         try:
-            return int(own_targets(team, targets, polygon, self.own_target_margin)[0])
+            return int(own_targets(team, targets, polygon, self.own_target_margin)[index])
         except ValueError:
             return None
 
     def act(self, own_pos, own_vel, targets, others_pos, others_vel, polygon, arena,
-            own_target: int | None = None) -> Action:
+            own_target: int | None = None, index: int = 0) -> Action:
         """The robot's mean acceleration [m/s^2] and whether it is valid (arguments as
         :func:`robot_tokens`); never NaN. A policy that reads its own target marked
         (``meta["own_target"]``) gets target ``own_target`` marked, or when None the robot's
-        target under :func:`own_targets` of the team it sees (itself and others)."""
+        target under :func:`own_targets` of the team it sees: ``index`` is this robot's place
+        in the fleet's robot order (``others_pos`` holds the others in that order), so the team
+        is ``others[:index] + [own] + others[index:]``, in the order training breaks ties by.
+        A robot that passes the wrong index may, on a tie, take a teammate's target."""
         n = len(np.asarray(targets).reshape(-1, 2))
         if self.robot_counts and n not in self.robot_counts:
             raise ValueError(f"{self.path} runs teams of {self._counts_text} robots (meta robot_counts); "
@@ -382,10 +431,12 @@ class RobotPolicy:
                              "false); call act without own_target")
         if own_target is not None and not 0 <= int(own_target) < n:
             raise ValueError(f"own_target must index one of the {n} targets, got {own_target}")
+        if not 0 <= int(index) < n:
+            raise ValueError(f"index must be this robot's place among the {n} robots, got {index}")
         if self.own_target and own_target is None:
-            team = np.vstack((np.asarray(own_pos, dtype=np.float64).reshape(1, 2),
-                              np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)))
-            own_target = self._own_target(team, targets, polygon)
+            others = np.asarray(others_pos, dtype=np.float64).reshape(-1, 2)
+            team = np.insert(others, int(index), np.asarray(own_pos, dtype=np.float64).reshape(2), axis=0)
+            own_target = self._own_target(team, targets, polygon, int(index))
         toks = robot_tokens(own_pos, own_vel, targets, others_pos, others_vel, polygon, arena, own_target)
         accel, valid = self._forward(toks[None])
         return Action(accel[0], bool(valid[0]))

@@ -124,7 +124,8 @@ def own_target_paths(polygon: Polygon, targets: torch.Tensor, radius: float) -> 
 class FleetOwnTargets:
     """:func:`own_assignment` for one fleet in numpy, as the ControlStack needs it every tick:
     ``(pos (N, 2), targets (N, 2)) -> (N,)`` int, read from the tabulated paths of the batched
-    world (:meth:`sim.geometry.DetourField.lookup_np`) and solved with scipy. A target's column
+    world (:meth:`sim.geometry.DetourField.lookup_np`) and solved by training's own solver
+    (:func:`sim.metrics.optimal_assignment`), so a tie goes as it went in training. A target's column
     of the table (its path lengths from every grid node) takes ~20-100 ms to build and depends on
     that target alone, so columns are kept per target (the last ``KEPT_COLUMNS``): a robot that
     leaves or rejoins reorders the set but costs no rebuild inside the tick (it cost 90 ms, past
@@ -135,9 +136,6 @@ class FleetOwnTargets:
 
     def __init__(self, polygon: np.ndarray, radius: float, arena: tuple[float, float],
                  targets: np.ndarray | None = None):
-        from scipy.optimize import linear_sum_assignment
-
-        self._solve = linear_sum_assignment
         self.polygon = Polygon(torch.as_tensor(np.asarray(polygon), dtype=torch.float64))
         self.radius, self.arena = float(radius), arena
         self._key: bytes | None = None
@@ -169,10 +167,7 @@ class FleetOwnTargets:
         if self._key != targets.tobytes():
             self._tabulate(targets)
         path = self._table[self._grid.nodes_np(np.asarray(pos, dtype=np.float64))]
-        rows, cols = self._solve(path * path)
-        sigma = np.empty(len(rows), dtype=np.int64)
-        sigma[rows] = cols
-        return sigma
+        return optimal_assignment(torch.from_numpy(path * path)[None])[0].numpy()
 
 
 def mark_own_targets(toks: torch.Tensor, sigma: torch.Tensor, reach: float = OWN_TARGET_REACH) -> torch.Tensor:

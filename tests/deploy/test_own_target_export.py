@@ -111,7 +111,7 @@ def test_the_robot_runtime_marks_the_target_its_team_gives_it(exported, name):
         for i in range(n):
             others = [j for j in range(n) if j != i]
             args = (pos[i], vel[i], targets, pos[others], vel[others], SCENARIO.polygon, SCENARIO.arena)
-            got.append(policy.act(*args).accel)
+            got.append(policy.act(*args, index=i).accel)
             assert np.array_equal(policy.act(*args, own_target=int(sigma[i])).accel, got[-1])
             unmarked.append(policy._forward(robot_tokens(*args)[None])[0][0])
         assert np.abs(np.array(got) - want).max() <= 1e-5

@@ -165,3 +165,20 @@ def test_fleet_own_targets_keeps_a_column_per_target_so_a_reordered_team_builds_
     assert built == [5]                          # the scenario's five, at construction only
     own(rng.uniform(0.05, 0.95, (2, 2)), np.vstack([sc.targets[:1], [[0.2, 0.9]]]))
     assert built == [5, 1]                       # a new target: its column alone
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_fleet_own_targets_break_ties_as_training_does(n):
+    """Robots sharing a spot tie; the stack must tell each the target training would have (scipy
+    alone broke 160 of these 400 ties otherwise up to 4 robots, where training enumerates)."""
+    from sim.batched_env import BatchedFormationEnv
+
+    sc = make_scenario(f"paper-{n}")
+    fleet = obs.FleetOwnTargets(sc.polygon, sc.robot_radius, sc.arena, sc.targets)
+    env = BatchedFormationEnv(sc, 1, dtype=torch.float64, own_target=True)
+    rng = np.random.default_rng(0)
+    spots = rng.uniform(0.05, 0.95, (3, 2))
+    for _ in range(200):
+        pos = spots[rng.integers(0, 3, n)]
+        want = obs.own_assignment(env._own_paths(torch.from_numpy(pos)[None]))[0].numpy()
+        assert fleet(pos, sc.targets).tolist() == want.tolist()
