@@ -9,7 +9,9 @@ is put back on its boundary (centre at distance r along the outward normal) and 
 wheels of a robot pushed against the load lose their grip: no sliding along it), and the
 touch counts as an object collision. Robots pass through each
 other (no contact forces between robots): every overlap counts as a collision, is penalised,
-and makes the episode a failure.
+and makes the episode a failure. Contacts count along each step's straight path, not only at
+its ends (:func:`sim.metrics.swept_contacts`): two robots crossing within one step touch, and a
+robot cutting round a corner of the object within one step touches it and stops.
 
 Episodes last ``dynamics.episode_steps`` steps. When an environment finishes, its outcome
 (:class:`EpisodeStats`) is returned in ``StepResult.finished`` and it restarts from jittered
@@ -28,7 +30,7 @@ from sim import observations
 from sim.actuator import BatchedActuators
 from sim.distribution import MAX_DELAY_TICKS, ScenarioDistribution
 from sim.geometry import Frame, Polygon
-from sim.metrics import episode_outcome
+from sim.metrics import episode_outcome, swept_contacts
 from sim.reward import RewardWeights
 from sim.scenario import Scenario
 from sim.step_reward import StepReward, frame_contacts
@@ -263,10 +265,12 @@ class BatchedFormationEnv:
         inside = pos.clamp(self._lo, self._hi)
         hit_wall_axis = inside != pos
         vel = torch.where(hit_wall_axis, torch.zeros_like(vel), vel)
+        passed_robot, passed_corner = swept_contacts(self.pos, inside, self.radius, self.polygon.vertices)
+        vel = torch.where(passed_corner.unsqueeze(-1), torch.zeros_like(vel), vel)   # a graze stops too
         self.pos, self.vel = inside, vel
 
         frame = Frame(self.pos, self.vel, self.targets, self.polygon)
-        touched = (hit_wall_axis.any(-1), hit_object)
+        touched = (hit_wall_axis.any(-1), hit_object | passed_corner, passed_robot)
         events, contact = frame_contacts(frame, self.radius, self.arena, touched)
         new_contact = contact & ~self.prev_contact                               # (E,N,3)
         self.prev_contact = contact

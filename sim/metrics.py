@@ -5,6 +5,8 @@
   overlaps the object polygon (signed distance of the centre < ``r``); robot-wall when the
   disc crosses a wall (centre closer than ``r`` to it). A tolerance ``eps`` (1e-6 m) keeps
   resting contact from counting.
+* Collisions in mid-step (:func:`swept_contacts`): the same discs along the straight path of a
+  step, for the contacts a world that moves in whole steps would miss between two instants.
 * Assignment (:func:`optimal_assignment`): the one-to-one matching of robots to targets that
   minimises the sum of distances, solved exactly: by enumeration of the N! matchings, batched in
   torch, for N <= 4, and with scipy's ``linear_sum_assignment`` (Jonker-Volgenant, O(N^3)) per
@@ -59,6 +61,42 @@ def frame_collisions(frame: Frame, radius: float, arena: tuple[float, float],
     lim = radius - eps
     wall = (frame.px < lim) | (frame.py < lim) | (frame.px > arena[0] - lim) | (frame.py > arena[1] - lim)
     return CollisionEvents(robot=close.any(-1), object=frame.obj_sd < lim, wall=wall)
+
+
+def swept_contacts(start: torch.Tensor, end: torch.Tensor, radius: float, vertices: torch.Tensor,
+                   eps: float = CONTACT_EPS) -> tuple[torch.Tensor, torch.Tensor]:
+    """Contacts made *during* a step of straight-line motion from (E, N, 2) ``start`` to ``end``
+    centres [m], among the robots and with the object's (M, 2) ``vertices``; returns (E, N) bool
+    ``(robot, object)``: ``robot`` includes the contacts at the ends, ``object`` is the path's
+    pass round a vertex (a touch of an edge at an end is :func:`frame_collisions`'s to see).
+
+    Two robots' relative position moves along ``p(s) = p0 + s d``, ``d = p1 - p0``, s in [0, 1];
+    its closest approach is at ``s* = clamp(-p0.d / d.d, 0, 1)`` and they touch when
+    ``|p(s*)| < 2 r - eps``. Along a straight path the distance to an edge's line is linear, so
+    the path comes closer to the object in mid-step than at its ends only round a vertex or by
+    crossing an edge; a crossing takes a path of at least ``2 r`` between two points clear of
+    the object (longer than a step: 2 cm at 0.4 m/s and 20 Hz against 8 cm), so the object
+    counts as touched when the path passes within ``r - eps`` of a vertex. Walls are straight
+    lines: the ends decide.
+    """
+    def closest_d2(px, py, dx, dy):            # x and y planes of p0 and d, broadcast
+        s = (-(px * dx + py * dy) / (dx * dx + dy * dy).clamp_min(1e-30)).clamp(0.0, 1.0)
+        qx, qy = px + s * dx, py + s * dy
+        return qx * qx + qy * qy
+
+    x0, y0 = start[..., 0], start[..., 1]
+    mx, my = end[..., 0] - x0, end[..., 1] - y0
+    d2 = closest_d2(x0.unsqueeze(-1) - x0.unsqueeze(-2), y0.unsqueeze(-1) - y0.unsqueeze(-2),
+                    mx.unsqueeze(-1) - mx.unsqueeze(-2), my.unsqueeze(-1) - my.unsqueeze(-2))   # (E, N, N)
+    n = start.shape[-2]
+    others = ~torch.eye(n, dtype=torch.bool, device=start.device)
+    contact = 2 * radius - eps
+    robot = ((d2 < contact * contact) & others).any(-1)
+    v = vertices.to(start)
+    lim = radius - eps
+    obj = (closest_d2(x0.unsqueeze(-1) - v[:, 0], y0.unsqueeze(-1) - v[:, 1],
+                      mx.unsqueeze(-1), my.unsqueeze(-1)) < lim * lim).any(-1)         # (E, N, M) -> (E, N)
+    return robot, obj
 
 
 @cache

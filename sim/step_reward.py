@@ -21,13 +21,16 @@ from sim.scenario import Scenario
 
 
 def frame_contacts(frame: Frame, radius: float, arena: tuple[float, float],
-                   touched: tuple[torch.Tensor, torch.Tensor]) -> tuple[CollisionEvents, torch.Tensor]:
-    """Collision events of discs of ``radius`` plus the wall and object stops of this step
-    (``touched``: (E, N) wall, object); returns the events and their (E, N, 3) stack
+                   touched: tuple[torch.Tensor, ...]) -> tuple[CollisionEvents, torch.Tensor]:
+    """Collision events of discs of ``radius`` plus the touches of this step the instant does
+    not show (``touched``: (E, N) wall, object and optionally robot: the stops at walls and the
+    object, :func:`sim.metrics.swept_contacts`); returns the events and their (E, N, 3) stack
     (robot, object, wall)."""
     events = frame_collisions(frame, radius, arena)
     events.wall = events.wall | touched[0]
     events.object = events.object | touched[1]
+    if len(touched) > 2:
+        events.robot = events.robot | touched[2]
     return events, torch.stack((events.robot, events.object, events.wall), -1)
 
 

@@ -289,3 +289,34 @@ def test_own_target_paths_measure_the_contracts_detour_whatever_the_rewards():
         exact = DetourDistance(env.polygon, env.targets[0], SC.robot_radius + OWN_TARGET_CLEARANCE)(pos)
         assert (env._own_paths(pos) - exact).abs().max() <= 0.005 / 2 ** 0.5 + 1e-9
         assert (env._own_paths is env.rewarder.detour) == (clearance == OWN_TARGET_CLEARANCE)
+
+
+def _step_disp(v: float) -> float:
+    """How far one step with no command carries a robot moving at v [m/s] (damping 0.5)."""
+    return SC.dynamics.dt * v * (1 - SC.dynamics.dt * SC.dynamics.damping)
+
+
+def test_two_robots_passing_within_one_step_collide():
+    # they pass 78 mm apart (< 2 r = 80 mm) in mid-step, 80.4 mm apart at both ends of it
+    half = _step_disp(0.4) / 2
+    env = _env()
+    _place(env, [[0.2 - half, 0.3], [0.2 + half, 0.378], [0.8, 0.15]],
+           [[0.4, 0.0], [-0.4, 0.0], [0.0, 0.0]])
+    env.step(torch.zeros(1, 3, 2, dtype=torch.float64))
+    ends = (env.pos[0, 0] - env.pos[0, 1]).norm().item()
+    assert ends == pytest.approx(math.hypot(0.078, 2 * half)) and ends > 0.08
+    assert env.counts[0].tolist() == [2, 0, 0] and env.collided[0]
+
+
+def test_a_robot_cutting_round_a_corner_within_one_step_touches_the_object_and_stops():
+    # tangent to a circle of 39 mm (< r = 40 mm) round the box corner (0.6, 0.65); both ends of
+    # the step lie 40.2 mm from the corner, outside the box's faces
+    c, u = torch.tensor([0.6, 0.65]), torch.tensor([1.0, -1.0]) / math.sqrt(2)
+    mid = c + 0.039 * torch.tensor([1.0, 1.0]) / math.sqrt(2)
+    start = mid - u * _step_disp(0.4) / 2
+    env = _env()
+    _place(env, [start.tolist(), [0.2, 0.15], [0.8, 0.15]], [(0.4 * u).tolist(), [0.0, 0.0], [0.0, 0.0]])
+    env.step(torch.zeros(1, 3, 2, dtype=torch.float64))
+    assert (env.pos[0, 0] - c.double()).norm().item() == pytest.approx(math.hypot(0.039, _step_disp(0.4) / 2))
+    assert env.counts[0].tolist() == [0, 1, 0] and env.collided[0]
+    assert env.vel[0, 0].tolist() == [0.0, 0.0]

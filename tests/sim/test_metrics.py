@@ -1,4 +1,5 @@
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -6,7 +7,14 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.metrics import collision_events, distance_matrix, episode_outcome, optimal_assignment
+from sim.geometry import Polygon
+from sim.metrics import (
+    collision_events,
+    distance_matrix,
+    episode_outcome,
+    optimal_assignment,
+    swept_contacts,
+)
 from sim.scenario import make_scenario
 
 SC = make_scenario("paper-3")
@@ -91,3 +99,42 @@ def test_distance_matrix_orientation():
     pos = torch.tensor([[[0.0, 0.0], [1.0, 0.0]]])
     tgt = torch.tensor([[[0.0, 1.0], [3.0, 0.0]]])
     assert np.allclose(distance_matrix(pos, tgt)[0].numpy(), [[1.0, 3.0], [np.sqrt(2), 2.0]])
+
+
+def _dense_min_d2(p0: np.ndarray, d: np.ndarray) -> float:
+    s = np.linspace(0.0, 1.0, 4001)[:, None]
+    q = p0 + s * d
+    return float((q * q).sum(-1).min())
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.floats(-0.1, 0.1), min_size=4, max_size=4),
+       st.lists(st.floats(-0.03, 0.03), min_size=4, max_size=4))
+def test_swept_robot_contacts_are_those_of_the_densely_sampled_path(start, move):
+    r = 0.04
+    start = np.array(start).reshape(2, 2) + [[0.3, 0.5], [0.4, 0.5]]
+    end = start + np.array(move).reshape(2, 2)
+    dense = math.sqrt(_dense_min_d2(start[0] - start[1], (end - start)[0] - (end - start)[1]))
+    if abs(dense - 2 * r) < 1e-4:        # the sampling's resolution
+        return
+    as_t = lambda a: torch.tensor(a[None])  # noqa: E731
+    robot, _ = swept_contacts(as_t(start), as_t(end), r, torch.tensor([[0.0, 0.0], [0.01, 0.0], [0.0, 0.01]]))
+    assert robot[0].tolist() == [dense < 2 * r] * 2
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(0.30, 0.70), st.floats(0.25, 0.75), st.floats(0, 2 * math.pi), st.floats(0.0, 0.0195))
+def test_swept_object_contacts_are_those_of_the_densely_sampled_path(x, y, heading, length):
+    # any step no longer than the speed limit allows, against the paper's box (0.4..0.6, 0.35..0.65)
+    r, sc = 0.04, make_scenario("paper-3")
+    poly = torch.tensor(sc.polygon)
+    start = np.array([x, y])
+    end = start + length * np.array([math.cos(heading), math.sin(heading)])
+    path = torch.tensor(start + np.linspace(0, 1, 2001)[:, None] * (end - start))
+    sd = Polygon(poly).signed_distance_xy(path[:, 0], path[:, 1])[0]
+    if (sd - r).abs().min().item() < 2e-5:     # the sampling's resolution
+        return
+    ends = torch.tensor(np.stack([start, end])[None])
+    at_ends = bool(collision_events(ends, poly, r, sc.arena, eps=0.0).object.any())
+    _, obj = swept_contacts(ends[:, :1], ends[:, 1:], r, poly, eps=0.0)
+    assert (bool(obj[0, 0]) or at_ends) == bool((sd < r).any())
