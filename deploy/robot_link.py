@@ -353,9 +353,12 @@ class RobotLink(_Link):
         ``last_cmd_seq``: the seq of the command the robot acted on in the motion this state
         measures (the controller predicts through the ones after it); None: the latest
         accepted command's, for a robot that acts on a command in the tick it accepts it.
-        Raises ValueError on NaN/inf.
+        Raises ValueError on NaN/inf, and then takes no seq: the controller reads a robot's
+        seqs as its ticks (a lock-stepped episode is ``(seq - 1) // T``).
         """
         self._check_open()
+        encode(StateMsg(self.robot_id, 1, 1, 0, tuple(position), tuple(velocity), status,
+                        last_cmd_seq or 0))   # checks only
         with self._cond:
             if self._estopped:
                 status |= StateStatus.ESTOPPED

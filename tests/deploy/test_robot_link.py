@@ -174,3 +174,15 @@ def test_a_command_lost_on_the_wire_is_missed_once():
         assert robot.rejects.snapshot() == {"NON_FINITE": 1, "STALE": 1}
         assert robot.latest_command.msg.seq == 7
         assert robot.missed_commands == 1
+
+
+@pytest.mark.realtime
+def test_a_refused_state_takes_no_seq():
+    """A robot's STATE seqs are its ticks to a lock-stepped controller (episode ``(seq - 1) // T``):
+    a state refused for a NaN must not use one up."""
+    port = free_tcp_port()
+    with RobotLink(FLEET, "r0", REGISTRY, TransportConfig(listen=(f"tcp/127.0.0.1:{port}",))) as robot:
+        first = robot.publish_state((0.1, 0.1), (0.0, 0.0)).seq
+        with pytest.raises(ValueError, match="NaN"):
+            robot.publish_state((math.nan, 0.1), (0.0, 0.0))
+        assert robot.publish_state((0.1, 0.1), (0.0, 0.0)).seq == first + 1
