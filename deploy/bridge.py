@@ -9,7 +9,8 @@ and the controller stall (**the recovery rule**): :mod:`deploy.bridge_picture`.
 Command of a row (:func:`row_flags`): BRAKE (acceleration 0; the robot brakes itself with its
 own fresh velocity) when its state is older than ``stale_after_s`` when the command goes out
 (the controller's own time counts) or not finite, whatever the controller said; otherwise the controller's row, or BRAKE for every row when the controller
-raises, returns a wrong shape or a non-finite value (counted); ``on_sent(state, braked)`` then
+raises, returns a wrong shape or a non-finite value (counted; a :class:`BrakeThisTick` it raises
+on purpose is neither counted nor logged with a traceback); ``on_sent(state, braked)`` then
 tells the controller which rows got BRAKE or STOP in place of its command. A fresh row whose robot reports
 FAULT (its watchdog latch) also gets STOP, which re-arms it (the robot holds at rest until a
 command without STOP). A robot that leaves ``rearm_alarm_after`` re-arms in a row unanswered
@@ -77,6 +78,14 @@ from sim.fleet import FleetState
 log = logging.getLogger(__name__)
 
 Controller = Callable[[FleetState], np.ndarray]
+
+
+class BrakeThisTick(Exception):
+    """Raised by a controller that wants every robot braked this tick on purpose (e.g.
+    :class:`deploy.zenoh_fleet.ZenohFleet` between episodes): the bridge brakes them as for a
+    failed controller, but logs one line without a traceback and counts no fault."""
+
+
 NO_FLAGS = CmdFlags(0)
 LOCKSTEP_GATHER_S = 0.2  # [s] wall time a lock-stepped tick waits for the rest of a burst
 LATE_PART_WAIT_S = 0.02  # [s] ... and what looks like a burst's late part waits for the next tick
@@ -205,6 +214,9 @@ class Bridge(BridgePicture):
                 raise ValueError(f"controller returned shape {out.shape} or non-finite values "
                                  f"for {n} robots")
             return NO_FLAGS, out, time.perf_counter() - t0
+        except BrakeThisTick as brake:
+            log.info("controller: braking every robot this tick (%s)", brake)
+            return CmdFlags.BRAKE, np.zeros((n, 2)), time.perf_counter() - t0
         except Exception:
             log.exception("controller failed: braking every robot this tick")
             self.stats.controller_faults += 1

@@ -1,6 +1,6 @@
 """A fleet's certificates: one CA, and one certificate per node whose common name is its identity.
 
-``formation certs --out DIR --robots r0,r1,r2`` writes, into ``DIR``::
+``formation certs --out DIR --robot-ids r0,r1,r2`` writes, into ``DIR``::
 
     ca.pem, ca.key              the fleet CA (keep ca.key off the robots: it signs new nodes)
     controller.pem/.key         the controller (bridge)
@@ -76,7 +76,7 @@ class NodeFiles:
         if missing:
             raise FileNotFoundError(f"certificates for {node!r} not found: {', '.join(missing)}; "
                                     f"run: formation certs --out {folder} (names: controller, "
-                                    "fleet-sim, router, operator, tracker and the robots given with --robots)")
+                                    "fleet-sim, router, operator, tracker and the robots given with --robot-ids)")
         for path in (files.ca, files.cert):
             _load(path, x509.load_pem_x509_certificate, f"run: formation certs --out {folder}")
         _load(files.key, _private_key, f"run: formation certs --out {folder}")

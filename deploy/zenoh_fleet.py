@@ -19,6 +19,14 @@ first state of the next episode, answering the ticks in between with BRAKE (the 
 the first state it gets); the seed is the fleet's (``fleet-sim --seed S`` plays S, S + 1, ...), so
 ``seed`` is only recorded. The robots must stay the same N for the whole episode: a fleet whose
 robots join and leave is a job for ``formation bridge``.
+
+The fleet's robots must be the scenario's (``r0 .. r{N-1}``): the fleet's liveliness tokens name
+the robots it runs, and a fleet that runs robots the scenario lacks, or lacks some of them, is
+refused with :class:`FleetMismatch` at the first state (not driven as a part of itself, its
+other robots left unanswered).
+
+Between episodes (and after a late answer) the bridge brakes every robot: the controller raises
+:class:`deploy.bridge.BrakeThisTick` (no fault, no traceback).
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from collections import deque
 
 import numpy as np
 
-from deploy.bridge import Bridge, BridgeConfig
+from deploy.bridge import BrakeThisTick, Bridge, BridgeConfig
 from deploy.fleet_sim import robot_names
 from deploy.network import TransportConfig
 from deploy.wire import RobotRegistry
@@ -41,6 +49,23 @@ from sim.scenario import Scenario
 
 class FleetTimeout(RuntimeError):
     """The fleet sent no state in time; the message says what to check."""
+
+
+class FleetMismatch(ValueError):
+    """The fleet runs other robots than the scenario's: ``scenario_robots`` and
+    ``fleet_robots`` (those whose liveliness tokens are up), each sorted."""
+
+    def __init__(self, fleet: str, scenario_robots: tuple[str, ...], fleet_robots: tuple[str, ...]):
+        self.fleet, self.scenario_robots, self.fleet_robots = fleet, scenario_robots, fleet_robots
+        super().__init__(f"the scenario has robots {robot_span(scenario_robots)}, but fleet {fleet!r} "
+                         f"runs {robot_span(fleet_robots) or 'none'}: give the scenario the fleet runs")
+
+
+def robot_span(names: tuple[str, ...] | list[str]) -> str:
+    """``r0..r4`` for consecutive ``r0 .. r4``; the names, comma-separated, otherwise."""
+    if len(names) > 2 and list(names) == [f"r{i}" for i in range(len(names))]:
+        return f"r0..r{len(names) - 1}"
+    return ", ".join(names)
 
 
 class ZenohFleet:
@@ -67,6 +92,17 @@ class ZenohFleet:
                              targets=dict(zip(names, scenario.targets, strict=True)),
                              object_pose=np.array([c[0], c[1], 0.0]), config=config,
                              on_sent=self._on_sent)
+        self._names = names
+        self._fleet_robots: set[str] = set()       # robots whose liveliness tokens are up
+        self._robots_lock = threading.Lock()
+        self._checked = False                      # the fleet's robots checked at the first state
+        try:
+            link = self.bridge.link
+            self._alive_subscriber = link.session.liveliness().declare_subscriber(
+                link.keys.all_robot_alive, self._on_alive, history=True)
+        except BaseException:
+            self.bridge.close()
+            raise
         self._thread = threading.Thread(target=self.bridge.run, name="ZenohFleet-bridge", daemon=True)
         self._thread.start()
 
@@ -75,6 +111,21 @@ class ZenohFleet:
         return self.scenario.dynamics.dt
 
     # ------------------------------------------------------------ bridge thread
+    def _on_alive(self, sample) -> None:
+        """A robot's liveliness token came up or went down (any name, the scenario's or not)."""
+        robot = self.bridge.link.keys.robot_in(str(sample.key_expr), "alive")
+        if robot is not None:
+            import zenoh
+
+            with self._robots_lock:
+                (self._fleet_robots.add if sample.kind == zenoh.SampleKind.PUT else self._fleet_robots.discard)(robot)
+
+    def fleet_robots(self) -> tuple[str, ...]:
+        """The robots the fleet runs (liveliness tokens up), in name order (``r2`` before ``r10``)."""
+        with self._robots_lock:
+            robots = list(self._fleet_robots)
+        return tuple(sorted(robots, key=lambda r: (len(r), r)))
+
     def _controller(self, state: FleetState) -> np.ndarray:
         self._states.put((state, self.bridge.episode), timeout=self.answer_timeout_s)
         deadline = time.monotonic() + self.answer_timeout_s
@@ -83,7 +134,7 @@ class ZenohFleet:
             if answered is None or answered is state:    # None: closing
                 break
         if answer is None:
-            raise RuntimeError("between episodes: braking")
+            raise BrakeThisTick("between episodes")
         return answer
 
     def _on_sent(self, state: FleetState, braked: np.ndarray) -> None:
@@ -108,11 +159,28 @@ class ZenohFleet:
             raise FleetTimeout(f"no state from fleet {self.bridge.link.keys.fleet!r} within "
                                f"{self.state_timeout_s} s: is the fleet running, on the same "
                                "endpoints, with these robot names?") from None
+        self._check_robots(first=not self._checked)
         if state.num_robots != self.scenario.num_robots:
             raise FleetTimeout(f"the fleet reports {state.num_robots} robots ({state.robot_ids}), the "
                                f"scenario has {self.scenario.num_robots}: robots joined or left")
         self._state, self._state_episode = state, episode
         return state
+
+    def _check_robots(self, first: bool, settle_s: float = 1.0) -> None:
+        """FleetMismatch when the fleet runs a robot the scenario lacks, or (``first``: at the
+        first state) lacks one of the scenario's. The bridge answers a first state once every
+        scenario robot it hears of is live, so the tokens of the rest of the fleet are due too:
+        they get ``settle_s`` to arrive. Later, a robot that leaves is the FleetTimeout of
+        :meth:`_next_state`."""
+        names = set(self._names)
+        deadline = time.monotonic() + (settle_s if first else 0.0)
+        robots = self.fleet_robots()
+        while set(robots) != names and time.monotonic() < deadline:
+            time.sleep(0.02)
+            robots = self.fleet_robots()
+        if set(robots) - names or (first and set(robots) != names):
+            raise FleetMismatch(self.bridge.link.keys.fleet, tuple(self._names), robots)
+        self._checked = True
 
     def reset(self, seed: int | None = None) -> FleetState:
         """The first state of the fleet's next episode (module docstring; ``seed`` is the fleet's)."""
@@ -157,6 +225,10 @@ class ZenohFleet:
 
     def close(self) -> None:
         self.bridge.stop()
+        try:
+            self._alive_subscriber.undeclare()
+        except Exception:    # the session may be closing already
+            pass
         while not self._answers.full():             # release a controller call that waits
             self._answers.put((None, None))
         self._thread.join(timeout=5.0)

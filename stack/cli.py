@@ -9,6 +9,7 @@ command being run is imported.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import sys
 from collections.abc import Collection
@@ -53,6 +54,7 @@ def build_parser(full: Collection[str] = tuple(COMMANDS)) -> argparse.ArgumentPa
     def add_command(name: str, **kwargs) -> argparse.ArgumentParser:
         # each command's description is its module docstring: keep its lines and examples
         kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        kwargs.setdefault("allow_abbrev", False)   # a flag renamed later must not take over a prefix
         return add_parser(name, help=COMMANDS[name][1], **kwargs)
 
     sub.add_parser = add_command
@@ -70,12 +72,39 @@ def _named_command(argv: list[str]) -> tuple[str, ...]:
     return (word,) if word in COMMANDS else ()
 
 
+def _command_parser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser:
+    """The sub-parser of command ``name`` (the top-level parser when there is none)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            return action.choices[name]
+    return parser
+
+
+def _unknown_words(parser: argparse.ArgumentParser, extra: list[str]) -> str:
+    """"unrecognized arguments: ..." with the nearest option of ``parser`` for each unknown one."""
+    options = sorted({option for action in parser._actions if action.help != argparse.SUPPRESS
+                      for option in action.option_strings})
+    hints = {}
+    for word in extra:
+        if word.startswith("-"):
+            near = difflib.get_close_matches(word.partition("=")[0], options, n=1, cutoff=0.7)
+            if near:
+                hints[word] = f"did you mean {near[0]}?"
+    if len(extra) == 1 and hints:
+        return f"unrecognized arguments: {extra[0]} ({hints[extra[0]]})"
+    said = "; ".join(f"{word}: {hint}" for word, hint in hints.items())
+    return f"unrecognized arguments: {' '.join(extra)}" + (f" ({said})" if said else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(_named_command(argv))
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:   # said by the command's own parser, with its usage (argparse would use the top level's)
+        command = _command_parser(parser, getattr(args, "command", None))
+        command.error(_unknown_words(command, extra))
     if not getattr(args, "func", None):
-        parser.print_help()
+        parser.print_help(sys.stderr)
         return 2
     try:
         return int(args.func(args) or 0)

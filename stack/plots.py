@@ -78,6 +78,9 @@ def _read_json(path: Path) -> dict:
 def load_run(run_dir: str | Path, label: str | None = None) -> RunCurves:
     """Read ``train.jsonl`` (required), ``eval.jsonl``, ``result.json`` and ``config.json`` of a run."""
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise PlotError(f"{str(run_dir)!r} is a file, not a run folder; give a folder written by "
+                        "`formation train --out DIR`, or episode records (.npz)")
     if not run_dir.is_dir():
         raise PlotError(f"run folder {str(run_dir)!r} does not exist; give a folder written by "
                         "`formation train --out DIR`")

@@ -3,7 +3,7 @@
 :func:`stack.episodes.run_episode` fills an :class:`EpisodeRecorder` tick by tick when given
 one; :meth:`EpisodeRecorder.finish` returns an :class:`EpisodeRecord`, which saves to and loads
 from one ``.npz`` file (:meth:`EpisodeRecord.save`, :func:`load_record`; no pickled objects) and
-draws as a figure (:func:`stack.episode_plot.plot_episode`). ``formation eval --trace DIR``
+draws as a figure (:func:`stack.episode_plot.plot_episode`). ``formation eval --record DIR``
 writes both for every episode; ``formation bridge --record DIR`` records every tick it answers
 through a :class:`RecordedStack` (a file per fleet episode, stall and chunk of ticks).
 
@@ -132,7 +132,7 @@ _UNREADABLE = (OSError, ValueError, EOFError, KeyError, NotImplementedError, Run
 """What reading a damaged ``.npz`` raises (empty: EOFError, truncated: BadZipFile, a damaged
 member: zlib.error or a bad CRC, an unknown compression: NotImplementedError, a member flagged
 encrypted: RuntimeError)."""
-_AGAIN = "record the episode again (formation eval --trace DIR, formation bridge --record DIR)"
+_AGAIN = "record the episode again (formation eval --record DIR, formation bridge --record DIR)"
 
 
 def load_record(path: str | Path) -> EpisodeRecord:
@@ -142,7 +142,7 @@ def load_record(path: str | Path) -> EpisodeRecord:
             missing = [name for name in (*ARRAYS, "meta") if name not in data.files and name not in LATER_ARRAYS]
             if missing:
                 raise RecordError(f"{path}: not an episode record (no {', '.join(missing)}); "
-                                  "write one with formation eval --trace DIR")
+                                  "write one with formation eval --record DIR")
             arrays = {name: data[name] for name in ARRAYS if name in data.files}
             arrays.setdefault("link_braked", np.zeros(arrays["stale"].shape, dtype=bool))
             meta = json.loads(str(data["meta"]))

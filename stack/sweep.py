@@ -210,6 +210,33 @@ LOCAL_ONLY_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 address as the node's and binds every server (GCS, raylet, workers) to it."""
 
 
+ADDRESS_TIMEOUT_S = 10.0
+"""[s] how long :func:`check_ray_address` waits for the cluster's port to answer."""
+
+
+def check_ray_address(address: str, timeout_s: float = ADDRESS_TIMEOUT_S) -> None:
+    """SweepError naming ``--address`` unless something listens at ``address`` (``HOST:PORT``
+    of a cluster's head, or ``ray://HOST:PORT`` of its client server) within ``timeout_s``:
+    ``ray.init`` itself would retry a dead address for ever. ``auto`` and ``local`` are Ray's
+    own and not checked."""
+    import socket
+
+    where = address.removeprefix("ray://")
+    host, sep, port = where.rpartition(":")
+    if address in ("auto", "local") or not sep:
+        return
+    if not port.isdigit():
+        raise SweepError(f"--address {address}: expected HOST:PORT or ray://HOST:PORT, got port {port!r}")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
+        raise SweepError(f"--address {address}: no Ray cluster answered within {timeout_s:g} s ({reason}); "
+                         "start its head (ray start --head) or check the address, or leave --address out "
+                         "for a local Ray") from None
+
+
 def start_ray(cpus: int | None, address: str | None) -> None:
     """Join the Ray cluster at ``address``, or start a local Ray with ``cpus`` CPUs (if this
     process has none yet) whose servers listen on 127.0.0.1 only: a local sweep is no cluster,
@@ -225,6 +252,8 @@ def start_ray(cpus: int | None, address: str | None) -> None:
         raise SweepError("sweeps run on Ray Tune, which is not installed: "
                          "pip install -c constraints.txt -e '.[sweep]'") from None
     if not ray.is_initialized():
+        if address:
+            check_ray_address(address)
         kwargs = {"address": address} if address else {"num_cpus": cpus}
         ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False, **kwargs)
 
@@ -329,5 +358,5 @@ def aggregate(results: Sequence[dict]) -> list[dict]:
     return rows
 
 
-__all__ = ["SweepError", "TrialSpec", "aggregate", "check_folders", "finished", "grid_trials", "median_ci",
-           "parse_grid_option", "resolve_fields", "run_trials", "start_ray", "summarize", "train_trial"]
+__all__ = ["SweepError", "TrialSpec", "aggregate", "check_folders", "check_ray_address", "finished", "grid_trials",
+           "median_ci", "parse_grid_option", "resolve_fields", "run_trials", "start_ray", "summarize", "train_trial"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 from pathlib import Path
 
 
@@ -49,6 +50,71 @@ def seconds(text: str) -> float:
     if not (value >= 0 and math.isfinite(value)):
         raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
     return value
+
+
+def _number(text: str, what: str) -> float:
+    """``text`` as a finite float; ArgumentTypeError saying ``what`` is expected."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    """A finite number of seconds > 0 (a timeout, a watchdog's delay)."""
+    value = _number(text, "seconds, a finite number > 0")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected seconds, a finite number > 0, got {text!r}")
+    return value
+
+
+def milliseconds(text: str) -> float:
+    """A finite number of milliseconds >= 0; an error quotes the value as typed, in ms."""
+    value = _number(text, "milliseconds, a finite number >= 0")
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected milliseconds, a finite number >= 0, got {text!r}")
+    return value
+
+
+def hertz(text: str) -> float:
+    """A rate [Hz]: a finite number > 0."""
+    value = _number(text, "a rate in Hz, a finite number > 0")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a rate in Hz, a finite number > 0, got {text!r}")
+    return value
+
+
+def probability(text: str) -> float:
+    """A probability in [0, 1) (1 would drop everything)."""
+    value = _number(text, "a probability in [0, 1)")
+    if not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1), got {text!r}")
+    return value
+
+
+def percentile(text: str) -> float:
+    """A percentile in [50, 100] (a bound on a delay: the median or above)."""
+    value = _number(text, "a percentile in [50, 100]")
+    if not 50 <= value <= 100:
+        raise argparse.ArgumentTypeError(f"expected a percentile in [50, 100], got {text!r}")
+    return value
+
+
+def int_range(low: int, high: int | None = None):
+    """A type: an integer in ``low .. high`` (``high`` None: >= ``low``)."""
+    what = f"an integer >= {low}" if high is None else f"an integer in {low}..{high}"
+
+    def parse(text: str) -> int:
+        value = _int_at_least(text, low, what)
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {value}")
+        return value
+
+    parse.__name__ = f"int_range({low}, {high})"
+    return parse
 
 
 def lease_ms(text: str) -> int:
@@ -102,12 +168,25 @@ def out_folder(text: str) -> Path:
 
 
 def out_file(text: str) -> Path:
-    """An output file (e.g. ``eval --json``): not an existing folder, nor under a file; refused
+    """An output file (e.g. ``eval --report``): not an existing folder, nor under a file; refused
     before any work starts."""
     path = Path(text)
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file name, e.g. "
                                          f"{path / 'result.json'}")
+    problem = _blocked_by_a_file(path)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{path}: {problem}")
+    return path
+
+
+def out_stem(text: str) -> Path:
+    """An output stem (``export --out policy``: policy.onnx, policy.pt, ... beside each other):
+    not an existing folder, nor under a file; refused before any work starts."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file stem in it, e.g. "
+                                         f"{path / 'policy'}")
     problem = _blocked_by_a_file(path)
     if problem:
         raise argparse.ArgumentTypeError(f"{path}: {problem}")
@@ -149,7 +228,37 @@ def add_stage_flags(parser: argparse.ArgumentParser, default: bool | None, where
                              f"it, through the filter{where} (default {state})")
 
 
-__all__ = ["add_stage_flags", "int_list", "out_file", "out_folder", "positive", "seed"]
+def add_deprecated_alias(parser: argparse.ArgumentParser, old: str, new: str, **kwargs) -> None:
+    """``old`` still works: it stores into ``new``'s dest and prints ``warning: OLD is deprecated;
+    use NEW`` on stderr when given; hidden from --help.
+
+    ``kwargs`` are :meth:`argparse.ArgumentParser.add_argument`'s (``action``, ``type``,
+    ``nargs``...). Without them the alias takes the value the way ``new`` does (its action class,
+    ``type``, ``nargs``, ``choices`` and ``metavar``, for a value-taking ``new`` added first). A bad
+    value is reported under ``old``, the flag the user typed."""
+    target = parser._option_string_actions.get(new)
+    dest = kwargs.pop("dest", None) or (target.dest if target else new.lstrip("-").replace("-", "_"))
+    if "action" not in kwargs and target is not None and isinstance(
+            target, (argparse._StoreAction, argparse._AppendAction)):
+        kwargs["action"] = type(target)
+        for key in ("type", "nargs", "choices", "metavar"):
+            kwargs.setdefault(key, getattr(target, key))
+    action = kwargs.pop("action", "store")
+    base = parser._registry_get("action", action, action)
+
+    class DeprecatedAlias(base):
+        def __call__(self, parser, namespace, values, option_string=None):
+            print(f"warning: {option_string or old} is deprecated; use {new}", file=sys.stderr)
+            super().__call__(parser, namespace, values, option_string)
+
+    # default SUPPRESS: the alias never writes a default over the new flag's
+    parser.add_argument(old, dest=dest, action=DeprecatedAlias, default=argparse.SUPPRESS,
+                        help=argparse.SUPPRESS, **kwargs)
+
+
+__all__ = ["add_deprecated_alias", "add_stage_flags", "count", "hertz", "int_list", "int_range", "milliseconds",
+           "out_file", "out_folder", "out_stem", "percentile", "positive", "positive_seconds", "probability",
+           "seconds", "seed", "seeds"]
 
 
 def add_shared_clock_flag(parser: argparse.ArgumentParser, peers: str) -> None:
@@ -198,3 +307,31 @@ def transport_config(args: argparse.Namespace):
                          "give the router's endpoint with --connect tls/HOST:PORT")
     return TransportConfig(connect=tuple(args.connect), mode="client", lease_ms=args.lease_ms,
                            tls=NodeFiles.in_dir(args.certs, args.identity), zenoh_config=args.zenoh_config)
+
+
+def seeds(text: str) -> list[int]:
+    """``--seeds``: ``5`` -> 0..4; ``2-4`` -> 2, 3, 4; ``0,3,7`` -> those (``0,`` -> seed 0 alone)."""
+    try:
+        if "," in text:
+            values = [int(s) for s in text.split(",") if s.strip()]
+        elif "-" in text.strip()[1:]:
+            lo, hi = (int(s) for s in text.split("-", 1))
+            values = range(lo, hi + 1)
+        else:
+            values = range(int(text))
+        if len(values) > _MAX_SEEDS:
+            raise argparse.ArgumentTypeError(f"at most {_MAX_SEEDS} seeds, got {text!r}")
+        values = list(values)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a count (5), a range (2-4) or a list (0,3,7), "
+                                         f"got {text!r}") from None
+    if not values:
+        raise argparse.ArgumentTypeError(f"a count of seeds must be >= 1, got {text!r} (seed 0 alone: --seeds 0,)")
+    if min(values) < 0 or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0, got {text!r}")
+    if max(values) >= 2**32:
+        raise argparse.ArgumentTypeError(f"a seed must be in 0 .. 2**32 - 1, got {text!r}")
+    return values
+
+
+_MAX_SEEDS = 100_000

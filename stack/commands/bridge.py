@@ -30,7 +30,6 @@ import argparse
 import json
 import signal
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -38,6 +37,7 @@ import zenoh
 
 from controllers.scripted import ScriptedController
 from deploy.bridge import Bridge, BridgeConfig
+from deploy.bridge_timing import MIN_ROUND_TRIPS
 from deploy.fleet_sim import robot_names, write_json
 from deploy.startup import freeze_start_up_heap
 from deploy.wire import RobotRegistry
@@ -91,12 +91,14 @@ def register(sub) -> None:
     argtypes.add_transport_flags(p, "controller")
     argtypes.add_stage_flags(p, True)
     add_command_delay_arg(p)
-    p.add_argument("--ttl-ms", type=int, default=d.ttl_ms, metavar="MS",
-                   help="command validity [ms] (default %(default)s)")
-    p.add_argument("--stale-after", type=float, default=d.stale_after_s, metavar="S",
+    p.add_argument("--ttl-ms", type=argtypes.int_range(1, 65535), default=d.ttl_ms, metavar="MS",
+                   help="command validity [ms], 1..65535: a robot drops a command older than this "
+                        "(default %(default)s)")
+    p.add_argument("--stale-after", type=argtypes.positive_seconds, default=d.stale_after_s, metavar="S",
                    help="state age [s] past which a robot is sent BRAKE whatever the controller "
-                        "says (it stays in the controller's picture with its age) (default %(default)s)")
-    p.add_argument("--estop-after", type=float, default=d.estop_after_s, metavar="S",
+                        "says (it stays in the controller's picture with its age); at most "
+                        "--estop-after (default %(default)s)")
+    p.add_argument("--estop-after", type=argtypes.positive_seconds, default=d.estop_after_s, metavar="S",
                    help="silence [s] of any one live robot that raises the fleet e-stop; also "
                         "the gap that counts as a stall of the bridge itself (after a stall the "
                         "old states are discarded and latched robots re-armed) (default %(default)s)")
@@ -104,17 +106,20 @@ def register(sub) -> None:
                    help="seconds a tick waits for the rest of a burst of states, in real time "
                         "(default %(default)s; --lockstep waits up to 0.2 s of wall time for the whole "
                         "burst instead)")
-    p.add_argument("--delay-percentile", type=float, default=d.delay_percentile, metavar="P",
-                   help="the command delay passed to the controller is this percentile of the "
-                        "recent command round trips (default %(default)s)")
-    p.add_argument("--delay-window", type=int, default=d.delay_window, metavar="K",
-                   help="how many recent command round trips the percentile is taken over (default %(default)s)")
+    p.add_argument("--delay-percentile", type=argtypes.percentile, default=d.delay_percentile, metavar="P",
+                   help="the command delay passed to the controller is this percentile, in [50, 100], of "
+                        "the recent command round trips (default %(default)s)")
+    p.add_argument("--delay-window", type=argtypes.int_range(MIN_ROUND_TRIPS), default=d.delay_window, metavar="K",
+                   help=f"how many recent command round trips the percentile is taken over, >= {MIN_ROUND_TRIPS} "
+                        "(default %(default)s)")
     p.add_argument("--rearm-alarm-after", type=argtypes.positive, default=d.rearm_alarm_after, metavar="K",
                    help="re-arms in a row a robot leaves unanswered (still in FAULT) before an ERROR names "
                         "it and it is treated as a silent obstacle (default %(default)s)")
-    p.add_argument("--ticks", type=argtypes.count, default=None, help="stop after this many ticks")
-    p.add_argument("--episode-ticks", type=int, default=None, metavar="T",
-                   help="the fleet resets every T ticks: reset the stack, report per episode")
+    p.add_argument("--ticks", type=argtypes.count, default=None, metavar="K",
+                   help="stop after this many ticks in all (default: run until Ctrl-C / SIGTERM)")
+    p.add_argument("--episode-ticks", type=argtypes.positive, default=None, metavar="T",
+                   help="the fleet resets every T ticks: reset the stack, report per episode "
+                        "(default: none, one run without episodes)")
     p.add_argument("--lossless", action="store_true",
                    help="the fleet waits for every command: send them with Zenoh congestion "
                         "control BLOCK, never dropped (default DROP: right for real robots, "
@@ -124,11 +129,13 @@ def register(sub) -> None:
                    help="the fleet is lock-stepped (fleet-sim --lockstep): run on sim time, one "
                         "scenario dt per answered burst, so ages, silences and delays count "
                         "fleet ticks and a run repeats however busy the machine; implies --lossless")
-    p.add_argument("--report", type=argtypes.out_file, default=None, help="write a JSON summary on exit")
-    p.add_argument("--trace", action="store_true",
+    p.add_argument("--report", type=argtypes.out_file, default=None, metavar="FILE",
+                   help="write a JSON summary to FILE on exit")
+    p.add_argument("--print-ticks", action="store_true",
                    help='print one JSON line per tick on stdout: {"tick": k, "robots": [...], '
                         '"stale": [...], "silent": [...]}')
-    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+    argtypes.add_deprecated_alias(p, "--trace", "--print-ticks", action="store_true")
+    p.add_argument("--record", type=argtypes.out_folder, default=None, metavar="DIR",
                    help="record every tick into DIR/record_KKKKK.npz (stack.recorder: positions as "
                         "reported, each layer's command, the stack's flags), a file per fleet episode, "
                         "per stall of the bridge and per --record-ticks ticks, written off the control "
@@ -233,10 +240,10 @@ def _recorded(stack, args):
                          meta={"fleet": args.fleet, "policy": args.policy, "world": "bridge"})
 
 
-def _after_tick(record, watched: WatchedStack, trace: bool) -> None:
-    """Once a tick's commands are out: the hold watch, and the --trace line."""
+def _after_tick(record, watched: WatchedStack, print_ticks: bool) -> None:
+    """Once a tick's commands are out: the hold watch, and the --print-ticks line."""
     watched.observe_last()
-    if trace:
+    if print_ticks:
         _print_tick(record)
 
 
@@ -247,6 +254,11 @@ def _print_tick(record) -> None:
 
 def run(args) -> int:
     torch.set_num_threads(1)
+    if args.stale_after > args.estop_after:
+        print(f"error: --stale-after {args.stale_after:g} is longer than --estop-after {args.estop_after:g}: "
+              "a robot is braked as stale before its silence raises the fleet e-stop; give "
+              "--stale-after <= --estop-after [s]", file=sys.stderr)
+        return 2
     try:
         scenario = make_scenario(args.scenario)
         stack = build_stack(scenario, args.policy, args.safety, args.mec,
@@ -283,7 +295,7 @@ def run(args) -> int:
     print(f"bridge {args.fleet}: {scenario.name}, policy {args.policy}", file=sys.stderr, flush=True)
     try:
         with bridge:
-            bridge.run(max_ticks=args.ticks, on_tick=lambda record: _after_tick(record, watched, args.trace))
+            bridge.run(max_ticks=args.ticks, on_tick=lambda record: _after_tick(record, watched, args.print_ticks))
             summary = bridge.summary()
     finally:
         if args.record is not None:

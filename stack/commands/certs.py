@@ -24,25 +24,29 @@ from deploy.certs import (
 )
 from deploy.fleet_sim import robot_names
 from sim.scenario import make_scenario
+from stack.commands import argtypes
 
 
 def register(sub) -> None:
     p = sub.add_parser("certs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", required=True, help="folder for ca.pem/.key and <node>.pem/.key")
+    p.add_argument("--out", type=argtypes.out_folder, required=True, metavar="DIR",
+                   help="folder for ca.pem/.key and <node>.pem/.key (made if missing)")
     p.add_argument("--scenario", default="paper-5",
                    help="robots r0..r{N-1} of this preset or scenario file (default paper-5)")
-    p.add_argument("--robots", default=None, metavar="A,B,...",
+    p.add_argument("--robot-ids", default=None, metavar="A,B,...",
                    help="robot ids instead of the scenario's (comma-separated)")
+    argtypes.add_deprecated_alias(p, "--robots", "--robot-ids")
     p.add_argument("--host", action="append", default=[], metavar="NAME_OR_IP",
                    help="a name or address the router is reached at (besides localhost, "
                         "127.0.0.1); repeat for several")
-    p.add_argument("--days", type=int, default=365, help="validity in days (default 365)")
+    p.add_argument("--days", type=argtypes.positive, default=365, metavar="DAYS",
+                   help="validity in days (default 365)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     try:
-        robots = check_robot_ids(args.robots.split(",") if args.robots
+        robots = check_robot_ids(args.robot_ids.split(",") if args.robot_ids
                                  else robot_names(make_scenario(args.scenario).num_robots))
         files = make_certs(args.out, [ROUTER, CONTROLLER, FLEET_SIM, OPERATOR, TRACKER, *robots], args.host, args.days)
     except (ValueError, OSError) as err:

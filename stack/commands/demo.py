@@ -10,7 +10,7 @@
                 its export as generalist/policy.onnx
     4 export    the 5-robot policy as policy.pt, .pt2 and .onnx, each verified against the eager actor
     5 fleet     `fleet-sim` (pymunk with model error) and `bridge` (policy.onnx -> safety filter ->
-                MEC) as separate processes on loopback Zenoh for --episodes episodes
+                MEC) as separate processes on loopback Zenoh for --fleet-episodes episodes
     6 fleet-unseen  the same with the generalist on 6 robots, a team size it never trained on
     7 report    report.md, report.html (figures embedded), metrics.json
 
@@ -45,7 +45,7 @@ from stack.demo.state import (
 )
 
 OPTION_FIELDS = {"seed": "seed", "budget_3": "budget_3", "budget_5": "budget_5",
-                 "budget_generalist": "budget_generalist", "episodes": "fleet_episodes"}
+                 "budget_generalist": "budget_generalist", "fleet_episodes": "fleet_episodes"}
 
 
 def register(sub) -> None:
@@ -53,15 +53,17 @@ def register(sub) -> None:
     p.add_argument("--out", type=argtypes.out_folder, default=None, help="output folder (default runs/demo-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out, skipping finished stages")
     p.add_argument("--quick", action="store_true", help="reduced run for CI (tiny budgets, 2 fleet episodes)")
-    p.add_argument("--budget-3", type=int, default=None, metavar="EPISODES",
+    p.add_argument("--budget-3", type=argtypes.positive, default=None, metavar="EPISODES",
                    help=f"episode cap of paper-3 training (default {FULL.budget_3}; quick {QUICK.budget_3})")
-    p.add_argument("--budget-5", type=int, default=None, metavar="EPISODES",
+    p.add_argument("--budget-5", type=argtypes.positive, default=None, metavar="EPISODES",
                    help=f"episode cap of the 5-robot transfer (default {FULL.budget_5}; quick {QUICK.budget_5})")
-    p.add_argument("--budget-generalist", type=int, default=None, metavar="EPISODES",
+    p.add_argument("--budget-generalist", type=argtypes.positive, default=None, metavar="EPISODES",
                    help=f"episode cap of the generalist (3, 4 and 5 robots at once; default "
                         f"{FULL.budget_generalist}; quick {QUICK.budget_generalist})")
-    p.add_argument("--episodes", type=int, default=None,
-                   help=f"fleet episodes over Zenoh (default {FULL.fleet_episodes}; quick {QUICK.fleet_episodes})")
+    p.add_argument("--fleet-episodes", type=argtypes.positive, default=None, metavar="K",
+                   help=f"episodes of each fleet stage over Zenoh, not training episodes (default "
+                        f"{FULL.fleet_episodes}; quick {QUICK.fleet_episodes})")
+    argtypes.add_deprecated_alias(p, "--episodes", "--fleet-episodes")
     p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
     p.set_defaults(func=run)
 

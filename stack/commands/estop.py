@@ -32,7 +32,8 @@ def register(sub) -> None:
                       help="release it (refused while a robot is silent)")
     what.add_argument("--status", action="store_const", const="status", dest="request",
                       help="report the e-stop and the longest-silent robot")
-    p.add_argument("--timeout", type=argtypes.seconds, default=5.0, help="seconds to wait for the bridge (default 5)")
+    p.add_argument("--timeout", type=argtypes.seconds, default=5.0, metavar="S",
+                   help="seconds to wait for the bridge's answer (default 5)")
     argtypes.add_transport_flags(p, "operator")
     p.set_defaults(func=run)
 

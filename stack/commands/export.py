@@ -19,6 +19,7 @@ from pathlib import Path
 
 from deploy.export import ExportError, check_export, export_checkpoint
 from deploy.export.formats import FORMATS
+from stack.commands import argtypes
 
 
 def _formats(text: str) -> tuple[str, ...]:
@@ -30,11 +31,20 @@ def _formats(text: str) -> tuple[str, ...]:
     return names
 
 
+def _check_checkpoint(path: Path) -> None:
+    """CheckpointError (a ValueError naming the fix) unless ``path`` is a MAPPO training
+    checkpoint; the same message eval and bridge give, and exit 2 like theirs."""
+    from controllers.mappo.checkpoint import checkpoint_config, load_checkpoint
+
+    checkpoint_config(load_checkpoint(path))
+
+
 def register(sub) -> None:
     p = sub.add_parser("export", description=__doc__)
     p.add_argument("checkpoint", type=Path, nargs="?", help="training checkpoint (checkpoint.pt)")
-    p.add_argument("--out", type=Path, default=None,
-                   help="output stem: 'policy' (or 'policy.pt') writes policy.<suffix> per format")
+    p.add_argument("--out", type=argtypes.out_stem, default=None, metavar="STEM",
+                   help="output stem: 'policy' (or 'policy.pt') writes policy.<suffix> per format, "
+                        "and policy.golden.npz (required with CKPT)")
     p.add_argument("--format", default=None, metavar="LIST",
                    help=f"comma-separated formats from {', '.join(FORMATS)} (default: every one the "
                         "actor can take)")
@@ -66,7 +76,8 @@ def run(args) -> int:
             return 2
         try:
             formats = None if args.format is None else _formats(args.format)
-        except ValueError as err:
+            _check_checkpoint(args.checkpoint)
+        except ValueError as err:             # CheckpointError is one: a bad argument, nothing tried
             print(f"error: {err}", file=sys.stderr)
             return 2
         reports = export_checkpoint(args.checkpoint, args.out, formats)

@@ -10,6 +10,7 @@ import json
 
 from controllers.safety.latency import LatencyConfig, LatencyConfigError
 from sim.pymunk_world import ModelError
+from stack.commands.argtypes import milliseconds
 
 MODEL_ERROR_FIELDS = {f.name for f in dataclasses.fields(ModelError)}
 INT_FIELDS = ("delay_ticks", "delay_jitter_ticks", "playout_ticks")
@@ -25,8 +26,10 @@ DEFAULT_COMMAND_DELAY_MS = 1000.0 * LatencyConfig().command_delay_s
 
 
 def add_command_delay_arg(parser: argparse.ArgumentParser) -> None:
+    """``--command-delay-ms MS`` (checked while parsing: a finite number >= 0, an error quotes the
+    value as typed)."""
     parser.add_argument(
-        "--command-delay-ms", type=float, default=DEFAULT_COMMAND_DELAY_MS, metavar="MS",
+        "--command-delay-ms", type=milliseconds, default=DEFAULT_COMMAND_DELAY_MS, metavar="MS",
         help="bound on the time from sending a command to it acting on the robot (transport, "
              "actuation, jitter) that the safety filter predicts over and tightens for [ms] "
              f"(default {DEFAULT_COMMAND_DELAY_MS:g}: safe up to 150 ms without configuring "
@@ -34,11 +37,13 @@ def add_command_delay_arg(parser: argparse.ArgumentParser) -> None:
 
 
 def latency_config(args: argparse.Namespace) -> LatencyConfig:
-    """The LatencyConfig of ``--command-delay-ms`` (ValueError naming the flag on a bad value)."""
+    """The LatencyConfig of ``--command-delay-ms`` (None: the default; ValueError naming the flag
+    and the value as typed, in ms, on a bad value)."""
+    ms = DEFAULT_COMMAND_DELAY_MS if args.command_delay_ms is None else args.command_delay_ms
     try:
-        return LatencyConfig(command_delay_s=args.command_delay_ms / 1000.0)
-    except LatencyConfigError as exc:
-        raise ValueError(f"--command-delay-ms: {exc}") from None
+        return LatencyConfig(command_delay_s=ms / 1000.0)
+    except LatencyConfigError:
+        raise ValueError(f"--command-delay-ms: expected milliseconds, a finite number >= 0, got {ms:g}") from None
 
 
 def parse_model_error(text: str | None) -> ModelError:

@@ -14,7 +14,8 @@ Each RUN_DIR is a folder written by `formation train --out RUN_DIR` (train.jsonl
 config.json, checkpoint.pt). --scenario runs the policy on another task, e.g. a 3-robot policy
 on paper-5 (typed actors run any N; slot actors get fresh slots for the new robots).
 
-Given episode records instead (``episode_SEED.npz`` of `formation eval --trace DIR`), it draws
+Given episode records instead (``episode_SEED.npz`` of `formation eval --record DIR`, or
+``record_KKKKK.npz`` of `formation bridge --record DIR`), it draws
 each as EPISODE.png (into --out, default beside the record): the robots' paths, which layer
 drove each robot tick by tick (policy, docking, detour, safety filter, stale, absent) and each
 robot's distance to its target (:mod:`stack.episode_plot`).
@@ -32,14 +33,17 @@ from stack.commands import argtypes
 def register(sub) -> None:
     p = sub.add_parser("plot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR",
-                   help="run folders of `formation train`, or episode records (.npz) of `formation eval --trace`")
+                   help="run folders of `formation train`, or episode records (.npz) of `formation eval --record` "
+                        "or `formation bridge --record`")
     p.add_argument("--labels", nargs="+", metavar="LABEL",
                    help="legend label per RUN_DIR (default: the folder names)")
     p.add_argument("--out", type=argtypes.out_folder, help="output folder (default: RUN_DIR/plots of the first run)")
-    p.add_argument("--episodes", type=int, default=4, help="episodes in trajectories.png (default 4, at most 16)")
+    p.add_argument("--episodes", type=argtypes.int_range(1, 16), default=4, metavar="K",
+                   help="episodes in trajectories.png, 1..16 (default 4)")
     p.add_argument("--scenario", help="preset, transport-N or scenario file for trajectories and attention (default: the run's own)")
     p.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the start jitter (default 0)")
-    p.add_argument("--step", type=int, default=0, help="episode step of the attention snapshot (default 0)")
+    p.add_argument("--step", type=argtypes.count, default=0, metavar="TICK",
+                   help="episode tick of the attention snapshot (default 0)")
     p.add_argument("--curves-only", action="store_true",
                    help="only curves.png (runs without checkpoint.pt)")
     p.set_defaults(func=run)
@@ -67,17 +71,13 @@ def make_plots(args) -> list[Path]:
     records = [p for p in args.run_dirs if p.suffix == ".npz"]
     if records:
         if len(records) != len(args.run_dirs):
-            raise PlotError("give run folders or episode records (.npz of formation eval --trace), not both")
+            raise PlotError("give run folders or episode records (.npz of formation eval --record), not both")
         return _record_plots(records, args.out)
     labels = args.labels or [_default_label(d, args.run_dirs) for d in args.run_dirs]
     if len(labels) != len(args.run_dirs):
         raise PlotError(f"--labels has {len(labels)} labels for {len(args.run_dirs)} RUN_DIRs; give one per run")
     if len(set(labels)) != len(labels):
         raise PlotError(f"labels must differ, got {labels}; give --labels")
-    if not 1 <= args.episodes <= 16:
-        raise PlotError(f"--episodes must be in 1..16, got {args.episodes}")
-    if args.step < 0:
-        raise PlotError(f"--step must be >= 0, got {args.step}")
     runs = {label: load_run(d, label) for label, d in zip(labels, args.run_dirs, strict=True)}
     checkpoint = args.run_dirs[0] / "checkpoint.pt"
     if not args.curves_only and not checkpoint.is_file():
@@ -105,7 +105,7 @@ def _record_plots(records: list[Path], out: Path | None) -> list[Path]:
         except RecordError as exc:
             raise PlotError(str(exc)) from None
         if "scenario" not in record.meta:
-            raise PlotError(f"{path}: the record names no scenario; record it with formation eval --trace")
+            raise PlotError(f"{path}: the record names no scenario; record it with formation eval --record")
         scenario = Scenario.from_dict(record.meta["scenario"])
         paths.append(plot_episode(record, scenario, (out or path.parent) / f"{path.stem}.png"))
     return paths

@@ -25,28 +25,32 @@ import zenoh
 from deploy.fleet_sim import robot_names, write_json
 from deploy.router import Router, router_config
 from sim.scenario import make_scenario
-from stack.commands.argtypes import lease_ms, out_file
+from stack.commands.argtypes import add_deprecated_alias, lease_ms, out_file
 
 
 def register(sub) -> None:
     p = sub.add_parser("router", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fleet", required=True, help="fleet name (Zenoh key chunk)")
     p.add_argument("--scenario", default="paper-5", help="its robots r0..r{N-1} (default paper-5)")
-    p.add_argument("--robots", default=None, metavar="A,B,...", help="robot ids instead")
-    p.add_argument("--certs", required=True, help="folder made by `formation certs`")
+    p.add_argument("--robot-ids", default=None, metavar="A,B,...",
+                   help="robot ids instead of the scenario's (comma-separated)")
+    add_deprecated_alias(p, "--robots", "--robot-ids")
+    p.add_argument("--certs", required=True, metavar="DIR", help="folder made by `formation certs`")
     p.add_argument("--listen", action="append", default=[], metavar="tls/HOST:PORT",
                    help="endpoint to listen on (default tls/127.0.0.1:7447); repeat for several")
     p.add_argument("--lease-ms", type=lease_ms, default=None, metavar="MS",
                    help="link lease [ms], >= 100 (Zenoh default 10000)")
-    p.add_argument("--report", type=out_file, default=None, help="write the JSON exit report here too")
-    p.add_argument("--no-count", dest="count", action="store_false",
-                   help="do not count denied messages and refused links")
+    p.add_argument("--report", type=out_file, default=None, metavar="FILE",
+                   help="write the JSON exit report to FILE too")
+    p.add_argument("--count", action=argparse.BooleanOptionalAction, default=True,
+                   help="count denied messages and refused links from Zenoh's log (default on; "
+                        "--no-count: no stdout pipe, no log line per routed message)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     try:
-        robots = (args.robots.split(",") if args.robots
+        robots = (args.robot_ids.split(",") if args.robot_ids
                   else robot_names(make_scenario(args.scenario).num_robots))
         config = router_config(args.fleet, robots, args.certs, args.listen or ["tls/127.0.0.1:7447"],
                                args.lease_ms, args.count)

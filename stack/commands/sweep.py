@@ -33,29 +33,19 @@ from sim.files import ConfigFileError, atomic_write_text, read_config
 from sim.interrupts import caused_by_interrupt
 from sim.provenance import provenance
 from stack.commands import argtypes
-from stack.sweep import SweepError, aggregate, grid_trials, parse_grid_option, run_trials
+from stack.commands.argtypes import seeds as seeds_arg
+from stack.sweep import (
+    ADDRESS_TIMEOUT_S,
+    SweepError,
+    aggregate,
+    check_ray_address,
+    finished,
+    grid_trials,
+    parse_grid_option,
+    run_trials,
+)
 
 OPTIONS_FILE = "sweep.json"
-
-
-def seeds_arg(text: str) -> list[int]:
-    """``5`` -> 0..4; ``2-4`` -> 2, 3, 4; ``0,3,7`` -> those."""
-    try:
-        if "," in text:
-            seeds = [int(s) for s in text.split(",") if s.strip()]
-        elif "-" in text.strip()[1:]:
-            lo, hi = (int(s) for s in text.split("-", 1))
-            seeds = list(range(lo, hi + 1))
-        else:
-            seeds = list(range(int(text)))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a count (5), a range (2-4) or a list (0,3,7), "
-                                         f"got {text!r}") from None
-    if not seeds:
-        raise argparse.ArgumentTypeError(f"a count of seeds must be >= 1, got {text!r} (seed 0 alone: --seeds 0,)")
-    if min(seeds) < 0 or len(set(seeds)) != len(seeds):
-        raise argparse.ArgumentTypeError(f"seeds must be distinct and >= 0, got {text!r}")
-    return seeds
 
 
 def register(sub) -> None:
@@ -66,12 +56,14 @@ def register(sub) -> None:
                    help="an axis of the grid (repeat for more axes); values read as JSON")
     p.add_argument("--seeds", type=seeds_arg, default=None,
                    help="a count (5: seeds 0-4), a range (2-4) or a list (0,3,7) (default 3)")
-    p.add_argument("--episodes", type=int, default=None, help="episode budget of every trial")
-    p.add_argument("--cpus", type=int, default=None,
+    p.add_argument("--episodes", type=argtypes.positive, default=None, metavar="K",
+                   help="episode budget of every trial (default: --config's total_episodes, else 2000)")
+    p.add_argument("--cpus", type=argtypes.positive, default=None,
                    help="CPUs of the local Ray (one trial each; default: all of this machine)")
-    p.add_argument("--address", default=None,
-                   help="join the Ray cluster at this address instead of starting a local one "
-                        "(which listens on 127.0.0.1 only)")
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="join the Ray cluster at this address (HOST:PORT of its head, or ray://HOST:PORT) "
+                        "instead of starting a local one, which listens on 127.0.0.1 only; refused when "
+                        f"nothing answers there within {ADDRESS_TIMEOUT_S:g} s")
     p.add_argument("--out", type=argtypes.out_folder, default=None,
                    help="sweep folder (default runs/sweep-<timestamp>)")
     p.add_argument("--resume", action="store_true",
@@ -149,8 +141,6 @@ def _flag_options(args) -> dict:
     """The sweep's options from the flags (a new sweep)."""
     base = read_config(args.config, "--config") if args.config else {}
     if args.episodes is not None:
-        if args.episodes < 1:
-            raise SweepError(f"--episodes must be >= 1, got {args.episodes}")
         base["total_episodes"] = args.episodes
     grid = [parse_grid_option(g) for g in args.grid]
     keys = [k for k, _ in grid]
@@ -165,13 +155,12 @@ def _options(args) -> dict:
 
 
 def run(args) -> int:
-    if args.cpus is not None and args.cpus < 1:
-        print("error: --cpus must be >= 1", file=sys.stderr)
-        return 2
     try:
         options = _options(args)
         out = args.out or Path("runs") / time.strftime("sweep-%Y%m%d-%H%M%S")
         trials = grid_trials(options["base"], options["grid"], options["seeds"], out)
+        if args.address and not all(finished(Path(t.folder), t.budget) for t in trials):
+            check_ray_address(args.address)      # before sweep.json: ray.init would wait for ever
     except (SweepError, ConfigFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

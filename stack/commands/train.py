@@ -31,6 +31,7 @@ and convergence rule as SDPA-MAPPO, into the same kind of run folder:
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -55,23 +56,28 @@ def register(sub) -> None:
                    help="episode budget, total_episodes (default 2000)")
     p.add_argument("--seed", type=argtypes.seed, default=None, help="training seed (default 0)")
     p.add_argument("--variant", choices=("typed", "slot", "mlp"), default=None,
-                   help="actor: typed SDPA (any N, default), the paper's slot SDPA, or the MLP baseline")
+                   help="actor: typed SDPA (any N), the paper's slot SDPA, or the MLP baseline "
+                        "(default: --config's actor.variant, else typed)")
     p.add_argument("--team-sizes", type=argtypes.int_list, metavar="LIST", default=None,
                    help="train one policy on several team sizes at once, e.g. 3,4,5 or 3-5 "
                         "(team_sizes; default: the scenario's own)")
     p.add_argument("--distribution", metavar="NAME_OR_FILE", default=None,
                    help="draw each training episode's layout and actuator from ranges: 'broad' or a "
-                        ".json/.toml file (see `formation scenarios --show-distribution broad`)")
+                        ".json/.toml file (see `formation scenarios --show-distribution broad`) (default "
+                        "none: the scenario's own layout and actuators)")
     p.add_argument("--init-from", metavar="CKPT", help="start from an M-robot checkpoint (transfer)")
     p.add_argument("--config", metavar="FILE_OR_JSON",
                    help="MAPPOConfig fields: a .json/.toml file or inline JSON, e.g. '{\"lr\": 5e-4}'")
-    p.add_argument("--tensorboard", action="store_true",
-                   help="also write TensorBoard scalars to <out>/tensorboard (tensorboard --logdir <out>)")
+    p.add_argument("--tensorboard", action=argparse.BooleanOptionalAction, default=None,
+                   help="also write TensorBoard scalars to <out>/tensorboard (tensorboard --logdir <out>) "
+                        "(default: --config's \"tensorboard\", else off)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration (a valid --config file) and exit")
     p.add_argument("--out", type=argtypes.out_folder, help="run folder (default runs/train-<scenario>-<timestamp>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
-    p.add_argument("--no-stop", action="store_true", help="keep training after convergence")
+    p.add_argument("--stop", action=argparse.BooleanOptionalAction, default=None,
+                   help="stop at convergence; --no-stop keeps training to the episode budget "
+                        "(default: --config's \"stop_at_convergence\", else on)")
     p.set_defaults(func=run)
 
 
@@ -89,10 +95,10 @@ def resolve_config(args) -> MAPPOConfig:
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed,
              "init_from": args.init_from, "team_sizes": args.team_sizes, "distribution": args.distribution}
     fields |= {k: v for k, v in flags.items() if v is not None}
-    if args.no_stop:
-        fields["stop_at_convergence"] = False
-    if args.tensorboard:
-        fields["tensorboard"] = True
+    if args.stop is not None:
+        fields["stop_at_convergence"] = args.stop
+    if args.tensorboard is not None:
+        fields["tensorboard"] = args.tensorboard
     if args.variant is not None:
         fields["actor"] = {**fields.get("actor", {}), "variant": args.variant}
     return MAPPOConfig.from_dict(user_fields(fields))
@@ -113,8 +119,8 @@ def resolve_baseline_config(args):
     fields = given_fields(args)
     flags = {"scenario": args.scenario, "total_episodes": args.episodes, "seed": args.seed}
     fields |= {k: v for k, v in flags.items() if v is not None}
-    if args.no_stop:
-        fields["stop_at_convergence"] = False
+    if args.stop is not None:
+        fields["stop_at_convergence"] = args.stop
     algo = chosen_algo(args)
     if algo == "gasil-maddpg":
         fields["self_imitation"] = True

@@ -44,6 +44,31 @@ def test_a_failing_controller_brakes_every_robot_and_is_counted(fleet):
     assert told[0][0].robot_ids == ROBOTS and told[0][0] is not seen[-1]
 
 
+def test_a_controller_that_asks_for_a_brake_gets_it_in_one_log_line_without_a_fault(fleet, caplog):
+    """ZenohFleet brakes between episodes on purpose; before, the bridge logged that as a failed
+    controller, with a traceback on stderr in every `formation eval --world zenoh` run."""
+    import logging
+
+    from deploy.bridge import BrakeThisTick
+
+    bridge, links, _ = fleet
+    told = []
+    bridge.on_sent = lambda state, braked: told.append(braked.tolist())
+
+    def between_episodes(state):
+        raise BrakeThisTick("between episodes")
+
+    bridge.controller = between_episodes
+    with caplog.at_level(logging.INFO, logger="deploy.bridge"):
+        tick(bridge, links, links)
+    for link in links:
+        assert last_flags(link, after_seq=0) & CmdFlags.BRAKE
+    assert bridge.stats.controller_faults == 0 and told == [[True, True]]
+    records = [r for r in caplog.records if r.name == "deploy.bridge"]
+    assert [r.getMessage() for r in records] == ["controller: braking every robot this tick (between episodes)"]
+    assert records[0].exc_info is None and "Traceback" not in caplog.text
+
+
 def test_a_row_braked_for_its_age_is_reported_to_the_controller_and_a_failing_report_is_logged(fleet, caplog):
     bridge, links, seen = fleet
     told = []

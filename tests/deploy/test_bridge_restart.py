@@ -28,7 +28,7 @@ KILL_AT_TICK = 20   # the robots are on their way: the scripted fleet is home at
 def test_a_bridge_killed_mid_run_and_restarted_brings_the_fleet_home_untouched(tmp_path):
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    bridge_args = ["--fleet", "r", "--scenario", "paper-5", "--connect", endpoint, "--trace", *SCRIPTED]
+    bridge_args = ["--fleet", "r", "--scenario", "paper-5", "--connect", endpoint, "--print-ticks", *SCRIPTED]
     with killed_on_exit([]) as procs:
         sim = Proc("fleet-sim", "--fleet", "r", "--scenario", "paper-5", "--rate-hz", "20", "--ticks", "500",
                    "--listen", endpoint, "--report", str(tmp_path / "sim.json"))

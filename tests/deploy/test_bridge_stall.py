@@ -41,7 +41,7 @@ def frozen_run(tmp_path: Path) -> dict:
                "--listen", endpoint, "--ticks", str(TICKS), "--report", str(tmp_path / "sim.json"))
     with killed_on_exit([sim]) as procs:
         procs.append(bridge := Proc("bridge", "--fleet", fleet, "--scenario", "paper-5", "--policy", "scripted",
-                                    "--connect", endpoint, "--trace", "--report", str(tmp_path / "bridge.json")))
+                                    "--connect", endpoint, "--print-ticks", "--report", str(tmp_path / "bridge.json")))
         bridge.wait_tick(20)
         bridge.proc.send_signal(signal.SIGSTOP)
         time.sleep(FREEZE_S)

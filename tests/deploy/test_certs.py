@@ -8,7 +8,7 @@ from deploy.certs import ROUTER, NodeFiles, make_certs
 
 
 def test_a_missing_ca_key_is_refused_rather_than_replaced_by_a_new_ca(tmp_path):
-    """Before, 'formation certs --out DIR --robots r2' with ca.key moved off the machine made a new
+    """Before, 'formation certs --out DIR --robot-ids r2' with ca.key moved off the machine made a new
     CA over ca.pem (exit 0), and every certificate issued before stopped verifying."""
     make_certs(tmp_path, ["r0"])
     ca = (tmp_path / "ca.pem").read_bytes()
@@ -56,7 +56,7 @@ def test_no_node_may_take_the_ca_files_and_no_robot_a_role_name(tmp_path, capsys
         make_certs(tmp_path, ["r0", "ca"])
     assert ((tmp_path / "ca.pem").read_bytes(), (tmp_path / "ca.key").read_bytes()) == ca
     for robots in ("r0,ca", "r0,controller", "fleet-sim"):
-        assert main(["certs", "--out", str(tmp_path), "--robots", robots]) == 2
+        assert main(["certs", "--out", str(tmp_path), "--robot-ids", robots]) == 2
         assert "name the robots otherwise" in capsys.readouterr().err
     assert ((tmp_path / "ca.pem").read_bytes(), (tmp_path / "ca.key").read_bytes()) == ca
     assert not (tmp_path / "controller.pem").exists()

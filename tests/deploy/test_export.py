@@ -418,9 +418,10 @@ def test_cli_exports_a_checkpoint_in_the_formats_asked(tmp_path, capsys):
     (tmp_path / "random.pt").write_bytes(np.random.default_rng(1).bytes(3000))
     torch.jit.save(torch.jit.script(actor.eval()), str(tmp_path / "script.pt"))
     for wrong in (tmp_path / "p.npz", tmp_path / "p.golden.npz", tmp_path / "random.pt",
-                  tmp_path / "script.pt"):                         # not a checkpoint: no traceback
+                  tmp_path / "script.pt"):       # not a checkpoint: a bad argument (2), no traceback
         rc, err = formation_here(capsys, "export", str(wrong), "--out", str(tmp_path / "r"))
-        assert rc == 1 and "checkpoint" in err and "weights_only" not in err and "Traceback" not in err
+        assert rc == 2 and "checkpoint" in err and "weights_only" not in err and "Traceback" not in err
+    assert not list(tmp_path.glob("r.*"))
 
 
 def test_the_stack_runs_every_team_the_file_runs_and_names_the_file_otherwise(exported, tmp_path):

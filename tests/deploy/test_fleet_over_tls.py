@@ -48,7 +48,7 @@ def run_fleet(tmp_path: Path, listen: str, sim_to: str, bridge_to: str, intruder
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--ticks", "150",
                "--report", str(tmp_path / "sim.json"), "--certs", str(certs), "--connect", sim_to,
                prefix=wrap("sim"))
-    bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--trace",
+    bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--lockstep", "--print-ticks",
                   "--report", str(tmp_path / "bridge.json"), *SCRIPTED, "--certs", str(certs),
                   "--connect", bridge_to, prefix=wrap("ctrl"))
     try:

@@ -45,7 +45,7 @@ class Proc:
             self.lines.put(line)
 
     def wait_tick(self, tick: int) -> None:
-        """Block until the bridge (run with --trace) has answered ``tick``."""
+        """Block until the bridge (run with --print-ticks) has answered ``tick``."""
         while True:
             line = self.lines.get(timeout=WAIT_S)
             if json.loads(line).get("tick", -1) >= tick:
@@ -68,7 +68,7 @@ def run_pair(tmp_path: Path, sim_args: list[str], bridge_args: list[str],
     sim = Proc("fleet-sim", "--fleet", "t", "--scenario", "paper-5", "--lockstep",
                "--listen", endpoint, "--report", str(tmp_path / "sim.json"), *sim_args)
     bridge = Proc("bridge", "--fleet", "t", "--scenario", "paper-5", "--connect", endpoint,
-                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--trace", "--lockstep",
+                  "--listen", f"tcp/127.0.0.1:{bridge_port}", "--print-ticks", "--lockstep",
                   "--report", str(tmp_path / "bridge.json"), *bridge_args)
     try:
         if during is not None:

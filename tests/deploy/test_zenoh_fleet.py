@@ -22,7 +22,7 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
     try:
         code = main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "ez", "--lockstep",
                      "--episodes", "2", "--scenario", "paper-5", "--connect", endpoint,
-                     "--json", str(tmp_path / "eval.json"), "--trace", str(tmp_path / "trace")])
+                     "--report", str(tmp_path / "eval.json"), "--record", str(tmp_path / "trace")])
         assert code == 0
         assert sim.finish() == 0, "".join(sim.stderr)
     finally:
@@ -52,9 +52,43 @@ def test_eval_drives_the_fleets_own_episodes_and_agrees_with_its_report(tmp_path
 def test_eval_over_zenoh_names_what_is_missing(capsys):
     assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--scenario", "paper-3"]) == 2
     assert "--fleet" in capsys.readouterr().err
-    assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "x", "--steps", "500",
+    assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "x", "--episode-ticks", "500",
                  "--connect", "tcp/127.0.0.1:1"]) == 2
     assert "at most 127" in capsys.readouterr().err
+
+
+def test_eval_over_zenoh_without_a_fleet_there_exits_2_without_a_traceback(monkeypatch, capsys):
+    """Before, FleetTimeout escaped `formation eval` as a traceback (here after 1 s, not 30)."""
+    from deploy.zenoh_fleet import ZenohFleet
+
+    config, _, answer = ZenohFleet.__init__.__defaults__
+    monkeypatch.setattr(ZenohFleet.__init__, "__defaults__", (config, 1.0, answer))
+    assert main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", "nobody", "--episodes", "1",
+                 "--scenario", "paper-5", "--connect", f"tcp/127.0.0.1:{free_tcp_port()}"]) == 2
+    assert "error: --world zenoh: no state from fleet 'nobody' within 1.0 s" in capsys.readouterr().err
+
+
+def test_eval_refuses_a_fleet_whose_robots_are_not_the_scenarios(capsys):
+    """Before, `eval --world zenoh` with the default --scenario paper-3 drove three robots of a
+    5-robot fleet, left the other two unanswered (UNKNOWN_ROBOT, lock-step timeouts, collisions
+    in the fleet) and exited 0 with a result. Both ways round it now exits 2 naming --scenario."""
+    endpoints = {n: f"tcp/127.0.0.1:{free_tcp_port()}" for n in (3, 5)}
+    sims = {n: Proc("fleet-sim", "--fleet", f"m{n}", "--scenario", f"paper-{n}", "--lockstep", "--episodes", "1",
+                    "--listen", endpoints[n]) for n in (3, 5)}
+    try:
+        for ours, theirs in ((3, 5), (5, 3)):
+            code = main(["eval", "--policy", "scripted", "--world", "zenoh", "--fleet", f"m{theirs}", "--lockstep",
+                         "--episodes", "1", "--scenario", f"paper-{ours}", "--connect", endpoints[theirs]])
+            err = capsys.readouterr().err
+            assert code == 2, err[-800:]
+            assert (f"--scenario paper-{ours} has robots r0..r{ours - 1}, but fleet 'm{theirs}' runs "
+                    f"r0..r{theirs - 1}: give --scenario the scenario the fleet runs (e.g. --scenario "
+                    f"paper-{theirs})") in err
+            assert "Traceback" not in err
+    finally:
+        for sim in sims.values():
+            sim.proc.kill()
+            sim.proc.wait()
 
 
 def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake():
@@ -127,7 +161,7 @@ def test_an_answer_past_its_deadline_is_dropped_and_the_stack_told_of_the_brake(
 
 
 def test_run_episode_over_zenoh_records_the_ticks_the_bridge_braked_for_a_late_answer():
-    """`formation eval --world zenoh --trace`'s path: run_episode drives a lock-stepped
+    """`formation eval --world zenoh --record`'s path: run_episode drives a lock-stepped
     fleet-sim through ZenohFleet with a policy that takes 0.5 s over tick 10
     (``answer_timeout_s`` 0.3). The record flags every row of that tick (and of the next, whose
     picture waited behind it) as braked by the link, with the braking law as the command sent,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from sim.pymunk_world import PymunkWorld
 from sim.scenario import make_scenario
 from stack.commands.bridge import build_stack
@@ -87,8 +89,10 @@ def test_a_recorded_stack_closes_a_record_per_episode_and_chunk_and_survives_a_f
     np.testing.assert_allclose(records[2].time[0], 0.0, atol=1e-12)        # episode 2 starts afresh
     assert records[0].meta["fleet"] == "f" and records[0].meta["scenario"]["name"] == "paper-3"
     (tmp_path / "file").write_text("x")
-    assert main(["bridge", "--fleet", "f", "--policy", "scripted", "--record", str(tmp_path / "file")]) == 2
-    assert "--record" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as done:      # refused while the flags are read
+        main(["bridge", "--fleet", "f", "--policy", "scripted", "--record", str(tmp_path / "file")])
+    assert done.value.code == 2
+    assert "argument --record: " in capsys.readouterr().err
 
 
 def test_the_lease_flag_is_refused_below_100_ms_by_every_command_that_takes_it(capsys):

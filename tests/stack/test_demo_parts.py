@@ -152,6 +152,8 @@ def test_resume_keeps_the_saved_settings_and_refuses_others(tmp_path, capsys):
     assert "--budget-3" in capsys.readouterr().err
     assert main(["demo", "--out", str(out), "--resume", "--quick"]) == 2   # saved as a full run
     assert "--quick" in capsys.readouterr().err
+    assert main(["demo", "--out", str(out), "--resume", "--fleet-episodes", "9"]) == 2
+    assert "(--fleet-episodes differ)" in capsys.readouterr().err
     assert (out / "stages.json").read_text() == before
 
 

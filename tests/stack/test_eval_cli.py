@@ -42,8 +42,8 @@ def test_parse_model_error_fields():
 
 def test_scripted_pymunk_eval_writes_json(tmp_path, capsys):
     out = tmp_path / "eval.json"
-    rc = main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "2", "--steps", "40",
-               "--model-error", "gain=0.8,lag_tau=0.05", "--json", str(out)])
+    rc = main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "2", "--episode-ticks", "40",
+               "--model-error", "gain=0.8,lag_tau=0.05", "--report", str(out)])
     assert rc == 0
     data = json.loads(out.read_text())
     assert data["world"] == "pymunk" and data["episodes"] == 2 and data["safety"] and data["mec"]
@@ -64,7 +64,7 @@ def test_eval_reports_when_the_team_first_stands_on_its_targets(tmp_path):
     from stack.pipeline import ControlStack, StackConfig, run_episode
 
     out = tmp_path / "eval.json"
-    assert main(["eval", "--policy", "scripted", "--episodes", "2", "--json", str(out)]) == 0
+    assert main(["eval", "--policy", "scripted", "--episodes", "2", "--report", str(out)]) == 0
     data = json.loads(out.read_text())
     sc = make_scenario("paper-3")
     ticks = [run_episode(BatchedFleet(sc), ControlStack(sc, ScriptedController(sc), StackConfig(safety=False, mec=False)),
@@ -80,13 +80,13 @@ def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
     actor = build_actor(ActorConfig(embed_dim=16, num_heads=2), 3).eval()
     path = export_policy(actor, tmp_path / "policy", dt=0.05, trained_robots=3, formats=("onnx",))[0].path
     out = tmp_path / "b.json"
-    rc = main(["eval", str(path), "--episodes", "3", "--no-mec", "--json", str(out)])
+    rc = main(["eval", str(path), "--episodes", "3", "--no-mec", "--report", str(out)])
     assert rc == 0
     data = json.loads(out.read_text())
     assert data["world"] == "batched" and data["episodes"] == 3 and not data["safety"]
     assert data["notes"] and "--mec ignored" in data["notes"][0]
     assert "--mec ignored" in capsys.readouterr().err
-    rc = main(["eval", str(path), "--world", "pymunk", "--episodes", "1", "--steps", "5", "--no-safety"])
+    rc = main(["eval", str(path), "--world", "pymunk", "--episodes", "1", "--episode-ticks", "5", "--no-safety"])
     assert rc == 0
     bare = tmp_path / "bare.pt"                 # TorchScript without the export's metadata: refused
     torch.jit.save(torch.jit.script(actor), str(bare))
@@ -100,9 +100,11 @@ def test_exported_onnx_batched_eval_and_ignored_flags(tmp_path, capsys):
     (["eval", "x.pt", "--policy", "scripted"], "either a policy file"),
     (["eval", "/no/such/file.pt"], "does not exist"),
     (["eval", "--policy", "scripted", "--scenario", "paper-99"], "unknown scenario"),
-    (["eval", "--policy", "scripted", "--episodes", "0"], "--episodes"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--model-error", "gain"], "FIELD=VALUE"),
-    (["eval", "--policy", "scripted", "--world", "pymunk", "--command-delay-ms", "-5"], "--command-delay-ms"),
+    (["eval", "--policy", "scripted", "--model-error", "garbage"], "--model-error: 'garbage' is not FIELD=VALUE"),
+    (["eval", "--policy", "scripted", "--fleet", "lab", "--lockstep", "--connect", "tcp/10.9.9.9:7447",
+      "--insecure"], "--fleet, --lockstep, --connect, --insecure apply to --world zenoh"),
+    (["eval", "--policy", "scripted", "--world", "pymunk", "--fleet", "lab"], "add --world zenoh"),
     (["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--model-error", "freeze=4:20"],
      "paper-4 has 4 robots: pick a row in 0..3"),
     (["eval", "--policy", "scripted", "--intruder", "radius=0.05,x=0.5,y=0.8"], "--intruder and --track-robots need --world pymunk"),
@@ -123,7 +125,7 @@ def test_intruders_are_kept_clear_of_in_eval_and_driven_into_without_the_filter(
         out = tmp_path / f"eval{len(rows)}.json"
         assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-5", "--episodes", "2",
                      "--model-error", "delay_ticks=2", "--intruder", "radius=0.05,x=0.5,y=0.8", *flags,
-                     "--json", str(out)]) == 0
+                     "--report", str(out)]) == 0
         rows[bool(flags)] = json.loads(out.read_text())
     assert rows[False]["intruder_drive_in_rate"] == 0.0 and rows[False]["intruder_min_gap_mm"] > 5.0
     assert rows[True]["intruder_drive_in_rate"] == 1.0 and rows[True]["intruder_min_gap_mm"] < -30.0
@@ -136,7 +138,7 @@ def test_a_tracker_that_sees_the_robots_changes_nothing_while_they_all_report(tm
     for flags in ([], ["--track-robots"]):
         out = tmp_path / f"eval{len(rows)}.json"
         assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--episodes", "2",
-                     "--model-error", "delay_ticks=1", *flags, "--json", str(out)]) == 0
+                     "--model-error", "delay_ticks=1", *flags, "--report", str(out)]) == 0
         rows.append(json.loads(out.read_text()))
     keys = ("success_rate", "final_distance", "arrival_tick", "interventions_per_episode")
     assert [rows[0][k] for k in keys] == [rows[1][k] for k in keys]
@@ -172,12 +174,12 @@ def test_trained_checkpoint_runs_in_both_worlds(tmp_path):
     for world in ("batched", "pymunk"):
         out = tmp_path / f"{world}.json"
         assert main(["eval", str(checkpoints[-1]), "--world", world, "--episodes", "2",
-                     *(["--steps", "10"] if world == "pymunk" else []), "--json", str(out)]) == 0
+                     *(["--episode-ticks", "10"] if world == "pymunk" else []), "--report", str(out)]) == 0
         assert json.loads(out.read_text())["episodes"] == 2
     # --policy FILE, as bridge takes it, is the positional file; the stack runs the actor by the kernel
     flagged = tmp_path / "flagged.json"
     assert main(["eval", "--policy", str(checkpoints[-1]), "--world", "pymunk", "--episodes", "2",
-                 "--steps", "10", "--json", str(flagged)]) == 0
+                 "--episode-ticks", "10", "--report", str(flagged)]) == 0
     doc, positional = json.loads(flagged.read_text()), json.loads((tmp_path / "pymunk.json").read_text())
     assert doc["policy_runtime"] == "kernel" and doc["policy"] == str(checkpoints[-1])
     assert doc["final_distance"] == positional["final_distance"]
@@ -190,7 +192,7 @@ def test_a_scenario_file_runs_where_a_preset_does(tmp_path, capsys):
     path = tmp_path / "layout.json"
     path.write_text(json.dumps(layout))
     out = tmp_path / "e.json"
-    assert main(["eval", "--policy", "scripted", "--scenario", str(path), "--episodes", "2", "--json", str(out)]) == 0
+    assert main(["eval", "--policy", "scripted", "--scenario", str(path), "--episodes", "2", "--report", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["scenario"] == "my-layout" and doc["num_robots"] == 4
     capsys.readouterr()
@@ -213,12 +215,12 @@ def test_the_docking_switch_reaches_the_stack():
     assert build_stack(make_scenario("paper-3"), "scripted", True, True).docking is not None
 
 
-def test_eval_trace_records_and_draws_every_stack_episode(tmp_path, capsys):
+def test_eval_record_records_and_draws_every_stack_episode(tmp_path, capsys):
     from stack.recorder import load_record
 
     folder = tmp_path / "trace"
     rc = main(["eval", "--policy", "scripted", "--world", "pymunk", "--scenario", "paper-4", "--episodes", "2",
-               "--seed", "5", "--steps", "15", "--model-error", "freeze=0:5", "--trace", str(folder)])
+               "--seed", "5", "--episode-ticks", "15", "--model-error", "freeze=0:5", "--record", str(folder)])
     assert rc == 0
     assert sorted(p.name for p in folder.iterdir()) == ["episode_5.npz", "episode_5.png", "episode_6.npz",
                                                         "episode_6.png"]
@@ -227,12 +229,14 @@ def test_eval_trace_records_and_draws_every_stack_episode(tmp_path, capsys):
     assert record.meta["scenario"]["name"] == "paper-4" and record.meta["safety"] and record.meta["mec"]
     assert record.frozen[14, 0] and not record.frozen[3, 0]
     capsys.readouterr()
-    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--trace", str(folder)]) == 2
-    assert "--trace records the ControlStack's episodes: use --world pymunk" in capsys.readouterr().err
+    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--record", str(folder)]) == 2
+    assert "--record records the ControlStack's episodes: use --world pymunk" in capsys.readouterr().err
     (tmp_path / "file").write_text("x")
-    assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--trace",
-                 str(tmp_path / "file")]) == 2
-    assert "exists and is not a folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as done:          # refused while the flags are read
+        main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--record",
+              str(tmp_path / "file")])
+    assert done.value.code == 2
+    assert "argument --record: " in capsys.readouterr().err
 
 
 def test_the_intruder_of_the_help_text_is_traced_and_the_run_survives_it(tmp_path):
@@ -251,7 +255,7 @@ def test_the_intruder_of_the_help_text_is_traced_and_the_run_survives_it(tmp_pat
     assert example in INTRUDER_HELP
     run = subprocess.run([sys.executable, "-m", "stack.cli", "eval", "--policy", "scripted", "--world", "pymunk",
                           "--scenario", "paper-5", "--episodes", "1", "--seed", "1", "--intruder", example,
-                          "--trace", str(tmp_path)], cwd=Path(__file__).resolve().parents[2], capture_output=True,
+                          "--record", str(tmp_path)], cwd=Path(__file__).resolve().parents[2], capture_output=True,
                          text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-600:]
     record = load_record(tmp_path / "episode_1.npz")
@@ -267,8 +271,8 @@ KEYS_BEFORE = {"scenario", "num_robots", "world", "policy", "episodes", "seed", 
                "model_error", "command_delay_ms", "policy_runtime", "notes"}
 
 
-def test_the_json_result_and_the_trace_carry_provenance_and_the_resolved_config(tmp_path, capsys):
-    """--json and every --trace record: git commit and package versions (sim.provenance), and
+def test_the_report_and_the_records_carry_provenance_and_the_resolved_config(tmp_path, capsys):
+    """--report and every --record file: git commit and package versions (sim.provenance), and
     the settings the episodes ran with, defaults filled in (the steps, the flags, the
     StackConfig used); every key the result had before is still there."""
     import importlib.metadata
@@ -277,9 +281,9 @@ def test_the_json_result_and_the_trace_carry_provenance_and_the_resolved_config(
     from stack.recorder import load_record
 
     out, folder = tmp_path / "eval.json", tmp_path / "trace"
-    assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--steps", "3",
-                 "--no-docking", "--command-delay-ms", "100", "--model-error", "gain=0.9", "--json", str(out),
-                 "--trace", str(folder)]) == 0
+    assert main(["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--episode-ticks", "3",
+                 "--no-docking", "--command-delay-ms", "100", "--model-error", "gain=0.9", "--report", str(out),
+                 "--record", str(folder)]) == 0
     assert "provenance" not in capsys.readouterr().out                  # in the file, not on the screen
     data = json.loads(out.read_text())
     assert KEYS_BEFORE <= set(data)
@@ -297,9 +301,37 @@ def test_the_json_result_and_the_trace_carry_provenance_and_the_resolved_config(
         assert stack["latency"]["command_delay_s"] == pytest.approx(0.1)
     assert (data["steps"], data["docking"]) == (3, False)
     # the batched world: the scenario's episode length resolved, the scripted stack's stages off
-    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--json", str(out)]) == 0
+    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--report", str(out)]) == 0
     data = json.loads(out.read_text())
     assert "git" in data["provenance"] and "packages" in data["provenance"]
     assert data["config"]["steps"] == data["steps"] == make_scenario("paper-3").dynamics.episode_steps
     assert (data["config"]["stack"]["safety"], data["config"]["stack"]["mec"], data["config"]["model_error"]) == \
         (False, False, None)
+
+
+def test_the_batched_world_notes_the_link_flags_it_ignores_and_records_none_for_them(tmp_path, capsys):
+    """Before, `eval --command-delay-ms 50` in the batched world ran without a word and wrote 50
+    into the result's config, as if a link had been simulated."""
+    out = tmp_path / "eval.json"
+    assert main(["eval", "--policy", "scripted", "--episodes", "1", "--command-delay-ms", "50",
+                 "--model-error", "gain=0.9", "--report", str(out)]) == 0
+    assert "--model-error, --command-delay-ms ignored" in capsys.readouterr().err
+    data = json.loads(out.read_text())
+    assert "--command-delay-ms" in data["notes"][0]
+    config = data["config"]
+    assert [config[k] for k in ("command_delay_ms", "model_error", "fleet", "lockstep", "intruder",
+                                "track_robots")] == [None] * 6
+
+
+@pytest.mark.parametrize("old, new, value", [("--steps", "--episode-ticks", "3"),
+                                             ("--json", "--report", "eval.json"),
+                                             ("--trace", "--record", "records")])
+def test_the_old_spelling_of_a_renamed_eval_flag_still_works_and_warns(old, new, value, tmp_path, capsys):
+    argv = ["eval", "--policy", "scripted", "--world", "pymunk", "--episodes", "1", "--episode-ticks", "3"]
+    argv = [*(argv[:-2] if old == "--steps" else argv), old, str(tmp_path / value) if old != "--steps" else value]
+    assert main(argv) == 0
+    assert f"warning: {old} is deprecated; use {new}" in capsys.readouterr().err
+    if old == "--json":
+        assert json.loads((tmp_path / value).read_text())["steps"] == 3
+    if old == "--trace":
+        assert (tmp_path / value / "episode_0.npz").is_file()

@@ -77,6 +77,14 @@ def test_load_run_names_the_missing_file(tmp_path):
         plots.load_run(tmp_path)
 
 
+def test_plot_of_an_existing_file_says_it_is_not_a_folder(tmp_path, capsys):
+    """Before: "run folder 'afile' does not exist" of a file that exists."""
+    (tmp_path / "afile").write_text("x\n")
+    assert main(["plot", str(tmp_path / "afile")]) == 2
+    err = capsys.readouterr().err
+    assert f"'{tmp_path / 'afile'}' is a file, not a run folder" in err and "does not exist" not in err
+
+
 def test_recorder_starts_on_the_slots_and_follows_the_dynamics():
     scenario = make_scenario("paper-3")
     dyn = scenario.dynamics

@@ -18,6 +18,7 @@ from stack.sweep import (
     LOCAL_ONLY_ENV,
     SweepError,
     aggregate,
+    check_ray_address,
     grid_trials,
     median_ci,
     parse_grid_option,
@@ -309,3 +310,22 @@ def test_resume_takes_flags_that_agree_with_the_saved_options(tmp_path):
                   ["--config", '{"eval_episodes": 4, "total_episodes": 99}', "--episodes", "16"]):
         args = build_parser(("sweep",)).parse_args(["sweep", "--resume", "--out", str(tmp_path), *flags])
         assert _options(args) == SAVED, flags
+
+
+def test_an_address_nobody_answers_is_refused_naming_it_before_sweep_json(tmp_path, monkeypatch, capsys):
+    """Before, `sweep --address 127.0.0.1:1` wrote sweep.json and then Ray retried for ever."""
+    import stack.commands.sweep as sweep_command
+    from deploy.network import free_tcp_port
+    from stack.cli import main
+
+    monkeypatch.setattr(sweep_command, "run_trials", lambda *a, **k: pytest.fail("trials ran"))
+    address = f"127.0.0.1:{free_tcp_port()}"
+    start = time.monotonic()
+    assert main(["sweep", "--address", address, "--episodes", "16", "--seeds", "0,",
+                 "--out", str(tmp_path / "sw")]) == 2
+    assert time.monotonic() - start < 30
+    assert f"error: --address {address}: no Ray cluster answered within" in capsys.readouterr().err
+    assert not (tmp_path / "sw" / "sweep.json").exists()
+    check_ray_address("auto")                               # Ray's own words: not checked
+    with pytest.raises(SweepError, match="--address ray://127.0.0.1:x: expected HOST:PORT"):
+        check_ray_address("ray://127.0.0.1:x")
