@@ -20,6 +20,7 @@ import torch
 
 from sim.provenance import git_commit
 from sim.scenario import MAX_ROBOTS
+from stack.commands import argtypes
 
 GIT_AT_START = git_commit()
 """The checkout when the benchmark started: the code that ran. A long run outlives commits and
@@ -113,10 +114,17 @@ def add_tick_args(parser: argparse.ArgumentParser, per: str) -> None:
     """``--robots``, ``--ticks``, ``--warmup`` and ``--seed`` of the control-tick benchmarks
     (``per``: what each timed run is, e.g. "stack")."""
     parser.add_argument("--robots", type=robot_count, default=5,
-                        help=f"robots in the fleet, 1..{MAX_ROBOTS} (5)")
-    parser.add_argument("--ticks", type=positive_int, default=2000, help=f"timed ticks per {per} (2000)")
-    parser.add_argument("--warmup", type=positive_int, default=100, help=f"untimed ticks per {per} (100)")
-    parser.add_argument("--seed", type=int, default=0)
+                        help=f"robots in the fleet, 1..{MAX_ROBOTS} (default 5)")
+    parser.add_argument("--ticks", type=positive_int, default=2000, help=f"timed ticks per {per} (default 2000)")
+    parser.add_argument("--warmup", type=positive_int, default=100, help=f"untimed ticks per {per} (default 100)")
+    add_seed_arg(parser, "the untrained actor and of the states it is timed on")
+
+
+def add_seed_arg(parser: argparse.ArgumentParser, what: str, default: int = 0) -> None:
+    """``--seed`` of a benchmark: one seed in 0 .. 2**32 - 1 (:func:`stack.commands.argtypes.seed`,
+    the spelling of every ``formation`` command); ``what`` says what it seeds."""
+    parser.add_argument("--seed", type=argtypes.seed, default=default,
+                        help=f"seed of {what}, 0 .. 2**32 - 1 (default {default})")
 
 
 def p50_p99(values: Sequence[float]) -> dict[str, float]:

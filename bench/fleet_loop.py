@@ -280,11 +280,11 @@ def measure(n: int, ticks: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--robots", type=positive_int_list, default=[5, 20, 50],
-                        help="robot counts, e.g. 5,20,50")
-    parser.add_argument("--ticks", type=positive_int, default=1000, help="ticks per count")
+                        help="robot counts, comma-separated (default 5,20,50)")
+    parser.add_argument("--ticks", type=positive_int, default=1000, help="ticks per count (default 1000)")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     parser.add_argument("--tls", action=argparse.BooleanOptionalAction, default=True,
                         help="also the bridge and robots through a router with mutual TLS (default on)")

@@ -1,9 +1,10 @@
 """One policy for any team: the generalist against the paper's specialist, zero-shot on a grid.
 
-Trains, for ``--seeds`` seeds on Ray Tune (:mod:`stack.sweep`, one CPU each):
+Trains, for each seed of ``--seeds`` (a count K for seeds 0..K-1, a range 2-4 or a list 0,3,7, as
+``formation sweep --seeds``) on Ray Tune (:mod:`stack.sweep`, one CPU each):
 
-    generalist   SDPA-MAPPO on the team sizes ``--team-sizes`` (default 3,4,5) of the paper's
-                 layout at once (``MAPPOConfig.team_sizes``), budget ``--budget``
+    generalist   SDPA-MAPPO on the team sizes ``--team-sizes`` (a list or a range, default 3,4,5)
+                 of the paper's layout at once (``MAPPOConfig.team_sizes``), budget ``--budget``
     specialist   SDPA-MAPPO on paper-3 alone (the paper's recipe: what 3 robots learned)
 
 The generalist trains with the contact-penalty curriculum ``--penalty-curriculum`` (k of
@@ -14,7 +15,7 @@ draws each episode's layout and actuator from ``--distribution`` (default
 ``none``: the paper's layout; ``broad`` varies object, direction and actuator, see
 :mod:`sim.distribution`). It then judges every final policy, no further training, on a grid of ``--robots`` (default 1..10)
 x layouts (:data:`LAYOUTS`: the default transport layout; its mirror, left to right; a larger
-object; a hexagonal object), ``--episodes`` deterministic episodes each in the batched world
+object; a hexagonal object), ``--eval-episodes`` deterministic episodes each in the batched world
 (no filter, no MEC), and with ``--pymunk-episodes`` > 0 also in pymunk with model error (gain
 0.85 +- 0.15, lag 0.03 s, one tick of command delay) through the default stack (filter + MEC).
 A success needs every robot within the target tolerance at the end and no contact.
@@ -33,7 +34,7 @@ at episode 0) and the episodes to convergence (the budget where it does not conv
 ``arrival_tick`` (the mean first tick the team stood on its targets, over the episodes it did).
 
     python bench/generalization.py --seeds 3                      # the full grid
-    python bench/generalization.py --seeds 1 --robots 3,6 --episodes 20 --json
+    python bench/generalization.py --seeds 1 --robots 3,6 --eval-episodes 20 --json
 
 ``--policies RUN/checkpoint.pt,...`` judges those policies on the grid instead of training (no
 ``train`` or ``finetune`` then; each row's ``policy`` is the file). ``--capture-radius
@@ -42,7 +43,7 @@ default,0.12,0.06`` runs the pymunk cells once per docking setting (:mod:`contro
 further), each row saying its ``capture_radius`` and ``stall_radius`` (0: one tier), in one run:
 
     python bench/generalization.py --policies a/checkpoint.pt,b/checkpoint.pt --layouts transport \
-        --robots 3,4,5,6,7,8,9,10 --episodes 50 --pymunk-episodes 10 --capture-radius default,0.06 --json
+        --robots 3,4,5,6,7,8,9,10 --eval-episodes 50 --pymunk-episodes 10 --capture-radius default,0.06 --json
 """
 
 from __future__ import annotations
@@ -60,13 +61,13 @@ from bench._common import (  # noqa: E402
     json_object,
     nonnegative_int,
     positive_int,
-    positive_int_list,
     print_json,
     print_table,
     progress,
     robot_count_list,
 )
-from stack.sweep import TrialSpec, resolve_fields, run_trials, summarize  # noqa: E402
+from stack.commands import argtypes  # noqa: E402
+from stack.sweep import SweepError, TrialSpec, resolve_fields, run_trials, summarize  # noqa: E402
 
 LAYOUTS = ("transport", "mirrored", "large-object", "hexagon")
 PYMUNK_ERROR = {"gain": 0.85, "gain_spread": 0.15, "lag_tau": 0.03, "delay_ticks": 1}
@@ -102,12 +103,17 @@ def held_out(n: int = 4):
     return transport_scenario(n, object_vertices=l_shape, name=f"l-shape-{n}")
 
 
+def _base(args) -> dict:
+    """MAPPOConfig fields of both runs: the paper's layout, ``--update-epochs`` and ``--budget``."""
+    return {"scenario": "paper-3", "update_epochs": args.update_epochs, "total_episodes": args.budget}
+
+
 def trials(args, out: Path) -> list[TrialSpec]:
-    base = {"scenario": "paper-3", "update_epochs": args.update_epochs, "total_episodes": args.budget}
+    base = _base(args)
     specs = []
     generalist = {**args.config, "team_sizes": args.team_sizes, "distribution": args.distribution,
                   "penalty_curriculum": args.penalty_curriculum}
-    for seed in range(args.seeds):
+    for seed in args.seeds:
         for name, extra in (("generalist", generalist), ("specialist", {})):
             folder = out / name / f"seed-{seed}"
             specs.append(TrialSpec(name, seed, resolve_fields({**base, **extra}, {}, seed), str(folder.resolve())))
@@ -129,7 +135,7 @@ def judge(checkpoint: str, args) -> list[dict]:
     for name in args.layouts:
         for n in args.robots:
             sc = layout(name, n)
-            r = evaluate(actor, sc, episodes=args.episodes, seed=10_000)
+            r = evaluate(actor, sc, episodes=args.eval_episodes, seed=10_000)
             rows.append({"scenario": sc.name, "layout": name, "robots": n, "world": "batched",
                          "success": r.success_rate, "collisions": r.collision_rate,
                          "final_distance_mm": 1000 * r.final_distance})
@@ -185,33 +191,39 @@ def finetune(args, specs: list[TrialSpec], out: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=positive_int, default=3, help="training seeds 0..K-1 (default 3)")
-    p.add_argument("--team-sizes", type=positive_int_list, default=[3, 4, 5],
-                   help="the generalist's team sizes (default 3,4,5)")
+    p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=argtypes.seeds, default=list(range(3)),
+                   help="training seeds: a count (3: seeds 0-2), a range (2-4) or a list (0,3,7) (default 3)")
+    p.add_argument("--team-sizes", type=argtypes.int_list, default=[3, 4, 5], metavar="LIST",
+                   help="the generalist's team sizes, e.g. 3,4,5 or 3-5 (default 3,4,5)")
     p.add_argument("--budget", type=positive_int, default=3200, help="episode budget of each run (default 3200)")
     p.add_argument("--update-epochs", type=positive_int, default=4, help="PPO epochs per rollout (default 4)")
-    p.add_argument("--robots", type=robot_count_list, default=list(range(1, 11)), help="grid team sizes (default 1..10)")
+    p.add_argument("--robots", type=robot_count_list, default=list(range(1, 11)), help="grid team sizes, comma-separated (default 1,2,...,10)")
     p.add_argument("--layouts", type=lambda s: s.split(","), default=list(LAYOUTS),
                    help=f"grid layouts, from {','.join(LAYOUTS)} (default all)")
-    p.add_argument("--episodes", type=positive_int, default=100, help="batched episodes per cell (default 100)")
+    p.add_argument("--eval-episodes", type=positive_int, default=100,
+                   help="batched episodes per cell of the grid (default 100)")
+    argtypes.add_deprecated_alias(p, "--episodes", "--eval-episodes")
     p.add_argument("--pymunk-episodes", type=nonnegative_int, default=0, help="pymunk episodes per cell (default 0: skip)")
     p.add_argument("--distribution", default=None, metavar="NAME_OR_FILE",
                    help="the generalist's scenario distribution: none (default), broad or a file")
     p.add_argument("--penalty-curriculum", type=float, default=3.0, metavar="K",
                    help="the generalist's contact-penalty curriculum, MAPPOConfig.penalty_curriculum "
                         "(default 3; 0: off, as the specialist)")
-    p.add_argument("--config", type=json_object, default={},
+    p.add_argument("--config", type=json_object, default={}, metavar="JSON",
                    help="extra MAPPOConfig fields as JSON for the generalist's runs, e.g. "
-                        "'{\"actor\": {\"token_layers\": 1}}' (the specialist keeps the paper recipe)")
+                        "'{\"actor\": {\"token_layers\": 1}}' (the specialist keeps the paper recipe; "
+                        "default {}: none)")
     p.add_argument("--finetune-budget", type=int, default=400,
                    help="fine-tuning episodes on the held-out layout per generalist seed (default 400; 0: skip)")
     p.add_argument("--cpus", type=positive_int, default=2, help="trainings at once (default 2)")
-    p.add_argument("--out", type=Path, default=Path("runs/generalization"), help="run folders (default runs/generalization)")
+    p.add_argument("--out", type=argtypes.out_folder, default=Path("runs/generalization"),
+                   help="run folders (default runs/generalization)")
     p.add_argument("--policies", type=lambda s: s.split(","), default=None, metavar="CKPT,...",
                    help="judge these training checkpoints on the grid instead of training")
     p.add_argument("--capture-radius", type=radius_list, default=[None], metavar="R,...",
-                   help="docking of the pymunk cells: 'default' (the stack's) or one-tier capture radii [m]")
+                   help="docking of the pymunk cells, comma-separated: 'default' (the stack's) or one-tier "
+                        "capture radii [m] (default 'default')")
     add_output_args(p)
     args = p.parse_args(argv)
     if not args.penalty_curriculum >= 0:
@@ -224,7 +236,10 @@ def main(argv=None) -> int:
         p.error(f"--policies: no such file {missing[0]}")
     if args.policies:
         return report({"train": {}, "grid": judge_given(args), "finetune": None}, args)
-    specs = trials(args, args.out)
+    try:      # every run checked before any training: a bad value is a usage error naming its flag
+        specs = trials(args, args.out)
+    except SweepError as exc:
+        p.error(f"{_flag_at_fault(args)}: {str(exc).removeprefix('the base config: ')}")
     progress(f"training {len(specs)} runs on {args.cpus} CPUs under {args.out}")
     run_trials(specs, args.out, cpus=args.cpus, experiment="generalization", restore=False, verbose=0)
     train, grid = {}, []
@@ -240,6 +255,20 @@ def main(argv=None) -> int:
     doc = {"train": train, "grid": grid,
            "finetune": finetune(args, specs, args.out) if args.finetune_budget > 0 else None}
     return report(doc, args)
+
+
+def _flag_at_fault(args) -> str:
+    """The flag whose value the generalist's config refuses: the first whose field alone, on the
+    paper's layout, is refused; ``--config`` when none is."""
+    for flag, fields in (("--budget", {"total_episodes": args.budget}),
+                         ("--update-epochs", {"update_epochs": args.update_epochs}),
+                         ("--distribution", {"distribution": args.distribution}),
+                         ("--team-sizes", {"team_sizes": args.team_sizes})):
+        try:
+            resolve_fields({"scenario": "paper-3", **fields}, {}, 0)
+        except SweepError:
+            return flag
+    return "--config"
 
 
 def radius_list(text: str) -> list[float | None]:

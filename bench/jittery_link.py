@@ -4,7 +4,7 @@ whether anything touches, against the same fleet driven bare.
 ``formation fleet-sim`` (paper-5, real time at 20 Hz, the scripted controller's fleet) listens
 on 127.0.0.1; ``formation bridge`` connects to it through :class:`deploy.delay_relay.DelayRelay`,
 which holds every byte ``--delay-ms`` +- ``--jitter-ms`` each way. Each configuration (the
-bridge's flags) runs ``--seeds`` episodes (fleet-sim ``--seed k``) of ``--ticks`` ticks:
+bridge's flags) runs ``--seeds`` episodes (fleet-sim ``--seed k``) of ``--episode-ticks`` ticks:
 
 * ``stack``: filter, MEC, docking (the defaults);
 * ``bare``: ``--no-safety --no-mec`` (the peer: the same controller with nothing in between);
@@ -18,7 +18,8 @@ command round trips [ms] and the share of robot ticks braked by the robots' own 
     python bench/jittery_link.py --configs stack,bare,filter,mec --json
     python bench/jittery_link.py --playout-ticks 2               # robots with a playout buffer
 
-JSON: ``{"delay_ms", "jitter_ms", "ticks", "brake_after_ticks", "playout_ticks", "gather_s", "rows":
+JSON (``ticks``: ``--episode-ticks``): ``{"delay_ms", "jitter_ms", "ticks", "brake_after_ticks",
+"playout_ticks", "gather_s", "rows":
 [{"config", "seed", "home_tick", "collisions", "round_trip_ms": {"p50", "p99"},
 "watchdog_share"}, ...]}``.
 """
@@ -44,6 +45,7 @@ from deploy.bridge import BridgeConfig  # noqa: E402
 from deploy.delay_relay import DelayRelay  # noqa: E402
 from deploy.network import free_tcp_port  # noqa: E402
 from sim.scenario import make_scenario  # noqa: E402
+from stack.commands import argtypes  # noqa: E402
 
 CONFIGS = {"stack": [], "bare": ["--no-safety", "--no-mec"], "filter": ["--no-mec"], "mec": ["--no-safety"]}
 
@@ -74,7 +76,7 @@ def run(config: str, seed: int, args: argparse.Namespace) -> dict:
         port = free_tcp_port()
         sim = subprocess.Popen([*cli, "fleet-sim", "--fleet", "jl", "--scenario", "paper-5", "--rate-hz", "20",
                                 "--listen", f"tcp/127.0.0.1:{port}", "--report", f"{tmp}/sim.json",
-                                "--ticks", str(args.ticks), "--seed", str(seed),
+                                "--ticks", str(args.episode_ticks), "--seed", str(seed),
                                 "--brake-after-ticks", str(args.brake_after_ticks),
                                 "--playout-ticks", str(args.playout_ticks)],
                                cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -86,7 +88,7 @@ def run(config: str, seed: int, args: argparse.Namespace) -> dict:
                                            *CONFIGS[config]],
                                           cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
                 try:
-                    if sim.wait(timeout=args.ticks * 0.05 + 120) != 0:
+                    if sim.wait(timeout=args.episode_ticks * 0.05 + 120) != 0:
                         raise RuntimeError(f"fleet-sim failed: {sim.stderr.read()[-2000:]}")
                 finally:
                     bridge.terminate()
@@ -105,21 +107,26 @@ def run(config: str, seed: int, args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--delay-ms", type=float, default=20.0, help="mean hold of the relay, each way (20)")
-    parser.add_argument("--jitter-ms", type=float, default=10.0,
-                        help="the hold is uniform in delay +- this, at most the delay (10)")
-    parser.add_argument("--seeds", type=positive_int, default=3, help="episodes per configuration (3)")
-    parser.add_argument("--ticks", type=positive_int, default=400, help="fleet ticks per episode (400)")
-    parser.add_argument("--brake-after-ticks", type=positive_int, default=2,
-                        help="fleet-sim's watchdog: brake after this many ticks without a fresh command (2)")
+    parser.add_argument("--delay-ms", type=float, default=20.0, metavar="MS",
+                        help="mean hold of the relay, each way [ms] (default 20)")
+    parser.add_argument("--jitter-ms", type=float, default=10.0, metavar="MS",
+                        help="the hold is uniform in delay +- this, at most the delay [ms] (default 10)")
+    parser.add_argument("--seeds", type=positive_int, default=3,
+                        help="episodes per configuration, fleet-sim seeds 0..K-1 (default 3)")
+    parser.add_argument("--episode-ticks", type=positive_int, default=400, metavar="T",
+                        help="fleet ticks per episode, at 20 Hz (default 400)")
+    argtypes.add_deprecated_alias(parser, "--ticks", "--episode-ticks")
+    parser.add_argument("--brake-after-ticks", type=positive_int, default=2, metavar="K",
+                        help="fleet-sim's watchdog: brake after this many ticks without a fresh command "
+                             "(default 2)")
     parser.add_argument("--playout-ticks", type=int, default=0, metavar="D",
                         help="fleet-sim's playout buffer: robots act on each command D ticks after the "
                              "state it answers (default 0: on arrival)")
     parser.add_argument("--gather", type=float, default=BridgeConfig.gather_s, metavar="S",
                         help="the bridge's --gather: how long a tick waits for the rest of a burst of "
-                             f"states (default {BridgeConfig.gather_s}, the bridge's)")
+                             f"states [s] (default {BridgeConfig.gather_s}, the bridge's)")
     parser.add_argument("--configs", type=config_list, default=["stack", "bare"],
                         help=f"comma-separated, of {', '.join(CONFIGS)} (default stack,bare)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
@@ -137,13 +144,13 @@ def main(argv: list[str] | None = None) -> int:
             progress(f"jittery link: {config} seed {seed} ({time.monotonic() - start:.0f} s)")
             rows.append(run(config, seed, args))
     if args.json:
-        print_json({"delay_ms": args.delay_ms, "jitter_ms": args.jitter_ms, "ticks": args.ticks,
+        print_json({"delay_ms": args.delay_ms, "jitter_ms": args.jitter_ms, "ticks": args.episode_ticks,
                     "brake_after_ticks": args.brake_after_ticks, "playout_ticks": args.playout_ticks,
                     "gather_s": args.gather, "rows": rows})
         return 0
     print_table(["config", "seed", "home tick", "contacts (robot/object/wall)", "round trip p50 [ms]", "p99",
                  "watchdog-braked ticks"],
-                [(r["config"], r["seed"], r["home_tick"] if r["home_tick"] is not None else f"> {args.ticks}",
+                [(r["config"], r["seed"], r["home_tick"] if r["home_tick"] is not None else f"> {args.episode_ticks}",
                   "/".join(str(r["collisions"][k]) for k in ("robot", "object", "wall")),
                   f"{r['round_trip_ms']['p50']:.1f}", f"{r['round_trip_ms']['p99']:.1f}",
                   f"{100 * r['watchdog_share']:.1f} %") for r in rows])

@@ -2,9 +2,9 @@
 
 Two network namespaces joined by a veth pair (addresses 10.78.0.1 and .2, made here and removed
 after), the sender's side shaped by a token bucket (``tc qdisc ... tbf``, ``--rate-kbit``). The
-sender publishes one 52-byte message per robot every ``--period-ms`` (a controller's commands,
-stamped with the sender's monotonic clock, which both namespaces share); the receiver records
-each message's age on arrival. Two sets of publishers take turns, ``--repeats`` times:
+sender publishes a burst of ``--burst`` 52-byte messages, one per robot, every ``--period-ms``
+(a controller's commands, stamped with the sender's monotonic clock, which both namespaces
+share); the receiver records each message's age on arrival. Two sets of publishers take turns, ``--repeats`` times:
 
 * ``fleet``: the fleet's state and command publishers (:func:`deploy.network.declare_data_publisher`:
   DROP, not express: one tick's burst shares a batch);
@@ -18,8 +18,8 @@ Needs root (``ip netns``, ``tc``).
     sudo python bench/link_congestion.py                  # 1000 kbit/s, 50 robots, 20 ms, 4 s
     sudo python bench/link_congestion.py --rate-kbit 500 --repeats 1 --json
 
-JSON: ``{"rate_kbit", "robots", "period_ms", "ticks", "rows": [{"publishers", "sent",
-"received", "age_ms": {"p50", "p99", "max"}}, ...]}``, one row per run.
+JSON (``robots``: ``--burst``): ``{"rate_kbit", "robots", "period_ms", "ticks", "rows":
+[{"publishers", "sent", "received", "age_ms": {"p50", "p99", "max"}}, ...]}``, one row per run.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench._common import positive_int, print_json, print_table, progress  # noqa: E402
+from stack.commands import argtypes  # noqa: E402
 
 SENDER, RECEIVER = "10.78.0.1", "10.78.0.2"
 PORT = 7447
@@ -138,7 +139,7 @@ def one_run(link: ShapedLink, publishers: str, robots: int, ticks: int, period_s
         if receiver.stdout.readline().strip() != "ready":
             raise RuntimeError("the receiver did not start")
         subprocess.run(["ip", "netns", "exec", link.sender, *me, "--role", "send", "--publishers",
-                        publishers, "--robots", str(robots), "--ticks", str(ticks), "--period-ms",
+                        publishers, "--burst", str(robots), "--ticks", str(ticks), "--period-ms",
                         str(period_s * 1e3)], check=True, env=env, timeout=60 + 2 * ticks * period_s)
         time.sleep(DRAIN_S)                      # what the link still holds arrives
         receiver.stdin.write("done\n")
@@ -153,10 +154,13 @@ def one_run(link: ShapedLink, publishers: str, robots: int, ticks: int, period_s
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rate-kbit", type=positive_int, default=1000, help="link rate [kbit/s] (default 1000)")
-    parser.add_argument("--robots", type=positive_int, default=50, help="messages a burst (default 50)")
-    parser.add_argument("--period-ms", type=float, default=20.0, help="time between bursts [ms] (default 20)")
+    parser.add_argument("--burst", type=positive_int, default=50, metavar="N",
+                        help="messages a burst, one per robot (default 50)")
+    argtypes.add_deprecated_alias(parser, "--robots", "--burst")
+    parser.add_argument("--period-ms", type=float, default=20.0, metavar="MS",
+                        help="time between bursts [ms] (default 20)")
     parser.add_argument("--ticks", type=positive_int, default=200, help="bursts a run (default 200)")
     parser.add_argument("--repeats", type=positive_int, default=2, help="runs of each publisher set (default 2)")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
@@ -168,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.role == "receive":
         return receive()
     if args.role == "send":
-        return send(args.publishers, args.robots, args.ticks, args.period_ms / 1e3)
+        return send(args.publishers, args.burst, args.ticks, args.period_ms / 1e3)
     if os.geteuid() != 0 or not (shutil.which("ip") and shutil.which("tc")):
         parser.error("needs root and iproute2 (ip netns, tc) to build the shaped link; run it with sudo")
     rows = []
@@ -176,8 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         for k in range(args.repeats):
             for publishers in ("fleet", "express"):
                 progress(f"link_congestion: {publishers} publishers, run {k + 1}/{args.repeats}")
-                rows.append(one_run(link, publishers, args.robots, args.ticks, args.period_ms / 1e3))
-    document = {"rate_kbit": args.rate_kbit, "robots": args.robots, "period_ms": args.period_ms,
+                rows.append(one_run(link, publishers, args.burst, args.ticks, args.period_ms / 1e3))
+    document = {"rate_kbit": args.rate_kbit, "robots": args.burst, "period_ms": args.period_ms,
                 "ticks": args.ticks, "rows": rows}
     if args.json:
         print_json(document)

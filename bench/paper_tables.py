@@ -1,6 +1,7 @@
 """The paper's Table 1 and Table 2, measured here: episodes to convergence over several seeds.
 
-Settings (each trained ``--seeds`` times with seeds 0..K-1, MAPPOConfig defaults otherwise):
+Settings (each trained once per seed of ``--seeds``: a count K for seeds 0..K-1, a range 2-4 or a
+list 0,3,7, as ``formation sweep --seeds``; MAPPOConfig defaults otherwise):
 
     sdpa-3 / sdpa-4 / sdpa-5   SDPA-MAPPO (typed actor) from scratch on paper-3 / -4 / -5
     mlp-3                      MLP-MAPPO (the paper's flat vector, no attention) on paper-3
@@ -21,7 +22,7 @@ also >= 0.9). A seed that does not converge within its budget counts as the budg
 ``converged_seeds`` says how many did. The paper's numbers are printed beside ours.
 
 The runs are Ray Tune trials (:mod:`stack.sweep`, the engine of ``formation sweep``: one CPU
-and one torch thread each, ``--jobs`` CPUs), each writing its usual run folder under ``--out``;
+and one torch thread each, ``--cpus`` CPUs), each writing its usual run folder under ``--out``;
 a finished run is reused when the table is produced again with the same settings, and an
 interrupted one continues from its checkpoint.
 
@@ -52,7 +53,8 @@ from bench._common import (  # noqa: E402
     print_table,
     progress,
 )
-from stack.sweep import TrialSpec, resolve_fields, run_trials  # noqa: E402
+from stack.commands import argtypes  # noqa: E402
+from stack.sweep import SweepError, TrialSpec, resolve_fields, run_trials  # noqa: E402
 
 PAPER_EPISODES = {"sdpa-3": 1200, "sdpa-4": 1500, "sdpa-5": 3200, "mlp-3": None,
                   "transfer-3to4": 650, "transfer-3to5": 850,
@@ -171,16 +173,22 @@ def ratios(rows: list[dict]) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=positive_int, default=5, help="seeds per setting (0..K-1; default 5)")
+    p = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=argtypes.seeds, default=list(range(5)),
+                   help="seeds of every setting: a count (5: seeds 0-4), a range (2-4) or a list (0,3,7) "
+                        "(default 5)")
     p.add_argument("--settings", type=settings_list, default=list(DEFAULT_SETTINGS),
                    help=f"comma-separated subset of {','.join(SETTINGS)} (transfer needs sdpa-3; "
                         f"default: {','.join(DEFAULT_SETTINGS)})")
-    p.add_argument("--jobs", type=positive_int, default=2, help="CPUs of the local Ray: trials at a time (default 2)")
+    p.add_argument("--cpus", type=positive_int, default=2,
+                   help="CPUs of the local Ray: trials at a time (default 2)")
+    argtypes.add_deprecated_alias(p, "--jobs", "--cpus")
     p.add_argument("--budget-scale", type=positive_float, default=1.0,
                    help="multiply every episode budget (default budgets: twice the paper's episodes)")
-    p.add_argument("--config", type=json_object, default={}, help="extra MAPPOConfig fields as JSON for every run")
-    p.add_argument("--out", type=Path, default=Path("runs/paper-tables"), help="folder of the runs")
+    p.add_argument("--config", type=json_object, default={}, metavar="JSON",
+                   help="extra MAPPOConfig fields as JSON for every SDPA/MLP run (default {}: none)")
+    p.add_argument("--out", type=argtypes.out_folder, default=Path("runs/paper-tables"),
+                   help="folder of the runs (default runs/paper-tables)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     args = p.parse_args(argv)
     config = args.config
@@ -188,27 +196,30 @@ def main(argv: list[str] | None = None) -> int:
     if any(setting(n).transfer_from for n in names) and "sdpa-3" not in names:
         names.insert(0, "sdpa-3")
     budgets = {n: max(50, int(DEFAULT_BUDGET[n] * args.budget_scale)) for n in names}
-    seeds = range(args.seeds)
+    seeds = args.seeds
     start = time.perf_counter()
     results: dict[str, list[dict]] = {n: [] for n in names}
 
     transfers = [n for n in names if setting(n).transfer_from]
     scratch = [n for n in names if not setting(n).transfer_from]
+    try:      # every trial checked before any training: a bad --config is a usage error
+        scratch_specs = [trial(args.out, n, s, budgets[n], config) for n in scratch for s in seeds]
+        transfer_specs = [trial(args.out, n, s, budgets[n], config) for n in transfers for s in seeds]
+    except SweepError as exc:
+        p.error(f"--config: {str(exc).removeprefix('the base config: ')}")
     # from-scratch settings first (sdpa-3 among them), then the transfers from sdpa-3's checkpoints
-    done = train_all([trial(args.out, n, s, budgets[n], config) for n in scratch for s in seeds],
-                     args.out, args.jobs, "scratch")
+    done = train_all(scratch_specs, args.out, args.cpus, "scratch")
     if transfers:
-        done |= train_all([trial(args.out, n, s, budgets[n], config) for n in transfers for s in seeds],
-                          args.out, args.jobs, "transfer")
+        done |= train_all(transfer_specs, args.out, args.cpus, "transfer")
     for (name, _seed), r in sorted(done.items(), key=lambda kv: kv[0][1]):
         results[name].append(r)
     zero = {}
     if "sdpa-3" in names:
-        with ThreadPoolExecutor(args.jobs) as pool:
+        with ThreadPoolExecutor(args.cpus) as pool:
             for robots in (4, 5):
                 rates = list(pool.map(lambda s, k=robots: zero_shot(args.out, s, k), seeds))
                 zero[f"3to{robots}"] = round(statistics.fmean(rates), 3)
-    rows = [row(n, args.seeds, results[n]) for n in names]
+    rows = [row(n, len(seeds), results[n]) for n in names]
     doc = {"rows": rows, "zero_shot": zero, "paper_baselines": PAPER_BASELINES,
            "ratios": ratios(rows), "budgets": budgets, "config": config,
            "wall_s_total": round(time.perf_counter() - start, 1)}
@@ -221,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['episodes_min']}-{r['episodes_max']}", f"{r['env_steps_median']:.0f}",
                   f"{r['wall_s_median']:.0f}", r["paper_episodes"] or "-"] for r in rows])
     for key, value in zero.items():
-        print(f"zero-shot success {key}: {value:.2f} (mean over {args.seeds} seeds, 100 episodes each)")
+        print(f"zero-shot success {key}: {value:.2f} (mean over {len(seeds)} seeds, 100 episodes each)")
     for r in doc["ratios"]:
         bound = "at least " if r["lower_bound"] else ""
         paper = f" (paper: {r['paper']}x)" if r["paper"] else ""

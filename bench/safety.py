@@ -1,7 +1,7 @@
 """Safety layer benchmark: forward invariance in pymunk, MEC tracking error, full-tick latency.
 
-(a) invariance: ``--episodes`` randomised pymunk episodes of ``--steps`` ticks. Each episode
-    draws N in 3..16 (``transport-N``), a model error (gain 0.7..1.0 per robot, actuator lag
+(a) invariance: ``--episodes`` randomised pymunk episodes of ``--episode-ticks`` ticks. Each
+    episode draws N in 3..16 (``transport-N``), a model error (gain 0.7..1.0 per robot, actuator lag
     0..0.05 s, floor friction 0..0.1 m/s^2, a constant disturbance up to 0.05 m/s^2 and white
     disturbance 0.02 m/s^2 per axis), random robot positions with >= 0.03 m clearance and random
     velocities scaled into the barrier's safe set ``h >= 0`` at the state and at every state the
@@ -34,8 +34,8 @@ same answers; run both to compare their latency.
 
 (d) conditions: the imperfections of a real link, one by one (delay 1-3 ticks, jittering delay,
     noise, dropped states, a frozen robot, the same seen by a tracker that identifies robots,
-    gain 0.7 with delay, the model error of (a)), each
-    with ``--condition-episodes`` adversarial episodes, default stack against bare, plus the
+    gain 0.7 with delay, the model error of (a)), each with ``--condition-episodes``
+    adversarial episodes of ``--episode-ticks`` ticks, default stack against bare, plus the
     scripted controller (and ``--policy``) and the MEC's tracking error; see
     :mod:`_safety_conditions`.
 (e) intruders: ``--intruder-episodes`` paper-3/4/5 episodes per link condition of
@@ -82,6 +82,7 @@ import torch  # noqa: E402
 from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start, without_docking  # noqa: E402
 from _common import (  # noqa: E402
     add_output_args,
+    add_seed_arg,
     map_episodes,
     nonnegative_int_list,
     positive_int,
@@ -102,6 +103,7 @@ from controllers.scripted import ScriptedController  # noqa: E402
 from sim.fleet import FleetState  # noqa: E402
 from sim.pymunk_world import ModelError, PymunkWorld  # noqa: E402
 from sim.scenario import make_scenario, transport_scenario  # noqa: E402
+from stack.commands import argtypes  # noqa: E402
 from stack.commands.latency_args import add_command_delay_arg, latency_config  # noqa: E402
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode  # noqa: E402
 
@@ -309,35 +311,39 @@ def condition_list(text: str) -> list[str]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--episodes", type=positive_int, default=1000, help="invariance episodes (1000)")
-    parser.add_argument("--steps", type=positive_int, default=60, help="ticks per invariance episode (60)")
-    parser.add_argument("--workers", type=positive_int, default=2, help="processes for (a) (2)")
-    parser.add_argument("--mec-episodes", type=positive_int, default=12, help="episodes for (b) (12)")
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--episodes", type=positive_int, default=1000, help="invariance episodes (default 1000)")
+    parser.add_argument("--episode-ticks", type=positive_int, default=60, metavar="T",
+                        help="ticks per adversarial episode of (a) and (d) (default 60)")
+    argtypes.add_deprecated_alias(parser, "--steps", "--episode-ticks")
+    parser.add_argument("--cpus", type=positive_int, default=2,
+                        help="worker processes for (a), (d) and (e) (default 2)")
+    argtypes.add_deprecated_alias(parser, "--workers", "--cpus")
+    parser.add_argument("--mec-episodes", type=positive_int, default=12, help="episodes for (b) (default 12)")
     parser.add_argument("--robots", type=robot_count_list, default=[3, 5, 10, 20],
-                        help="robot counts for (c) (3,5,10,20)")
-    parser.add_argument("--ticks", type=positive_int, default=1000, help="timed ticks per N for (c)")
-    parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per N for (c)")
+                        help="robot counts for (c) (default 3,5,10,20)")
+    parser.add_argument("--ticks", type=positive_int, default=1000, help="timed ticks per N for (c) (default 1000)")
+    parser.add_argument("--warmup", type=positive_int, default=100, help="untimed ticks per N for (c) (default 100)")
     parser.add_argument("--policy", default=None, help="checkpoint or TorchScript file (default: "
                         "adversarial + scripted commands in (a), an untrained actor in (c))")
-    parser.add_argument("--seed", type=int, default=0)
+    add_seed_arg(parser, "the episodes of every part")
     parser.add_argument("--geometry", choices=["fused", "fcl", "analytic"], default="fused",
                         help="safety filter path for (a) and (c): the fused fast path (default) or the "
                              "reference path on FCL or closed-form distances (same answers, slower)")
     parser.add_argument("--conditions", type=condition_list, default=list(CONDITIONS),
                         help=f"conditions for (d), comma-separated (default: all of {','.join(CONDITIONS)})")
     parser.add_argument("--condition-episodes", type=positive_int, default=300,
-                        help="adversarial episodes per condition for (d) (300)")
+                        help="adversarial episodes per condition for (d) (default 300)")
     parser.add_argument("--task-episodes", type=positive_int, default=30,
-                        help="scripted (and --policy) paper-3/4/5 episodes per condition for (d) (30)")
+                        help="scripted (and --policy) paper-3/4/5 episodes per condition for (d) (default 30)")
     parser.add_argument("--intruder-conditions", type=condition_list, default=["clean", "delay2", "noise"],
                         help="link conditions for (e), comma-separated (default clean,delay2,noise)")
     parser.add_argument("--intruder-episodes", type=positive_int, default=300,
-                        help="episodes per condition and controller for (e) (300)")
+                        help="episodes per condition and controller for (e) (default 300)")
     parser.add_argument("--clutter-discs", type=nonnegative_int_list, default=[0, 25, 100],
-                        help="tracker disc counts for (f), comma-separated (0,25,100)")
+                        help="tracker disc counts for (f), comma-separated (default 0,25,100)")
     parser.add_argument("--clutter-episodes", type=positive_int, default=4,
-                        help="paper-5 episodes of 128 ticks per disc count for (f) (4)")
+                        help="paper-5 episodes of 128 ticks per disc count for (f) (default 4)")
     add_command_delay_arg(parser)
     parser.add_argument("--only", choices=["invariance", "mec", "latency", "conditions", "intruders", "clutter"],
                         default=None,
@@ -375,17 +381,17 @@ def main(argv: list[str] | None = None) -> int:
         doc["mec"] = mec_tracking(args.mec_episodes, args.seed)
         doc["mec"]["saturated"] = mec_tracking(args.mec_episodes, args.seed, command_limit=1.0)
     if args.only in (None, "invariance"):
-        progress(f"(a) invariance, {args.episodes} episodes x {args.steps} ticks, {args.workers} workers")
-        doc["invariance"] = run_invariance(args.episodes, args.steps, args.workers, args.seed, args.policy,
+        progress(f"(a) invariance, {args.episodes} episodes x {args.episode_ticks} ticks, {args.cpus} processes")
+        doc["invariance"] = run_invariance(args.episodes, args.episode_ticks, args.cpus, args.seed, args.policy,
                                            args.geometry)
     if args.only in (None, "conditions"):
         progress(f"(d) conditions {args.conditions}, {args.condition_episodes} adversarial episodes each")
-        doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.steps,
-                                           args.task_episodes, args.mec_episodes, args.workers,
+        doc["conditions"] = run_conditions(args.conditions, args.condition_episodes, args.episode_ticks,
+                                           args.task_episodes, args.mec_episodes, args.cpus,
                                            args.seed, args.policy, stack_config)
     if args.only in (None, "intruders"):
         progress(f"(e) intruders under {args.intruder_conditions}, {args.intruder_episodes} episodes each")
-        doc["intruders"] = run_intruders(args.intruder_conditions, args.intruder_episodes, args.workers,
+        doc["intruders"] = run_intruders(args.intruder_conditions, args.intruder_episodes, args.cpus,
                                          args.seed, args.policy, stack_config)
     if args.only in (None, "clutter"):
         progress(f"(f) clutter, {args.clutter_discs} tracker discs, {args.clutter_episodes} episodes each")

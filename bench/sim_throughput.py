@@ -43,6 +43,7 @@ for _path in (_BENCH_DIR, _BENCH_DIR.parent):
 import torch  # noqa: E402
 from _common import (  # noqa: E402
     add_output_args,
+    add_seed_arg,
     format_rate,
     median_rates,
     positive_int,
@@ -163,6 +164,7 @@ def table_rows(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sim_throughput.py",
+        allow_abbrev=False,
         description=__doc__.split("\n\n")[0],
         epilog="\n\n".join(__doc__.split("\n\n")[1:]),
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -177,9 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="timed repeats; the median is reported (default: 3)")
     parser.add_argument("--warmup", type=int, default=10,
                         help="untimed steps before the repeats (default: 10)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of every simulator (default: 0)")
-    parser.add_argument("--no-peer", action="store_true",
-                        help="measure only the formation env (no VMAS needed; no ratio column)")
+    add_seed_arg(parser, "every simulator")
+    parser.add_argument("--peer", action=argparse.BooleanOptionalAction, default=True,
+                        help="also measure the VMAS scenarios, the peer (default on; --no-peer: "
+                             "the formation env alone, no VMAS needed, no ratio column)")
     add_output_args(parser)
     return parser
 
@@ -189,7 +192,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.warmup < 0:
         parser.error(f"--warmup must be >= 0, got {args.warmup}")
-    peer = not args.no_peer
+    peer = args.peer
     vmas_version = None
     if peer:
         try:

@@ -128,7 +128,7 @@ def measure(n: int, ticks: int, warmup: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_tick_args(parser, "stack")
     add_output_args(parser)
     args = parser.parse_args(argv)

@@ -52,7 +52,15 @@ for _path in (_BENCH, _BENCH.parent):
     if str(_path) not in sys.path:
         sys.path.insert(0, str(_path))
 
-from _common import add_output_args, positive_int, print_json, print_table, progress, set_threads  # noqa: E402
+from _common import (  # noqa: E402
+    add_output_args,
+    add_seed_arg,
+    positive_int,
+    print_json,
+    print_table,
+    progress,
+    set_threads,
+)
 
 from controllers.mappo.config import MAPPOConfig  # noqa: E402
 from controllers.mappo.trainer import MAPPOTrainer  # noqa: E402
@@ -193,14 +201,15 @@ def measure(settings: list[str], episodes: int, repeats: int, seed: int) -> tupl
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--settings", default=",".join(SETTINGS),
-                        help=f"comma-separated subset of {','.join(SETTINGS)}")
+                        help=f"comma-separated subset of {','.join(SETTINGS)} (default: all of them)")
     parser.add_argument("--episodes", type=positive_int, default=96,
                         help="training episodes per timed run (default 96: 6 iterations of 16 "
                              "environments, two evaluations)")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="timed runs per variant (median)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeats", type=positive_int, default=3,
+                        help="timed runs per variant; the median is reported (default 3)")
+    add_seed_arg(parser, "every timed training run (MAPPOConfig.seed)")
     add_output_args(parser)
     args = parser.parse_args(argv)
     settings = [s.strip() for s in args.settings.split(",") if s.strip()]

@@ -14,7 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from bench.generalization import LAYOUTS, judge, layout, main  # noqa: E402
+from bench.generalization import LAYOUTS, judge, layout, main, trials  # noqa: E402
 from tests.xdist_groups import RAY  # noqa: E402
 
 
@@ -44,9 +44,7 @@ def test_a_negative_penalty_curriculum_exits_2_naming_the_flag():
 
 
 def test_the_generalist_alone_trains_with_the_penalty_curriculum(tmp_path):
-    from bench.generalization import trials
-
-    args = types.SimpleNamespace(seeds=2, team_sizes=[3, 4, 5], budget=3200, update_epochs=4,
+    args = types.SimpleNamespace(seeds=[0, 1], team_sizes=[3, 4, 5], budget=3200, update_epochs=4,
                                  distribution=None, penalty_curriculum=3.0, config={"actor": {"token_layers": 1}})
     by_group = {(s.group, s.seed): s.fields for s in trials(args, tmp_path)}
     assert {k: f["penalty_curriculum"] for k, f in by_group.items()} == {
@@ -69,7 +67,7 @@ def test_a_policy_is_judged_on_every_cell_of_the_grid_in_both_worlds(tmp_path):
     small = {"embed_dim": 16, "num_heads": 2, "hidden_sizes": [32]}
     run = train(MAPPOConfig(num_envs=2, total_episodes=2, eval_episodes=2, progress=False,
                             actor=dict(small), critic=dict(small)), tmp_path / "run")
-    args = types.SimpleNamespace(layouts=list(LAYOUTS), robots=[1, 3], episodes=2, pymunk_episodes=1,
+    args = types.SimpleNamespace(layouts=list(LAYOUTS), robots=[1, 3], eval_episodes=2, pymunk_episodes=1,
                                  capture_radius=[None, 0.06])
     rows = judge(run.checkpoint, args)
     cells = {(r["layout"], r["robots"], r["world"], r.get("capture_radius"), r.get("stall_radius")) for r in rows}
@@ -88,7 +86,7 @@ def test_given_policies_are_judged_without_training_and_bad_ones_exit_2(tmp_path
                             actor=dict(small), critic=dict(small)), tmp_path / "run")
     bench = [sys.executable, str(ROOT / "bench" / "generalization.py")]
     proc = subprocess.run([*bench, "--policies", run.checkpoint, "--layouts", "transport", "--robots", "2",
-                           "--episodes", "1", "--pymunk-episodes", "1", "--json", "--out", str(tmp_path / "none")],
+                           "--eval-episodes", "1", "--pymunk-episodes", "1", "--json", "--out", str(tmp_path / "none")],
                           capture_output=True, text=True, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(proc.stdout)
@@ -154,3 +152,62 @@ def test_a_negative_pymunk_episode_count_exits_2_naming_the_flag(capsys):
     with pytest.raises(SystemExit) as info:
         main(["--pymunk-episodes", "-1", "--policies", str(ROOT / "no-such-checkpoint.pt")])
     assert info.value.code == 2 and "argument --pymunk-episodes" in capsys.readouterr().err
+
+
+class _Parsed(Exception):
+    """Raised by the stand-in for :func:`bench.generalization.trials`: carries the parsed args."""
+
+
+def _parsed(argv, monkeypatch):
+    import bench.generalization as generalization
+
+    def trials(args, out):
+        raise _Parsed(args)
+
+    monkeypatch.setattr(generalization, "trials", trials)
+    with pytest.raises(_Parsed) as parsed:
+        main(argv)
+    return parsed.value.args[0]
+
+
+def test_seeds_and_team_sizes_take_the_syntax_of_sweep_and_train(tmp_path, monkeypatch, capsys):
+    """--seeds as `formation sweep --seeds` (a count K still means 0..K-1), --team-sizes as
+    `formation train --team-sizes` (a list or a range), --eval-episodes for the grid's episodes."""
+    args = _parsed(["--seeds", "2-3", "--team-sizes", "3-5", "--eval-episodes", "7", "--out", str(tmp_path)],
+                   monkeypatch)
+    assert (args.seeds, args.team_sizes, args.eval_episodes) == ([2, 3], [3, 4, 5], 7)
+    assert _parsed(["--seeds", "0,5", "--out", str(tmp_path)], monkeypatch).seeds == [0, 5]
+    defaults = _parsed(["--out", str(tmp_path)], monkeypatch)
+    assert (defaults.seeds, defaults.team_sizes, defaults.eval_episodes) == ([0, 1, 2], [3, 4, 5], 100)
+    assert capsys.readouterr().err == ""
+    assert [(s.group, s.seed) for s in trials(args, tmp_path)] == [
+        ("generalist", 2), ("specialist", 2), ("generalist", 3), ("specialist", 3)]
+
+
+def test_episodes_still_sets_the_eval_episodes_and_warns(tmp_path, monkeypatch, capsys):
+    assert _parsed(["--episodes", "7", "--out", str(tmp_path)], monkeypatch).eval_episodes == 7
+    assert capsys.readouterr().err == "warning: --episodes is deprecated; use --eval-episodes\n"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--config", '{"nope": 1}'], "error: --config: unknown config field(s) ['nope']"),
+    (["--config", '{"lr": -1}'], "error: --config: lr must be"),
+    (["--distribution", "nope"], "error: --distribution: distribution 'nope' is neither"),
+    (["--team-sizes", "3,30"], "error: --team-sizes: team_sizes must be"),
+])
+def test_a_value_the_trainer_refuses_exits_2_naming_its_flag_before_any_run(argv, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([*argv, "--seeds", "1", "--out", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and message in err
+    assert "the base config" not in err and "Traceback" not in err and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("argv, flag", [(["--seeds", "1,1"], "--seeds"), (["--team-sizes", "0"], "--team-sizes"),
+                                        (["--out", "FILE"], "--out")])
+def test_bad_seeds_team_sizes_or_an_out_that_is_a_file_exit_2_naming_the_flag(argv, flag, tmp_path, capsys):
+    (tmp_path / "FILE").write_text("")
+    argv = [str(tmp_path / a) if a == "FILE" else a for a in argv]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2 and f"argument {flag}" in capsys.readouterr().err

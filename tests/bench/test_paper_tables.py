@@ -89,3 +89,61 @@ def test_budget_scale_must_be_finite_and_positive(scale, tmp_path, capsys):
         main(["--settings", "sdpa-3", "--seeds", "1", "--budget-scale", scale, "--out", str(tmp_path)])
     assert info.value.code == 2 and "--budget-scale" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())         # no run started
+
+
+def _fake_training(monkeypatch) -> list[tuple]:
+    """``train_all`` replaced by one that records (phase, cpus, [(setting, seed)]) and reports
+    every run converged at 100 episodes."""
+    import bench.paper_tables as paper_tables
+
+    calls = []
+
+    def train_all(specs, out, cpus, phase):
+        calls.append((phase, cpus, [(s.group, s.seed) for s in specs]))
+        return {(s.group, s.seed): {"group": s.group, "seed": s.seed, "converged": True, "episodes": 100,
+                                    "env_steps": 12_800, "wall_s": 1.0} for s in specs}
+
+    monkeypatch.setattr(paper_tables, "train_all", train_all)
+    return calls
+
+
+@pytest.mark.parametrize("seeds, expected", [("3,7", [3, 7]), ("2-3", [2, 3]), ("2", [0, 1])])
+def test_seeds_take_sweeps_syntax_and_cpus_sets_the_trials_at_a_time(seeds, expected, tmp_path, monkeypatch,
+                                                                     capsys):
+    """--seeds as `formation sweep --seeds` (a count K still means 0..K-1); --cpus as sweep's."""
+    calls = _fake_training(monkeypatch)
+    assert main(["--seeds", seeds, "--settings", "mlp-3", "--cpus", "3", "--out", str(tmp_path), "--json"]) == 0
+    assert calls == [("scratch", 3, [("mlp-3", s) for s in expected])]
+    out = capsys.readouterr()
+    assert json.loads(out.out)["rows"][0]["seeds"] == len(expected) and "warning" not in out.err
+
+
+def test_jobs_still_sets_the_cpus_and_warns(tmp_path, monkeypatch, capsys):
+    calls = _fake_training(monkeypatch)
+    assert main(["--jobs", "3", "--seeds", "1", "--settings", "mlp-3", "--out", str(tmp_path), "--json"]) == 0
+    assert calls[0][1] == 3
+    assert "warning: --jobs is deprecated; use --cpus\n" in capsys.readouterr().err
+
+
+def test_a_bad_config_exits_2_naming_the_flag_before_any_run(tmp_path, monkeypatch, capsys):
+    calls = _fake_training(monkeypatch)
+    with pytest.raises(SystemExit) as info:
+        main(["--config", '{"nope": 1}', "--settings", "sdpa-3,transfer-3to4", "--seeds", "1",
+              "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "error: --config: unknown config field(s) ['nope']" in err
+    assert "the base config" not in err and "Traceback" not in err
+    assert calls == [] and not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("argv, flag", [(["--seeds", "10000000000"], "--seeds"),   # refused, not built
+                                        (["--seeds", "4294967296,"], "--seeds"),   # a seed past 2**32 - 1
+                                        (["--seeds", "0"], "--seeds"),
+                                        (["--out", "FILE"], "--out")])
+def test_bad_seeds_or_an_out_that_is_a_file_exit_2_naming_the_flag(argv, flag, tmp_path, monkeypatch, capsys):
+    calls = _fake_training(monkeypatch)
+    (tmp_path / "FILE").write_text("")
+    argv = [str(tmp_path / a) if a == "FILE" else a for a in argv]
+    with pytest.raises(SystemExit) as info:
+        main(["--settings", "mlp-3", *argv])
+    assert info.value.code == 2 and f"argument {flag}" in capsys.readouterr().err and calls == []

@@ -17,8 +17,8 @@ import _safety_clutter  # noqa: E402
 @pytest.mark.slow
 def test_safety_bench_json_shape():
     out = subprocess.run(
-        [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--steps", "15",
-         "--workers", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5",
+        [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--episodes", "4", "--episode-ticks", "15",
+         "--cpus", "1", "--mec-episodes", "1", "--robots", "3,5", "--ticks", "20", "--warmup", "5",
          "--conditions", "delay2,frozen_robot", "--condition-episodes", "2", "--task-episodes", "1",
          "--intruder-conditions", "clean", "--intruder-episodes", "1", "--clutter-discs", "0,10",
          "--clutter-episodes", "1"],
@@ -32,7 +32,7 @@ def test_safety_bench_json_shape():
     assert clutter["10"]["max_discs_in_qp"] <= 10
     assert list(doc["intruders"]) == ["clean"] and doc["intruders"]["clean"]["scripted"]["episodes"] == 1
     inv = doc["invariance"]
-    assert inv["episodes"] == 4
+    assert inv["episodes"] == 4 and inv["steps"] == 15     # the key other tools read, as before
     assert inv["collisions_filter_on"] <= inv["collisions_filter_off"] <= 4
     mec = doc["mec"]
     assert mec["tracking_error_without"] > 0 and mec["tracking_error_with"] >= 0
@@ -84,8 +84,8 @@ def test_safety_bench_rejects_an_unknown_condition():
 def test_safety_bench_narrows_the_latency_bound_of_the_stack_columns_as_asked():
     out = subprocess.run(
         [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--only", "conditions", "--conditions", "clean",
-         "--condition-episodes", "1", "--task-episodes", "1", "--mec-episodes", "1", "--steps", "5",
-         "--workers", "1", "--command-delay-ms", "50"],
+         "--condition-episodes", "1", "--task-episodes", "1", "--mec-episodes", "1", "--episode-ticks", "5",
+         "--cpus", "1", "--command-delay-ms", "50"],
         cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
     doc = json.loads(out.stdout)
     assert doc["stack_config"]["latency"]["command_delay_s"] == 0.05
@@ -100,7 +100,7 @@ def test_safety_bench_intruders_part_runs_both_stacks_on_the_same_intruders():
     stack keeping clear of what the bare run drives into on the same seeds."""
     out = subprocess.run(
         [sys.executable, str(REPO / "bench" / "safety.py"), "--json", "--only", "intruders",
-         "--intruder-conditions", "delay2", "--intruder-episodes", "3", "--workers", "1", "--seed", "3"],
+         "--intruder-conditions", "delay2", "--intruder-episodes", "3", "--cpus", "1", "--seed", "3"],
         cwd=REPO, capture_output=True, text=True, check=True, timeout=300)
     doc = json.loads(out.stdout)
     row = doc["intruders"]["delay2"]["scripted"]
@@ -206,3 +206,25 @@ def test_clutter_stacks_take_turns_to_go_first(monkeypatch):
     rows = _safety_clutter.run_clutter([0], episodes=1, ticks=4, seed=0)
     assert rows["0"]["ticks"] == 4
     assert calls == ["all", "pruned", "pruned", "all", "all", "pruned", "pruned", "all"]
+
+
+def _parse(argv):
+    import safety
+
+    return safety._parser().parse_args(argv)
+
+
+def test_ticks_per_episode_and_processes_are_episode_ticks_and_cpus(capsys):
+    """One name per concept across the commands: --episode-ticks (ticks in one episode, as the
+    bridge's) and --cpus (as sweep's and the other benches')."""
+    args = _parse(["--episode-ticks", "5", "--cpus", "3"])
+    assert (args.episode_ticks, args.cpus) == (5, 3) and capsys.readouterr().err == ""
+    defaults = _parse([])
+    assert (defaults.episode_ticks, defaults.cpus) == (60, 2)
+
+
+@pytest.mark.parametrize("old, new", [(["--steps", "5"], ["--episode-ticks", "5"]),
+                                      (["--workers", "3"], ["--cpus", "3"])])
+def test_the_old_spellings_still_work_and_warn(old, new, capsys):
+    assert _parse(old) == _parse(new)
+    assert capsys.readouterr().err == f"warning: {old[0]} is deprecated; use {new[0]}\n"

@@ -112,3 +112,10 @@ def test_missing_vmas_exits_nonzero_and_names_the_fix():
     assert proc.returncode == 2
     assert proc.stdout == ""
     assert "vmas" in proc.stderr and "--no-peer" in proc.stderr and "[bench]" in proc.stderr
+
+
+@pytest.mark.parametrize("argv, peer", [([], True), (["--peer"], True), (["--no-peer"], False),
+                                        (["--no-peer", "--peer"], True)])
+def test_the_peer_is_an_on_off_flag_on_by_default(argv, peer):
+    """--peer/--no-peer, the spelling of every on/off setting: the last one given wins."""
+    assert bench.build_parser().parse_args(argv).peer is peer
