@@ -52,55 +52,41 @@ def seconds(text: str) -> float:
     return value
 
 
-def _number(text: str, what: str) -> float:
-    """``text`` as a finite float; ArgumentTypeError saying ``what`` is expected."""
+def _number(text: str, what: str, ok=lambda value: True) -> float:
+    """``text`` as a finite float for which ``ok`` holds; ArgumentTypeError saying ``what`` is
+    expected (quoting ``text`` as typed) otherwise."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-    if not math.isfinite(value):
+        value = math.nan
+    if not (math.isfinite(value) and ok(value)):
         raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
     return value
 
 
 def positive_seconds(text: str) -> float:
     """A finite number of seconds > 0 (a timeout, a watchdog's delay)."""
-    value = _number(text, "seconds, a finite number > 0")
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected seconds, a finite number > 0, got {text!r}")
-    return value
+    return _number(text, "seconds, a finite number > 0", lambda v: v > 0)
 
 
 def milliseconds(text: str) -> float:
     """A finite number of milliseconds >= 0; an error quotes the value as typed, in ms."""
-    value = _number(text, "milliseconds, a finite number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected milliseconds, a finite number >= 0, got {text!r}")
-    return value
+    return _number(text, "milliseconds, a finite number >= 0", lambda v: v >= 0)
 
 
 def hertz(text: str) -> float:
     """A rate [Hz]: a finite number > 0."""
-    value = _number(text, "a rate in Hz, a finite number > 0")
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a rate in Hz, a finite number > 0, got {text!r}")
-    return value
+    return _number(text, "a rate in Hz, a finite number > 0", lambda v: v > 0)
 
 
 def probability(text: str) -> float:
     """A probability in [0, 1) (1 would drop everything)."""
-    value = _number(text, "a probability in [0, 1)")
-    if not 0 <= value < 1:
-        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1), got {text!r}")
-    return value
+    return _number(text, "a probability in [0, 1)", lambda v: 0 <= v < 1)
 
 
 def percentile(text: str) -> float:
     """A percentile in [50, 100] (a bound on a delay: the median or above)."""
-    value = _number(text, "a percentile in [50, 100]")
-    if not 50 <= value <= 100:
-        raise argparse.ArgumentTypeError(f"expected a percentile in [50, 100], got {text!r}")
-    return value
+    return _number(text, "a percentile in [50, 100]", lambda v: 50 <= v <= 100)
 
 
 def int_range(low: int, high: int | None = None):
