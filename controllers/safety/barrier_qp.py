@@ -136,7 +136,7 @@ class _Problem:
         dyn = scenario.dynamics
         self.scene = CollisionScene(scenario, n)
         self.checker = SweepChecker(self.scene.object_parts, scenario.robot_radius, scenario.arena,
-                                    dyn, config.postcheck_margin)
+                                    dyn, config.postcheck_margin, object_pieces=self.scene.object_pieces)
         self.fused = FusedScene(scenario.robot_radius, scenario.arena, dyn, config, n)
         pi, pj = np.triu_indices(n, 1)
         p = len(pi)

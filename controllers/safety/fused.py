@@ -260,7 +260,8 @@ class FusedScene:
         near = terms.object_distance() - m <= travel + _SLACK
         if np.count_nonzero(near):
             for i in np.flatnonzero(near):
-                bad[i] |= checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m
+                if checker.capsule_clearance(pos[i], end[i], r + bulge[i] + widen[i]) < m:
+                    bad[i] |= not checker.object_excused(i, pos, vel, acc, brake, grow, vel_error)
         return bad
 
     def _sweep(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, widen: np.ndarray,

@@ -250,6 +250,7 @@ class CollisionScene:
         self.robots = [fcl.CollisionObject(g, fcl.Transform()) for g in self.robot_geoms]
         pieces = ([self.polygon_local] if is_convex_ccw(self.polygon_local)
                   else ear_clip(self.polygon_local))
+        self.pieces_local = [np.asarray(p, dtype=np.float64) for p in pieces]
         self.object_geoms = [_prism(p) for p in pieces]
         self.object_parts = [fcl.CollisionObject(g, fcl.Transform()) for g in self.object_geoms]
         w, h, t = self.arena[0], self.arena[1], _WALL_THICKNESS
@@ -279,6 +280,13 @@ class CollisionScene:
             part.setTransform(fcl.Transform(rot3, np.array([pose[0], pose[1], 0.0])))
         self.polygon = self.polygon_local @ rot2.T + pose[:2]
         self.object_pose = np.asarray(pose, dtype=np.float64).copy()
+
+    def object_pieces(self) -> list[np.ndarray]:
+        """The object's convex pieces (its FCL parts) as (K, 2) counter-clockwise vertices in the
+        world frame [m], at the current pose."""
+        c, s = np.cos(self.object_pose[2]), np.sin(self.object_pose[2])
+        rot2 = np.array([[c, -s], [s, c]])
+        return [p @ rot2.T + self.object_pose[:2] for p in self.pieces_local]
 
     def set_object_pose(self, pose: np.ndarray) -> None:
         """Move the object to pose (x, y, theta) [m, rad] alone (the robots stay where they are)."""

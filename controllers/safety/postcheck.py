@@ -38,9 +38,18 @@ direction). ``|x + y|^2 = |x|^2 + 2 x . y + |y|^2 >= |x|^2`` whenever ``x . y >=
 so a pair whose right-hand side is >= 0 (and ``Delta != 0``) keeps at least the brake's distance
 throughout (:func:`no_worse_than_braking`). A wall is a plane: the command's distance minus the
 brake's is ``n . Delta_i t^2 / 2`` exactly, so ``n . Delta_i >= 0`` suffices, whatever the
-errors (:func:`no_worse_walls`). Robots that are not the post-check's to brake (fixed ones)
-keep their command in both. The object is not excused (its nearest direction is not one
-vector).
+errors (:func:`no_worse_walls`). The object is a union of convex pieces ``P_k`` (its FCL
+parts); the distance to a convex set is a convex function, so with ``g(x)`` its gradient (the
+outward normal of the face or corner nearest ``x``) ``dist(x + y, P) >= dist(x, P) + g(x) . y``.
+The command's path is the brake's plus ``Delta_i t^2 / 2``, so it keeps at least the brake's
+distance to ``P`` whenever ``g . Delta_i >= 0`` for every gradient the brake's path can meet:
+its centres lie within ``rho = grow + (|v| + u) dt + (|a_b - c v| + c u) dt^2 / 2`` of the
+predicted start ``p``, their nearest points within ``dist(p, P) + 2 rho`` of ``p``, and a
+corner's normals lie between those of its two faces. So the object is excused when ``Delta_i``
+points into none of the faces within that reach, on every piece that can be the nearest (a
+piece at ``dist(p, P_k) >= min_j dist(p, P_j) + 2 rho + |Delta_i| dt^2 / 2`` cannot be:
+:func:`no_worse_object`). A robot whose centre may be inside a piece is not excused. Robots
+that are not the post-check's to brake (fixed ones) keep their command in all three.
 
 A robot that fails a check gets the maximum-braking command (both robots of a failing pair), and
 the check repeats until nothing changes, because a braking robot can block one behind it.
@@ -52,6 +61,7 @@ to the actuator limit along the same direction (so a slow robot stops instead of
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import fcl
@@ -120,6 +130,37 @@ def no_worse_walls(diff: np.ndarray) -> np.ndarray:
     return moved & (np.stack([diff[:, 0], -diff[:, 0], diff[:, 1], -diff[:, 1]], axis=1) >= 0.0)
 
 
+def no_worse_object(start: np.ndarray, diff: np.ndarray, rho: float, pieces: list[np.ndarray],
+                    dt: float) -> bool:
+    """True when a robot whose command minus brake is ``diff`` (2,) [m/s^2] keeps at least the
+    brake's distance to every convex piece (K, 2) (counter-clockwise, [m]) all tick long: no
+    face within reach of the brake's path, whose centres lie within ``rho`` [m] of ``start``
+    (2,) [m], has ``n . diff < 0`` (module docstring)."""
+    norm = float(np.hypot(*diff))
+    if norm <= 1e-12 or not pieces:
+        return False
+    near, dists = [], []
+    for piece in pieces:
+        a, b = piece, np.roll(piece, -1, axis=0)
+        edge = b - a
+        length2 = np.sum(edge * edge, axis=1)
+        t = np.clip(np.sum((start - a) * edge, axis=1) / length2, 0.0, 1.0)
+        d = np.hypot(*(start - (a + t[:, None] * edge)).T)                  # (K,) to each face
+        normal = np.stack([edge[:, 1], -edge[:, 0]], 1) / np.sqrt(length2)[:, None]
+        if np.all(np.sum((start - a) * normal, axis=1) <= 0.0):             # inside the piece
+            return False
+        near.append((d, normal))
+        dists.append(float(d.min()))
+    closest = min(dists)
+    for (d, normal), dist in zip(near, dists, strict=True):
+        if dist >= closest + 2 * rho + 0.5 * norm * dt * dt:
+            continue                                                       # never the nearest
+        faces = d <= dist + 2 * rho
+        if np.any(normal[faces] @ diff < 0.0):
+            return False
+    return True
+
+
 def excuses(pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, brake: np.ndarray, pi: np.ndarray,
             pj: np.ndarray, grow: np.ndarray | None, vel_error: np.ndarray | None,
             dynamics: Dynamics) -> tuple[np.ndarray, np.ndarray]:
@@ -178,12 +219,16 @@ class SweepChecker:
     Args:
         object_parts: FCL collision objects of the object (posed), see
             :class:`controllers.safety.geometry.CollisionScene`.
+        object_pieces: returns those parts as convex counter-clockwise (K, 2) polygons in the
+            world frame [m] (``CollisionScene.object_pieces``), for the object's excuse.
         radius: disc radius [m]; arena: (W, H) [m]; dynamics: the plant model; margin [m].
     """
 
     def __init__(self, object_parts: list[fcl.CollisionObject], radius: float,
-                 arena: tuple[float, float], dynamics: Dynamics, margin: float = 0.0):
+                 arena: tuple[float, float], dynamics: Dynamics, margin: float = 0.0,
+                 object_pieces: Callable[[], list[np.ndarray]] | None = None):
         self.object_parts = object_parts
+        self.object_pieces = object_pieces    # the parts' convex polygons now; None: no object excuse
         self.radius = radius
         self.arena = arena
         self.dynamics = dynamics
@@ -229,8 +274,26 @@ class SweepChecker:
         bad |= np.any(wall_hit, axis=1)
         travel = np.hypot(*(end - pos).T) + bulge
         for i in np.flatnonzero(object_clearance - m <= travel):
-            bad[i] |= self.capsule_clearance(pos[i], end[i], r + bulge[i]) < m
+            if self.capsule_clearance(pos[i], end[i], r + bulge[i]) < m:
+                bad[i] |= not self.object_excused(i, pos, vel, acc, brake, grow, vel_error)
         return bad
+
+    def object_excused(self, i: int, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
+                       brake: np.ndarray | None, grow: np.ndarray | None,
+                       vel_error: np.ndarray | None) -> bool:
+        """Whether robot ``i``'s command is no worse than ``brake`` against the object (module
+        docstring; arguments as :meth:`failing`); False without a brake or object pieces."""
+        if brake is None or self.object_pieces is None:
+            return False
+        dyn, dt = self.dynamics, self.dynamics.dt
+        one = slice(i, i + 1)
+        a_cmd, a_brake = clip_norm(acc[one], dyn.accel_limit), clip_norm(brake[one], dyn.accel_limit)
+        if not (_below_speed_limit(vel[one], a_cmd, dyn) & _below_speed_limit(vel[one], a_brake, dyn))[0]:
+            return False
+        u = 0.0 if vel_error is None else float(vel_error[i])
+        rho = ((0.0 if grow is None else float(grow[i])) + (float(np.hypot(*vel[i])) + u) * dt
+               + (float(np.hypot(*(a_brake[0] - dyn.damping * vel[i]))) + dyn.damping * u) * 0.5 * dt * dt)
+        return no_worse_object(pos[i], a_cmd[0] - a_brake[0], rho, self.object_pieces(), dt)
 
     def capsule_clearance(self, start: np.ndarray, end: np.ndarray, radius: float) -> float:
         """FCL distance between the object and the disc of ``radius`` swept from start to end [m]:

@@ -266,3 +266,67 @@ def test_a_disc_touching_the_object_is_reported_without_aborting_the_process():
     touching, apart = np.array(out).T
     assert (touching <= 1e-9).all() and (touching < 0).any(), touching
     np.testing.assert_allclose(apart, 1e-3, atol=1e-4)
+
+
+L_SHAPE = transport_scenario(1, object_vertices=[(0.35, 0.35), (0.65, 0.35), (0.65, 0.45), (0.45, 0.45),
+                                                   (0.45, 0.65), (0.35, 0.65)])
+
+
+def _distance_to_pieces(points: np.ndarray, pieces: list[np.ndarray]) -> np.ndarray:
+    """(T,) distance of (T, 2) points to the union of convex counter-clockwise pieces (0 inside)."""
+    best = np.full(len(points), np.inf)
+    for piece in pieces:
+        a, b = piece, np.roll(piece, -1, axis=0)
+        edge = b - a
+        rel = points[:, None, :] - a[None]
+        t = np.clip(np.sum(rel * edge, -1) / np.sum(edge * edge, -1), 0.0, 1.0)
+        d = np.hypot(*(rel - t[..., None] * edge).transpose(2, 0, 1)).min(1)
+        inside = (edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0] >= 0).all(1)
+        best = np.minimum(best, np.where(inside, 0.0, d))
+    return best
+
+
+@settings(max_examples=400, deadline=None)
+@given(shape=st.sampled_from(["box", "L"]), at=vec, v=vec, a=vec, g=st.floats(0.0, 0.02),
+       u=st.floats(0.0, 0.1), seed=st.integers(0, 2**31))
+def test_an_object_excuse_keeps_at_least_the_brakes_distance_from_any_state_it_may_truly_be_in(
+        shape, at, v, a, g, u, seed):
+    """Whenever the post-check excuses the object, every true position within ``grow`` of the
+    predicted one and velocity within ``vel_error`` keep the command's continuous path at least
+    as far from the object (each convex piece of it) as the brake's, all tick long."""
+    sc = SCENARIO if shape == "box" else L_SHAPE
+    scene = CollisionScene(sc, 1)
+    checker = SweepChecker(scene.object_parts, R, sc.arena, DYN, object_pieces=scene.object_pieces)
+    pos = np.array([[0.5, 0.5]]) + 0.25 * np.array([at])
+    vel, acc = 0.3 * np.array([v]), np.array([a])
+    brake = DYN.brake(vel)
+    if not checker.object_excused(0, pos, vel, acc, brake, np.array([g]), np.array([u])):
+        return
+    pieces = scene.object_pieces()
+    a_cmd, a_brake = postcheck.clip_norm(acc, DYN.accel_limit)[0], brake[0]
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, DYN.dt, 26)[:, None]
+    for _ in range(20):
+        off, delta = rng.normal(size=2), rng.normal(size=2)
+        off *= g * rng.uniform() ** 0.5 / max(np.hypot(*off), 1e-12)
+        delta *= u * rng.uniform() ** 0.5 / max(np.hypot(*delta), 1e-12)
+        p0, v0 = pos[0] + off, vel[0] + delta
+        braking = p0 + v0 * t + 0.5 * (a_brake - DYN.damping * v0) * t**2
+        command = braking + 0.5 * (a_cmd - a_brake) * t**2
+        assert (_distance_to_pieces(command, pieces) >= _distance_to_pieces(braking, pieces) - 1e-12).all()
+
+
+@pytest.mark.parametrize("sc", [SCENARIO, L_SHAPE], ids=["box", "L"])
+def test_a_robot_at_rest_beside_the_object_may_leave_but_not_go_further_in(sc):
+    """Robots at rest 3 mm off a face (or the L's inner floor), grown by 6 mm: every command used
+    to be braked, straight away from the object too, so a robot parked there never left."""
+    pos = np.array([[0.5, 0.65 + R + 0.003]]) if sc is SCENARIO else np.array([[0.55, 0.45 + R + 0.003]])
+    scene = CollisionScene(sc, 1)
+    scene.update(pos)
+    checker = SweepChecker(scene.object_parts, R, sc.arena, DYN, object_pieces=scene.object_pieces)
+    clearance, vel = scene.distances().object_distance, np.zeros((1, 2))
+    for away, braked in (([0.0, 1.0], False), ([0.7, 0.7], False), ([0.0, -1.0], True), ([1.0, -0.2], True)):
+        out = checker.check(pos, vel, np.array([away]), clearance, grown(pos, 0.006))
+        assert out.braked.tolist() == [braked], away
+    bare = SweepChecker(scene.object_parts, R, sc.arena, DYN)      # no pieces: no excuse (before)
+    assert bare.check(pos, vel, np.array([[0.0, 1.0]]), clearance, grown(pos, 0.006)).braked.tolist() == [True]
