@@ -397,3 +397,28 @@ def test_the_command_history_holds_what_was_sent_whatever_the_link_overrode(tick
     history = stack.predictor._history[-depth:]
     np.testing.assert_allclose(history, np.array(sent[-depth:]), atol=1e-12)
     np.testing.assert_array_equal(stack.predictor._braked[-depth:], np.array(flags[-depth:]))
+
+
+@pytest.mark.parametrize("excuse", [True, False])
+def test_robots_parked_beside_the_object_leave_it(excuse, monkeypatch):
+    """Three robots at rest 3 mm off the box's faces (a valid scenario, no jitter): the default
+    stack brought none of them anywhere (every command braked by the post-check, the object
+    unexcused) where bare they succeed; with the object's excuse they leave and arrive."""
+    from controllers.safety import postcheck
+    from sim.scenario import Scenario, rectangle
+
+    if not excuse:
+        monkeypatch.setattr(postcheck.SweepChecker, "object_excused", lambda self, *args: False)
+    r, gap = 0.04, 0.003
+    sc = Scenario(name="beside-object", num_robots=3,
+                  start_slots=((0.5, 0.65 + r + gap), (0.6 + r + gap, 0.5), (0.5, 0.35 - r - gap)),
+                  target_slots=((0.2, 0.85), (0.85, 0.85), (0.2, 0.15)),
+                  object_vertices=rectangle((0.5, 0.5), (0.2, 0.3)), start_jitter=0.0)
+    world = PymunkWorld(sc)
+    metrics = run_episode(world, ControlStack(sc, ScriptedController(sc), StackConfig()), 0)
+    moved = np.linalg.norm(world.true_state().positions - np.asarray(sc.starts), axis=1)
+    assert not metrics.collided
+    if excuse:
+        assert metrics.success and moved.min() > 0.3
+    else:
+        assert moved.max() < 0.005
