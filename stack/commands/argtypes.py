@@ -153,30 +153,27 @@ def out_folder(text: str) -> Path:
     return path
 
 
-def out_file(text: str) -> Path:
-    """An output file (e.g. ``eval --report``): not an existing folder, nor under a file; refused
-    before any work starts."""
+def _new_path(text: str, what: str, example: str) -> Path:
+    """``text`` as a path to write: not an existing folder (give ``what``, e.g. ``example`` in
+    it), nor under a file; refused before any work starts."""
     path = Path(text)
     if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file name, e.g. "
-                                         f"{path / 'result.json'}")
+        raise argparse.ArgumentTypeError(f"{path}: is a folder; give {what}, e.g. {path / example}")
     problem = _blocked_by_a_file(path)
     if problem:
         raise argparse.ArgumentTypeError(f"{path}: {problem}")
     return path
+
+
+def out_file(text: str) -> Path:
+    """An output file (e.g. ``eval --report``): not an existing folder, nor under a file."""
+    return _new_path(text, "a file name", "result.json")
 
 
 def out_stem(text: str) -> Path:
     """An output stem (``export --out policy``: policy.onnx, policy.pt, ... beside each other):
-    not an existing folder, nor under a file; refused before any work starts."""
-    path = Path(text)
-    if path.is_dir():
-        raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file stem in it, e.g. "
-                                         f"{path / 'policy'}")
-    problem = _blocked_by_a_file(path)
-    if problem:
-        raise argparse.ArgumentTypeError(f"{path}: {problem}")
-    return path
+    not an existing folder, nor under a file."""
+    return _new_path(text, "a file stem in it", "policy")
 
 
 INTRUDER_HELP = ("a disc the robots must keep clear of, seen by a tracker: radius=R,x=X,y=Y[,vx=VX,vy=VY]"
