@@ -67,7 +67,7 @@ def numpy_stack(stack: ControlStack, n: int) -> ControlStack:
     stack.docking = NumpyDocking(stack.scenario.robot_radius, dyn.accel_limit, cfg.docking)
     problem = stack.safety.problem(n)
     old = problem.fused
-    problem.fused = NumpyFusedScene(old.radius, old.arena, old.dynamics, old.config, old.n)
+    problem.fused = NumpyFusedScene(old.radius, old.arena, old.dynamics, old.config, old.n, old.pieces)
 
     def numpy_tokens(self, state):
         array, tensor, mask = self._buffers[state.num_robots]

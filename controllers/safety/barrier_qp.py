@@ -137,17 +137,19 @@ class _Problem:
         self.scene = CollisionScene(scenario, n)
         self.checker = SweepChecker(self.scene.object_parts, scenario.robot_radius, scenario.arena,
                                     dyn, config.postcheck_margin, object_pieces=self.scene.object_pieces)
-        self.fused = FusedScene(scenario.robot_radius, scenario.arena, dyn, config, n)
+        q = self.pieces = len(self.scene.pieces_local)
+        self.fused = FusedScene(scenario.robot_radius, scenario.arena, dyn, config, n, q)
         pi, pj = np.triu_indices(n, 1)
         p = len(pi)
-        self.num_barrier = p + 5 * n
+        self.num_barrier = p + n * q + 4 * n
         robots = np.arange(n)
+        object_robots = np.repeat(robots, q)
         # COO pattern: pair rows (4 entries), object rows (2), wall rows (1), box (1), diagonals (2).
-        rows = [np.repeat(np.arange(p), 4), np.repeat(p + robots, 2),
-                p + n + np.arange(4 * n), self.num_barrier + np.arange(2 * n),
+        rows = [np.repeat(np.arange(p), 4), np.repeat(p + np.arange(n * q), 2),
+                p + n * q + np.arange(4 * n), self.num_barrier + np.arange(2 * n),
                 np.repeat(self.num_barrier + 2 * n + np.arange(2 * n), 2)]
         cols = [np.stack([2 * pi, 2 * pi + 1, 2 * pj, 2 * pj + 1], 1).ravel(),
-                np.stack([2 * robots, 2 * robots + 1], 1).ravel(),
+                np.stack([2 * object_robots, 2 * object_robots + 1], 1).ravel(),
                 (2 * robots[:, None] + np.array([0, 0, 1, 1])).ravel(),
                 np.arange(2 * n),
                 np.repeat(2 * robots, 4) + np.tile([0, 1, 0, 1], n)]
@@ -169,7 +171,7 @@ class _Problem:
         self.lower = np.concatenate([np.zeros(self.num_barrier), -limits])
         self.upper = np.concatenate([np.full(self.num_barrier, np.inf), limits])
         self.solver = osqp.OSQP()
-        csc.data = self._ax(np.ones((p, 2)), np.ones((n, 2)))
+        csc.data = self._ax(np.ones((p, 2)), np.ones((n * q, 2)))
         self.solver.setup(sp.identity(2 * n, format="csc") * 2.0, np.zeros(2 * n), csc,
                           self.lower, self.upper, eps_abs=config.eps, eps_rel=config.eps,
                           max_iter=config.max_iter, polishing=True, warm_starting=True,
@@ -190,18 +192,19 @@ class _Problem:
         qp = self._reduced.get(key)
         if qp is None:
             qp = self._reduced[key] = ReducedQP(self.coo_rows, self.coo_cols, len(self.lower), self.num_barrier,
-                                                self.pair_i, self.pair_j, fixed, self.config)
+                                                self.pair_i, self.pair_j, fixed, self.config, self.pieces)
             while len(self._reduced) > MAX_CACHED_MASKS:
                 self._reduced.popitem(last=False)
         else:
             self._reduced.move_to_end(key)
         return qp
 
-    def posed_polygon(self, object_pose: np.ndarray | None) -> np.ndarray:
-        """The (M, 2) world polygon, re-posing the FCL object (and polygon) when the pose changed."""
+    def posed_pieces(self, object_pose: np.ndarray | None) -> list[np.ndarray]:
+        """The object's convex pieces in the world frame (the same list while the pose holds),
+        re-posing the FCL object when the pose changed."""
         if object_pose is not None and not np.array_equal(object_pose, self.scene.object_pose):
             self.scene.set_object_pose(object_pose)
-        return self.scene.polygon
+        return self.scene.pieces
 
     def solve(self, terms: BarrierTerms, a_nom: np.ndarray, tighten: float,
               fixed: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
@@ -284,7 +287,7 @@ class SafetyFilter:
             prob.scene.update(pos, object_pose)
             return prob.scene.distances()
         return analytic_distances(pos, self.scenario.robot_radius, self.scenario.arena,
-                                  prob.posed_polygon(object_pose))
+                                  prob.posed_pieces(object_pose))
 
     def barrier(self, pos: np.ndarray, vel: np.ndarray,
                 object_pose: np.ndarray | None = None) -> BarrierTerms:
@@ -292,7 +295,7 @@ class SafetyFilter:
         if self.config.geometry == "fused":
             pos, vel = np.asarray(pos, dtype=np.float64), np.asarray(vel, dtype=np.float64)
             prob = self.problem(len(pos))
-            return prob.fused.terms(pos, vel, prob.posed_polygon(object_pose))
+            return prob.fused.terms(pos, vel, prob.posed_pieces(object_pose))
         return barrier_terms(self.distances(pos, object_pose), vel, self.dynamics, self.config)
 
     def filter(self, pos: np.ndarray, vel: np.ndarray, a_nom: np.ndarray,
@@ -336,10 +339,10 @@ class SafetyFilter:
                 a_nom = np.where(fixed[:, None], 0.0, a_nom)
         dist: SceneDistances | None = None
         if fused:                                  # compiled: no floating-point warnings
-            terms = prob.fused.terms(pos, vel, prob.posed_polygon(object_pose), prediction)
+            terms = prob.fused.terms(pos, vel, prob.posed_pieces(object_pose), prediction)
             nominal, values = np.empty((n, 2)), np.empty(len(terms.bound))
             clearance, min_barrier, bounded, met = fused_kernels.screen(
-                terms.normal_xy, terms.pair_i, terms.pair_j, a_nom, float(self.dynamics.accel_limit),
+                terms.normal_xy, terms.row_i, terms.row_j, a_nom, float(self.dynamics.accel_limit),
                 terms.bound, terms.distance, terms.h, nominal, values)
         else:
             with np.errstate(over="ignore", invalid="ignore"):   # checked for finiteness just below
@@ -366,7 +369,7 @@ class SafetyFilter:
             if isinstance(terms, FusedTerms):
                 check = prob.fused.check(prob.checker, pos, vel, a, terms, prediction)
             else:
-                check = prob.checker.check(pos, vel, a, dist.object_distance, prediction)
+                check = prob.checker.check(pos, vel, a, dist.object_clearance(), prediction)
             a, braked, contact = check.acc, check.braked, check.contact
             if np.count_nonzero(braked):
                 status = SafetyStatus.FALLBACK_BRAKE
@@ -412,7 +415,7 @@ class SafetyFilter:
         if fixed is not None and fixed.any():
             # a robot inside a silent robot's grown disc gets out of it as fast as the other rows
             # allow: those rows give way first (the disc is a bound, the wall is a wall)
-            with_fixed = row_sums(fixed.astype(np.float64), terms.pair_i, terms.pair_j) > 0
+            with_fixed = row_sums(fixed.astype(np.float64), terms.pair_i, terms.pair_j, terms.pieces) > 0
             weight[with_fixed] *= FIXED_SLACK_DISCOUNT
         p_mat = 2.0 * np.diag(np.concatenate([np.ones(2 * n), weight[live]]))
         q_vec = np.concatenate([-2.0 * nominal.ravel(), np.zeros(k)])

@@ -9,8 +9,9 @@ prepared once per robot count N, so the cost per tick is a few dozen array opera
 The maths are those of :mod:`controllers.safety.barrier` and :mod:`controllers.safety.postcheck`;
 only the arrangement differs. Tests hold it equal to the FCL path on random scenes.
 
-Row layout (the one of :mod:`controllers.safety.barrier`, K = P + N + 4N rows): pairs ``i < j`` in
-``np.triu_indices`` order, robot-object rows, robot-wall rows robot-major. Every row ``k`` reads
+Row layout (the one of :mod:`controllers.safety.barrier`, K = P + N Q + 4N rows for an object of Q
+convex pieces): pairs ``i < j`` in ``np.triu_indices`` order, robot-object rows (one per robot and
+piece) and robot-wall rows, both robot-major. Every row ``k`` reads
 the robots through a gather matrix ``G`` (K, N) with ``+1`` at robot ``i_k`` and ``-1`` at robot
 ``j_k`` (pair rows only), so that for any (N, 2) array ``x`` the product ``G x`` is ``x_i - x_j``
 on pair rows and ``x_i`` on object and wall rows. With the unit normals ``n_k`` (stored as
@@ -24,7 +25,7 @@ planes (2, K)) and signed distances ``s_k``::
 Geometry per row (closed form, exact for discs, half-planes and simple polygons):
 
 * pairs: ``d = p_i - p_j``, ``s = |d| - 2r``, ``n = d / |d|``, ``kappa = 1 / |d|``;
-* object: each centre projected onto every polygon edge (clamped), the nearest projection
+* object, per convex piece: each centre projected onto every edge of the piece (clamped), the nearest projection
   gives the boundary point ``q``; inside by the edge cross products (convex polygon) or the
   crossing number (simple polygon); ``s = +-|p - q| - r``, ``n = +-(p - q) / |p - q|`` (minus
   inside), ``kappa = 1 / |p - q|`` when ``q`` is a vertex and ``p`` is outside, else 0;
@@ -56,8 +57,9 @@ import numpy as np
 from controllers.jit import f64, require_shapes
 from controllers.safety import fused_kernels
 from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
-from controllers.safety.geometry import WALL_NORMALS, is_convex_ccw
+from controllers.safety.geometry import WALL_NORMALS
 from controllers.safety.latency import Prediction
+from controllers.safety.polygon import is_convex_ccw
 from controllers.safety.postcheck import (
     PostcheckResult,
     SweepChecker,
@@ -79,12 +81,15 @@ class FusedTerms(BarrierTerms):
     Attributes (besides those of :class:`BarrierTerms`):
         normal_xy: (2, K) row normals as x and y planes.
         gather_t: (N, K) the transposed gather matrix ``G^T`` (module docstring).
+        row_i, row_j: (K,) the robots of every row (``row_j = -1`` on rows of one robot).
         distance: (K,) signed distances of every row [m].
         pair_delta: (2, P) centre differences ``p_i - p_j`` of the pairs [m].
     """
 
     normal_xy: np.ndarray = None        # type: ignore[assignment]
     gather_t: np.ndarray = None         # type: ignore[assignment]
+    row_i: np.ndarray = None            # type: ignore[assignment]
+    row_j: np.ndarray = None            # type: ignore[assignment]
     distance: np.ndarray = None         # type: ignore[assignment]
     pair_delta: np.ndarray = None       # type: ignore[assignment]
 
@@ -94,13 +99,17 @@ class FusedTerms(BarrierTerms):
             raise ValueError(f"FusedTerms.rows_times: u must have shape ({self.gather_t.shape[0]}, 2), "
                              f"got {u.shape}")
         out = np.empty(self.normal_xy.shape[1])
-        fused_kernels.rows_times(self.normal_xy, self.pair_i, self.pair_j, f64(u), out)
+        fused_kernels.rows_times(self.normal_xy, self.row_i, self.row_j, f64(u), out)
         return out
 
+    def row_robots(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.row_i, self.row_j
+
     def object_distance(self) -> np.ndarray:
-        """(N,) disc-object signed distances [m]."""
+        """(N,) disc-object signed distances [m] (the nearest piece of each robot)."""
         p = len(self.pair_i)
-        return self.distance[p:p + len(self.object_normal)]
+        rows = self.distance[p:p + len(self.object_normal)]
+        return rows if self.pieces == 1 else rows.reshape(-1, self.pieces).min(axis=1)
 
 
 class FusedScene:
@@ -110,20 +119,24 @@ class FusedScene:
         radius: disc radius r [m]; arena: (W, H) [m]; dynamics: the plant model.
         config: the filter settings (margin, gamma, class-K, braking share, floor, ...).
         num_robots: N >= 1.
+        pieces: Q >= 1, the convex pieces of the object (object rows per robot).
     """
 
     def __init__(self, radius: float, arena: tuple[float, float], dynamics: Dynamics,
-                 config: SafetyConfig, num_robots: int):
+                 config: SafetyConfig, num_robots: int, pieces: int = 1):
         n = self.n = int(num_robots)
+        q = self.pieces = int(pieces)
         self.radius, self.arena, self.dynamics, self.config = float(radius), arena, dynamics, config
         self.pair_i, self.pair_j = np.triu_indices(n, 1)
         p = self.p = len(self.pair_i)
-        k = self.k = p + 5 * n
+        self.wall_start = p + n * q
+        k = self.k = p + n * q + 4 * n
+        robots = np.arange(n)
+        self.row_i = np.concatenate([self.pair_i, np.repeat(robots, q), np.repeat(robots, 4)]).astype(np.int64)
+        self.row_j = np.concatenate([self.pair_j, np.full(k - p, -1)]).astype(np.int64)
         gather = np.zeros((k, n))
-        gather[np.arange(p), self.pair_i] = 1.0
+        gather[np.arange(k), self.row_i] = 1.0
         gather[np.arange(p), self.pair_j] = -1.0
-        gather[p + np.arange(n), np.arange(n)] = 1.0
-        gather[p + n + np.arange(4 * n), np.repeat(np.arange(n), 4)] = 1.0
         self.gather_t = np.ascontiguousarray(gather.T)                       # (N, K)
         self.pair_gather_t = np.ascontiguousarray(gather[:p].T)              # (N, P)
         self.pair_both_t = np.abs(self.pair_gather_t)                        # (N, P): e_i + e_j
@@ -139,6 +152,7 @@ class FusedScene:
         self.wall_offset = np.array([0.0, arena[0], 0.0, arena[1]]) - self.radius
         self.rows = np.arange(n)
         self._polygon: np.ndarray | None = None
+        self._shape_cache: dict[int, tuple] = {}
         self._wall_normal = WALL_NORMALS.copy()
         self._wall_normal_xy = np.tile(WALL_NORMALS.T, n)                    # (2, 4N) fixed
         self._wall_zeros = np.zeros(4 * n)
@@ -152,8 +166,19 @@ class FusedScene:
 
     # ------------------------------------------------------------------ polygon
     def _set_polygon(self, polygon: np.ndarray) -> None:
-        """Per-edge constants of the (M, 2) counter-clockwise polygon as (1, M) rows."""
-        self._polygon = polygon
+        """Per-edge constants of the (M, 2) counter-clockwise polygon as (1, M) rows (kept per
+        polygon object: the pieces of an object take turns)."""
+        hit = self._shape_cache.get(id(polygon))
+        if hit is None or hit[0] is not polygon:
+            if len(self._shape_cache) >= 4 * self.pieces + 4:
+                self._shape_cache.clear()
+            self._compute_shape(polygon)
+            hit = self._shape_cache[id(polygon)] = (polygon, self._edges, self._edge_rows, self._convex, self._m,
+                                                    self._box, self._box_center, self._box_half, self._shape_args)
+        (self._polygon, self._edges, self._edge_rows, self._convex, self._m, self._box, self._box_center,
+         self._box_half, self._shape_args) = hit
+
+    def _compute_shape(self, polygon: np.ndarray) -> None:
         ax, ay = polygon[:, 0][None].copy(), polygon[:, 1][None].copy()
         bx, by = np.roll(ax, -1, axis=1), np.roll(ay, -1, axis=1)
         ex, ey = bx - ax, by - ay
@@ -187,10 +212,27 @@ class FusedScene:
                                   s_out, normal, curvature)
         return s_out, normal, curvature
 
+    def object_section(self, pos: np.ndarray, pieces: np.ndarray | tuple | list
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The object rows of (N, 2) centres: ``(s (N Q,), normal (N Q, 2), curvature (N Q,))``,
+        robot-major, :meth:`object_geometry` of each convex piece. ``pieces``: the Q pieces, or
+        one (M, 2) polygon when Q = 1."""
+        if isinstance(pieces, np.ndarray) and pieces.ndim == 2:
+            pieces = (pieces,)
+        if len(pieces) != self.pieces:
+            raise ValueError(f"FusedScene: the object has {len(pieces)} convex pieces, this scene was "
+                             f"built for {self.pieces}")
+        if self.pieces == 1:
+            return self.object_geometry(pos, pieces[0])
+        per_piece = [self.object_geometry(pos, piece) for piece in pieces]
+        s_obj, normal, curvature = (np.stack(x, axis=1) for x in zip(*per_piece, strict=True))
+        return s_obj.ravel(), normal.reshape(-1, 2), curvature.ravel()
+
     # ------------------------------------------------------------------ barrier
-    def terms(self, pos: np.ndarray, vel: np.ndarray, polygon: np.ndarray,
+    def terms(self, pos: np.ndarray, vel: np.ndarray, pieces: np.ndarray | tuple | list,
               prediction: Prediction | None = None) -> FusedTerms:
-        """Barrier values and rows of (N, 2) centres [m] and velocities [m/s] (module docstring).
+        """Barrier values and rows of (N, 2) centres [m] and velocities [m/s] (module docstring),
+        for the object's convex ``pieces`` (:meth:`object_section`).
 
         With a :class:`~controllers.safety.latency.Prediction` (``pos``/``vel`` then its
         predicted ones), every row's distance drops by the ``grow`` of its robots and the
@@ -209,10 +251,9 @@ class FusedScene:
             require_shapes("FusedScene.terms", pos=(pos, (n, 2)), vel=(vel, (n, 2)))
         if prediction is not None:
             prediction.require_rows(n, "FusedScene.terms")
-        if polygon is not self._polygon:
-            self._set_polygon(polygon)
+        s_obj, obj_n, k_obj = self.object_section(f64(pos), pieces)
         normal, dist, h = np.empty((2, k)), np.empty(k), np.empty(k)
-        drift, bound, delta, obj_n = np.empty(k), np.empty(k), np.empty((2, p)), np.empty((n, 2))
+        drift, bound, delta = np.empty(k), np.empty(k), np.empty((2, p))
         if prediction is None:
             grow = closing = self._zeros
             unsure = fixed = self._false
@@ -221,13 +262,18 @@ class FusedScene:
             fixed = np.ascontiguousarray(prediction.fixed, dtype=bool)
             unsure = self._false if prediction.unsure is None else np.ascontiguousarray(prediction.unsure, dtype=bool)
         fused_kernels.barrier_rows(
-            f64(pos), f64(vel), self.pair_i, self.pair_j, *self._shape_args, self.wall_offset,
+            f64(pos), f64(vel), self.pair_i, self.pair_j, s_obj, obj_n, k_obj, self.radius, self.wall_offset,
             self._wall_normal_xy, self.alpha, self.two_alpha, prediction is not None, grow, closing, unsure,
-            fixed, *self._row_consts, normal, dist, h, drift, bound, delta, obj_n)
-        return FusedTerms(pair_i=self.pair_i, pair_j=self.pair_j, pair_normal=normal[:, :p].T,
+            fixed, *self._row_consts, normal, dist, h, drift, bound, delta)
+        return self.wrap_terms(normal, dist, h, drift, bound, delta, obj_n)
+
+    def wrap_terms(self, normal: np.ndarray, dist: np.ndarray, h: np.ndarray, drift: np.ndarray,
+                   bound: np.ndarray, delta: np.ndarray, obj_n: np.ndarray) -> FusedTerms:
+        """The :class:`FusedTerms` of the rows computed by :meth:`terms`."""
+        return FusedTerms(pair_i=self.pair_i, pair_j=self.pair_j, pair_normal=normal[:, :self.p].T,
                           object_normal=obj_n, wall_normal=self._wall_normal, h=h, drift=drift,
-                          bound=bound, normal_xy=normal, gather_t=self.gather_t,
-                          distance=dist, pair_delta=delta)
+                          bound=bound, pieces=self.pieces, normal_xy=normal, gather_t=self.gather_t,
+                          row_i=self.row_i, row_j=self.row_j, distance=dist, pair_delta=delta)
 
     # ------------------------------------------------------------------ sweep
     def failing(self, checker: SweepChecker, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
@@ -277,7 +323,7 @@ class FusedScene:
         hit, wall_hit = np.empty(self.p, dtype=bool), np.empty((n, 4), dtype=bool)
         clear = fused_kernels.sweep_rows(
             f64(pos), f64(vel), f64(acc), widen, terms.distance, terms.pair_delta, self.pair_i, self.pair_j,
-            self.wall_offset, self.radius, float(margin), _SLACK, *self._sweep_consts, end, bulge, travel,
+            self.wall_start, self.wall_offset, self.radius, float(margin), _SLACK, *self._sweep_consts, end, bulge, travel,
             hit, wall_hit)
         return clear, end, bulge, travel, hit, wall_hit
 

@@ -3,8 +3,10 @@
 The maths is that of :mod:`controllers.safety.fused` (its docstring: row layout, geometry,
 barrier) and of the latency tightening (:meth:`controllers.safety.fused.FusedScene.terms`);
 these loops compute it with the same operations in the same order as its numpy formulation
-(kept by the tests as the reference). Row layout, K = P + N + 4N: pairs ``i < j`` in
-``np.triu_indices`` order, robot-object rows, robot-wall rows robot-major.
+(kept by the tests as the reference). Row layout, K = P + N Q + 4N: pairs ``i < j`` in
+``np.triu_indices`` order, robot-object rows (Q per robot, one per convex piece of the object),
+robot-wall rows, both robot-major. The kernels that only read rows take each row's robots
+``row_i``, ``row_j`` (K,) (``row_j = -1`` on rows of one robot) and do not depend on the layout.
 """
 
 from __future__ import annotations
@@ -71,27 +73,26 @@ def object_rows(pos, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box, box_
 
 
 @kernel
-def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box,
-                 box_center, box_half, radius, wall_offset, wall_normal_xy, alpha, two_alpha,
-                 predicted, grow, closing, unsure, fixed, share_alpha, margin, floor_s, damping,
-                 gamma, gamma_unsure, cubic, normal_xy, dist, h, drift, bound, pair_delta, obj_n):
+def barrier_rows(pos, vel, pair_i, pair_j, s_obj, obj_n, k_obj, radius, wall_offset, wall_normal_xy, alpha,
+                 two_alpha, predicted, grow, closing, unsure, fixed, share_alpha, margin, floor_s, damping,
+                 gamma, gamma_unsure, cubic, normal_xy, dist, h, drift, bound, pair_delta):
     """Every row's normal, distance, ``h``, drift and bound (module docstring of
     :mod:`controllers.safety.fused`; ``predicted``: tightened by ``grow``, ``closing``,
     ``unsure`` and ``fixed`` (N,) of a prediction).
 
     Args:
+        s_obj, obj_n, k_obj: (N Q,), (N Q, 2), (N Q,) the object rows' distances, normals and
+            curvatures (:func:`object_rows` per piece, robot-major).
         wall_offset: (4,) ``(0, W, 0, H) - r``; wall_normal_xy: (2, 4N) fixed wall normals.
         alpha, two_alpha: (K,) braking allowances of the rows without fixed robots (the object and
             wall rows keep theirs with fixed robots about).
         floor_s: ``margin + sqrt_floor`` [m]; cubic: the class-K function is ``h^3``.
-        normal_xy (2, K), dist, h, drift, bound (K,), pair_delta (2, P), obj_n (N, 2): written.
+        normal_xy (2, K), dist, h, drift, bound (K,), pair_delta (2, P): written.
     """
-    n, p = pos.shape[0], pair_i.shape[0]
-    k_rows = p + 5 * n
+    n, p, q_rows = pos.shape[0], pair_i.shape[0], s_obj.shape[0]
+    pieces = q_rows // n
+    k_rows = p + q_rows + 4 * n
     curv = np.empty(k_rows)
-    s_obj, k_obj = np.empty(n), np.empty(n)
-    object_rows(pos, ax, ay, by, ex, ey, inv_len2, ex_over_ey, convex, box, box_center, box_half,
-                radius, s_obj, obj_n, k_obj)
     any_fixed, any_unsure = False, False
     if predicted:
         for i in range(n):
@@ -109,15 +110,16 @@ def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over
             dist[k] = centre - 2.0 * radius
             curv[k] = 1.0 / np.maximum(centre, 1e-9)
             w0, w1 = vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1]
-        elif k < p + n:
-            i, j = k - p, -1
-            normal_xy[0, k], normal_xy[1, k] = obj_n[i, 0], obj_n[i, 1]
-            dist[k], curv[k] = s_obj[i], k_obj[i]
+        elif k < p + q_rows:
+            i, j = (k - p) // pieces, -1
+            normal_xy[0, k], normal_xy[1, k] = obj_n[k - p, 0], obj_n[k - p, 1]
+            dist[k], curv[k] = s_obj[k - p], k_obj[k - p]
             w0, w1 = vel[i, 0], vel[i, 1]
         else:
-            i, j = (k - p - n) // 4, -1
-            wall = (k - p - n) % 4
-            normal_xy[0, k], normal_xy[1, k] = wall_normal_xy[0, k - p - n], wall_normal_xy[1, k - p - n]
+            i, j = (k - p - q_rows) // 4, -1
+            wall = (k - p - q_rows) % 4
+            normal_xy[0, k], normal_xy[1, k] = (wall_normal_xy[0, k - p - q_rows],
+                                                wall_normal_xy[1, k - p - q_rows])
             coord = pos[i, 0] if wall < 2 else pos[i, 1]
             dist[k] = (coord if wall % 2 == 0 else -coord) + wall_offset[wall]
             curv[k] = 0.0
@@ -148,14 +150,16 @@ def barrier_rows(pos, vel, pair_i, pair_j, ax, ay, by, ex, ey, inv_len2, ex_over
 
 
 @kernel
-def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_offset, radius, margin,
-               slack, dt, half_dt2, damping, accel_limit, speed_limit, end, bulge, travel, hit, wall_hit):
+def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_start, wall_offset, radius,
+               margin, slack, dt, half_dt2, damping, accel_limit, speed_limit, end, bulge, travel, hit,
+               wall_hit):
     """The one-tick sweep of every robot against the pairs and walls
     (:meth:`controllers.safety.fused.FusedScene.failing`, whose numpy formulation it matches).
 
     Args:
         acc: (N, 2) commands [m/s^2]; widen: (N,) disc growth [m]; distance: (K,) the rows'
             start distances (grown already); pair_delta: (2, P) start centre differences;
+            wall_start: the first wall row (``P + N Q``);
             half_dt2: ``0.5 dt^2`` [s^2] (as the caller computes it).
         end (N, 2), bulge, travel (N,), hit (P,) bool, wall_hit (N, 4) bool: written.
 
@@ -213,33 +217,32 @@ def sweep_rows(pos, vel, acc, widen, distance, pair_delta, pair_i, pair_j, wall_
         for w in range(4):
             coord = end[i, 0] if w < 2 else end[i, 1]
             end_wall = ((coord if w % 2 == 0 else -coord) + wall_offset[w]) - widen[i]
-            wall_hit[i, w] = np.minimum(distance[p + n + 4 * i + w], end_wall) < bulge[i] + margin
+            wall_hit[i, w] = np.minimum(distance[wall_start + 4 * i + w], end_wall) < bulge[i] + margin
     return False
 
 
 @kernel
-def rows_times(normal_xy, pair_i, pair_j, u, out):
+def rows_times(normal_xy, row_i, row_j, u, out):
     """``out[k] = n_k . (G u)_k`` (K,) for (N, 2) accelerations ``u`` (the module docstring's
-    gather: ``u_i - u_j`` on pair rows, ``u_i`` on object and wall rows)."""
-    n, p = u.shape[0], pair_i.shape[0]
+    gather: ``u_i - u_j`` on pair rows, ``u_i`` on object and wall rows, ``row_j = -1``)."""
     for k in range(normal_xy.shape[1]):
-        if k < p:
-            w0, w1 = u[pair_i[k], 0] - u[pair_j[k], 0], u[pair_i[k], 1] - u[pair_j[k], 1]
+        i, j = row_i[k], row_j[k]
+        if j >= 0:
+            w0, w1 = u[i, 0] - u[j, 0], u[i, 1] - u[j, 1]
         else:
-            i = k - p if k < p + n else (k - p - n) // 4
             w0, w1 = u[i, 0], u[i, 1]
         out[k] = normal_xy[0, k] * w0 + normal_xy[1, k] * w1
 
 
 @kernel
-def screen(normal_xy, pair_i, pair_j, a_nom, limit, bound, distance, h, nominal, values):
+def screen(normal_xy, row_i, row_j, a_nom, limit, bound, distance, h, nominal, values):
     """The filter's first look at a tick, in one call: ``nominal = clip_norm(a_nom, limit)``
     (N, 2) written into ``nominal``, its row values (:func:`rows_times`) into ``values`` (K,),
     and ``(min distance, min h, every bound < inf, every row met: values >= bound)``. The minima
     are NaN where any entry is, as numpy's ``min``; the clip is ``x * (limit / max(|x|, limit))``
     with numpy's NaN-propagating maximum."""
     clip_rows(a_nom, limit, nominal)
-    rows_times(normal_xy, pair_i, pair_j, nominal, values)
+    rows_times(normal_xy, row_i, row_j, nominal, values)
     low_d, low_h = distance[0], h[0]
     bounded, met = True, True
     for k in range(bound.shape[0]):
@@ -255,15 +258,15 @@ def screen(normal_xy, pair_i, pair_j, a_nom, limit, bound, distance, h, nominal,
 
 
 @kernel
-def command_breaks_rows(normal_xy, pair_i, pair_j, a_safe, a_cmd, bound, tol, floor, values):
+def command_breaks_rows(normal_xy, row_i, row_j, a_safe, a_cmd, bound, tol, floor, values):
     """The re-check's first test (:mod:`controllers.safety.recheck`): ``floor = minimum(bound,
     rows(a_safe)) - tol`` (K,) (numpy's NaN-propagating minimum) and ``values = rows(a_cmd)``
     written out; whether any row has ``values < floor``."""
-    rows_times(normal_xy, pair_i, pair_j, a_safe, floor)
+    rows_times(normal_xy, row_i, row_j, a_safe, floor)
     for k in range(bound.shape[0]):
         b = bound[k]
         floor[k] = (b if (b < floor[k] or b != b) else floor[k]) - tol
-    rows_times(normal_xy, pair_i, pair_j, a_cmd, values)
+    rows_times(normal_xy, row_i, row_j, a_cmd, values)
     for k in range(bound.shape[0]):
         if values[k] < floor[k]:
             return True
@@ -276,22 +279,21 @@ def _warm_up() -> None:
     pos, vel = np.array([[0.2, 0.2], [0.8, 0.8]]), np.zeros((n, 2))
     edges = [np.ones(m) for _ in range(7)]
     pair_i, pair_j = np.triu_indices(n, 1)
+    pair_i, pair_j = pair_i.astype(np.int64), pair_j.astype(np.int64)
     k = 1 + 5 * n
+    row_i, row_j = np.zeros(k, dtype=np.int64), np.full(k, -1, dtype=np.int64)
     z, b = np.zeros(n), np.zeros(n, dtype=bool)
-    barrier_rows(pos, vel, pair_i.astype(np.int64), pair_j.astype(np.int64), *edges, True, True,
-                 np.full(2, 0.5), np.full(2, 0.1), 0.04, np.zeros(4), np.zeros((2, 4 * n)), np.ones(k),
-                 np.ones(k), True, z, z, b, b, 0.5, 0.005, 0.01, 0.5, 5.0, 10.0, False,
-                 np.empty((2, k)), np.empty(k), np.empty(k), np.empty(k), np.empty(k), np.empty((2, 1)),
-                 np.empty((n, 2)))
-    object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, np.empty(n),
-                np.empty((n, 2)), np.empty(n))
-    rows_times(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, np.empty(k))
-    command_breaks_rows(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, pos, np.ones(k),
-                        1e-9, np.empty(k), np.empty(k))
-    screen(np.ones((2, k)), pair_i.astype(np.int64), pair_j.astype(np.int64), pos, 1.0, np.ones(k), np.ones(k),
-           np.ones(k), np.empty((n, 2)), np.empty(k))
-    sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i.astype(np.int64), pair_j.astype(np.int64),
-               np.zeros(4), 0.04, 0.005, 1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
+    s_obj, n_obj, k_obj = np.empty(n), np.empty((n, 2)), np.empty(n)
+    object_rows(pos, *edges, True, True, np.full(2, 0.5), np.full(2, 0.1), 0.04, s_obj, n_obj, k_obj)
+    barrier_rows(pos, vel, pair_i, pair_j, s_obj, n_obj, k_obj, 0.04, np.zeros(4), np.zeros((2, 4 * n)),
+                 np.ones(k), np.ones(k), True, z, z, b, b, 0.5, 0.005, 0.01, 0.5, 5.0, 10.0, False,
+                 np.empty((2, k)), np.empty(k), np.empty(k), np.empty(k), np.empty(k), np.empty((2, 1)))
+    rows_times(np.ones((2, k)), row_i, row_j, pos, np.empty(k))
+    command_breaks_rows(np.ones((2, k)), row_i, row_j, pos, pos, np.ones(k), 1e-9, np.empty(k), np.empty(k))
+    screen(np.ones((2, k)), row_i, row_j, pos, 1.0, np.ones(k), np.ones(k), np.ones(k), np.empty((n, 2)),
+           np.empty(k))
+    sweep_rows(pos, vel, vel, z, np.zeros(k), np.zeros((2, 1)), pair_i, pair_j, 1 + n, np.zeros(4), 0.04, 0.005,
+               1e-9, 0.05, 0.00125, 0.5, 1.0, 0.4, np.empty((n, 2)), np.empty(n), np.empty(n),
                np.empty(1, dtype=bool), np.empty((n, 4), dtype=bool))
 
 

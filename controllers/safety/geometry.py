@@ -7,9 +7,10 @@ Shapes (arena metres, the plane z = 0 embedded in 3-D for FCL):
   centre lies on z = 0 and every other shape is a prism symmetric about z = 0, the nearest points
   lie on z = 0, so the 3-D distance equals the planar disc distance exactly.
 * The object: the scenario polygon (M, 2) extruded to a prism ``z in [-L, L]`` (L = 1 m >> r):
-  one ``fcl.Convex`` for a convex polygon, or one ``fcl.Convex`` per ear-clipping triangle for a
-  simple non-convex one (distances outside are exact; a penetration depth inside is the depth into
-  the deepest triangle, which has the right sign but may be shallower than the true depth).
+  one ``fcl.Convex`` for a convex polygon, or one per convex piece of a simple non-convex one
+  (:func:`~controllers.safety.polygon.convex_pieces`; distances outside are exact; a penetration
+  depth inside is the depth into one piece, which has the right sign but may be shallower than the
+  true depth).
 * The walls x = 0, x = W, y = 0, y = H: four thick ``fcl.Box`` slabs just outside the arena
   for the broadphase (not ``fcl.Halfspace``: its distance query crashes python-fcl 0.7); their
   distances are the half-planes' closed form, ``x - r``, ``W - x - r``, ..., which a slab gets
@@ -26,7 +27,8 @@ All shapes sit in one ``fcl.DynamicAABBTreeCollisionManager`` (broadphase). :met
 moves the robots (and optionally the object) and calls ``manager.update()``; :meth:`contacts`
 asks the broadphase for every overlapping pair (``num_max_contacts`` large, so it does not stop at
 the first contact); :meth:`distances` returns signed distances (negative when overlapping) with nearest points and unit normals for *all* robot-robot (P = N(N-1)/2,
-pairs ``i < j`` in ``np.triu_indices`` order), robot-object (N) and robot-wall (N, 4) pairs.
+pairs ``i < j`` in ``np.triu_indices`` order), robot-object (N x Q: one per robot and convex
+piece of the object, robot-major) and robot-wall (N, 4) pairs.
 
 :func:`analytic_distances` computes the same quantities in closed form with numpy (exact for discs,
 half-planes and polygons); the tests use it as the oracle and the safety filter can use it as a
@@ -42,11 +44,13 @@ the barrier derivative needs it.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import fcl
 import numpy as np
 
+from controllers.safety.polygon import convex_pieces
 from sim.scenario import Scenario
 
 WALL_NORMALS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
@@ -67,10 +71,11 @@ class SceneDistances:
         pair_normal: (P, 2) unit vector from robot j to robot i.
         pair_points: (P, 2, 2) nearest points on disc i and on disc j [m].
         pair_curvature: (P,) 1 / centre distance [1/m].
-        object_distance: (N,) disc-object signed distance [m].
-        object_normal: (N, 2) outward object normal at its nearest point (towards the robot).
-        object_points: (N, 2, 2) nearest points on the disc and on the object [m].
-        object_curvature: (N,) 1 / (centre to vertex) when the nearest object point is a vertex, else 0.
+        object_distance: (N Q,) disc-object signed distance [m], one per robot and convex piece of
+            the object (Q = ``pieces``), robot-major: robot i, piece q at ``Q i + q``.
+        object_normal: (N Q, 2) outward normal of the piece at its nearest point (towards the robot).
+        object_points: (N Q, 2, 2) nearest points on the disc and on the piece [m].
+        object_curvature: (N Q,) 1 / (centre to vertex) when the nearest point is a vertex, else 0.
         wall_distance: (N, 4) disc-wall signed distances to x = 0, x = W, y = 0, y = H [m].
         wall_normal: (4, 2) inward wall normals (:data:`WALL_NORMALS`).
     """
@@ -87,45 +92,17 @@ class SceneDistances:
     object_curvature: np.ndarray
     wall_distance: np.ndarray
     wall_normal: np.ndarray
+    pieces: int = 1
+
+    def object_clearance(self) -> np.ndarray:
+        """(N,) each disc's signed distance to the object (the nearest of its pieces) [m]."""
+        return self.object_distance.reshape(-1, self.pieces).min(axis=1)
 
     def min_clearance(self) -> float:
         """The smallest signed distance over every pair [m] (inf when there is nothing to compare)."""
         parts = [self.pair_distance, self.object_distance, self.wall_distance.ravel()]
         values = np.concatenate([p for p in parts if p.size])
         return float(values.min()) if values.size else float("inf")
-
-
-# ----------------------------------------------------------------------------- polygon helpers
-def is_convex_ccw(poly: np.ndarray) -> bool:
-    """True when the (M, 2) polygon is strictly convex and counter-clockwise."""
-    e = np.roll(poly, -1, axis=0) - poly
-    cross = e[:, 0] * np.roll(e[:, 1], -1) - e[:, 1] * np.roll(e[:, 0], -1)
-    return bool(np.all(cross > 0))
-
-
-def ear_clip(poly: np.ndarray) -> list[np.ndarray]:
-    """Triangulate a simple counter-clockwise polygon (M, 2) into (3, 2) triangles by ear clipping."""
-    idx = list(range(len(poly)))
-    triangles: list[np.ndarray] = []
-
-    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-        return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
-
-    while len(idx) > 3:
-        for k in range(len(idx)):
-            a, b, c = poly[idx[k - 1]], poly[idx[k]], poly[idx[(k + 1) % len(idx)]]
-            if cross(a, b, c) <= 0:
-                continue  # reflex corner: not an ear
-            others = [poly[m] for m in idx if m not in (idx[k - 1], idx[k], idx[(k + 1) % len(idx)])]
-            if any(cross(a, b, p) >= 0 and cross(b, c, p) >= 0 and cross(c, a, p) >= 0 for p in others):
-                continue
-            triangles.append(np.array([a, b, c]))
-            del idx[k]
-            break
-        else:
-            raise ValueError("object polygon is not simple: ear clipping found no ear")
-    triangles.append(poly[idx])
-    return triangles
 
 
 def _prism(poly: np.ndarray) -> fcl.Convex:
@@ -204,14 +181,21 @@ def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def analytic_distances(pos: np.ndarray, radius: float, arena: tuple[float, float],
-                       polygon: np.ndarray) -> SceneDistances:
-    """Closed-form :class:`SceneDistances` of (N, 2) disc centres, vectorised with numpy."""
+                       polygon: np.ndarray | Sequence[np.ndarray]) -> SceneDistances:
+    """Closed-form :class:`SceneDistances` of (N, 2) disc centres, vectorised with numpy.
+
+    ``polygon``: the object as one (M, 2) polygon, or as a list of its convex pieces (one object
+    row per robot and piece)."""
+    pieces = [polygon] if isinstance(polygon, np.ndarray) and polygon.ndim == 2 else list(polygon)
     pi, pj = _pairs(len(pos))
     normal, centre_dist = _unit(pos[pi] - pos[pj])
     pair_points = np.stack([pos[pi] - radius * normal, pos[pj] + radius * normal], axis=1)
-    sd_centre, nearest, at_vertex = point_polygon(pos, polygon)
-    obj_normal, rho = _unit((pos - nearest) * np.where(sd_centre < 0, -1.0, 1.0)[:, None])
-    obj_points = np.stack([pos - radius * obj_normal, nearest], axis=1)
+    per_piece = [point_polygon(pos, np.asarray(piece, dtype=np.float64)) for piece in pieces]
+    sd_centre, nearest, at_vertex = (np.stack(x, axis=1).reshape(-1, *x[0].shape[1:])
+                                     for x in zip(*per_piece, strict=True))
+    centres = np.repeat(pos, len(pieces), axis=0)
+    obj_normal, rho = _unit((centres - nearest) * np.where(sd_centre < 0, -1.0, 1.0)[:, None])
+    obj_points = np.stack([centres - radius * obj_normal, nearest], axis=1)
     w, h = arena
     walls = np.stack([pos[:, 0], w - pos[:, 0], pos[:, 1], h - pos[:, 1]], axis=1) - radius
     return SceneDistances(
@@ -219,7 +203,7 @@ def analytic_distances(pos: np.ndarray, radius: float, arena: tuple[float, float
         pair_points=pair_points, pair_curvature=1.0 / np.maximum(centre_dist, 1e-9),
         object_distance=sd_centre - radius, object_normal=obj_normal, object_points=obj_points,
         object_curvature=np.where(at_vertex & (sd_centre > 0), 1.0 / np.maximum(rho, 1e-9), 0.0),
-        wall_distance=walls, wall_normal=WALL_NORMALS.copy(),
+        wall_distance=walls, wall_normal=WALL_NORMALS.copy(), pieces=len(pieces),
     )
 
 
@@ -248,10 +232,9 @@ class CollisionScene:
         self.robot_geoms = [fcl.Sphere(self.radius) for _ in range(self.num_robots)]
         self._thinner = fcl.Sphere(self.radius - _TOUCH)
         self.robots = [fcl.CollisionObject(g, fcl.Transform()) for g in self.robot_geoms]
-        pieces = ([self.polygon_local] if is_convex_ccw(self.polygon_local)
-                  else ear_clip(self.polygon_local))
-        self.pieces_local = [np.asarray(p, dtype=np.float64) for p in pieces]
-        self.object_geoms = [_prism(p) for p in pieces]
+        self.pieces_local = convex_pieces(self.polygon_local)
+        self.pieces = self.pieces_local                                  # world frame, by pose
+        self.object_geoms = [_prism(p) for p in self.pieces_local]
         self.object_parts = [fcl.CollisionObject(g, fcl.Transform()) for g in self.object_geoms]
         w, h, t = self.arena[0], self.arena[1], _WALL_THICKNESS
         wall_boxes = [((-t / 2, h / 2), (t, h + 2 * t)), ((w + t / 2, h / 2), (t, h + 2 * t)),
@@ -279,14 +262,13 @@ class CollisionScene:
         for part in self.object_parts:
             part.setTransform(fcl.Transform(rot3, np.array([pose[0], pose[1], 0.0])))
         self.polygon = self.polygon_local @ rot2.T + pose[:2]
+        self.pieces = [p @ rot2.T + pose[:2] for p in self.pieces_local]
         self.object_pose = np.asarray(pose, dtype=np.float64).copy()
 
     def object_pieces(self) -> list[np.ndarray]:
         """The object's convex pieces (its FCL parts) as (K, 2) counter-clockwise vertices in the
-        world frame [m], at the current pose."""
-        c, s = np.cos(self.object_pose[2]), np.sin(self.object_pose[2])
-        rot2 = np.array([[c, -s], [s, c]])
-        return [p @ rot2.T + self.object_pose[:2] for p in self.pieces_local]
+        world frame [m], at the current pose (the same list until the object moves)."""
+        return self.pieces
 
     def set_object_pose(self, pose: np.ndarray) -> None:
         """Move the object to pose (x, y, theta) [m, rad] alone (the robots stay where they are)."""
@@ -336,20 +318,21 @@ class CollisionScene:
         pair_pts = np.empty((len(pi), 2, 2))
         for k, (i, j) in enumerate(zip(pi, pj, strict=True)):
             pair_d[k], pair_pts[k] = self._signed(self.robots[i], self.robots[j], spheres=True)
-        obj_d = np.full(n, np.inf)
-        obj_pts = np.zeros((n, 2, 2))
+        q = len(self.object_parts)
+        obj_d, obj_pts = np.empty((n, q)), np.zeros((n, q, 2, 2))
         for i in range(n):
-            for part in self.object_parts:
-                d, pts = self._signed(self.robots[i], part)
-                if d < obj_d[i]:
-                    obj_d[i], obj_pts[i] = d, pts
-        pos = self.positions
-        (w, h), x, y = self.arena, pos[:, 0], pos[:, 1]
-        wall_d = np.stack([x, w - x, y, h - y], axis=1) - r
-        normal, centre_dist = _unit(pos[pi] - pos[pj])
+            for k, part in enumerate(self.object_parts):
+                obj_d[i, k], obj_pts[i, k] = self._signed(self.robots[i], part)
         # GJK's witness points on the object are good to ~1e-5 m only: keep FCL's choice of the
         # nearest edge and its inside/outside verdict, and project the centre onto that edge.
-        obj_pts[:, 1], at_end = self._snap_to_edge(pos, obj_pts[:, 1])
+        at_end = np.empty((n, q), dtype=bool)
+        for k, piece in enumerate(self.pieces):
+            obj_pts[:, k, 1], at_end[:, k] = self._snap_to_edge(self.positions, obj_pts[:, k, 1], piece)
+        obj_d, obj_pts, at_end = obj_d.ravel(), obj_pts.reshape(n * q, 2, 2), at_end.ravel()
+        pos = np.repeat(self.positions, q, axis=0)                         # one row per robot and piece
+        (w, h), x, y = self.arena, self.positions[:, 0], self.positions[:, 1]
+        wall_d = np.stack([x, w - x, y, h - y], axis=1) - r
+        normal, centre_dist = _unit(self.positions[pi] - self.positions[pj])
         # Object normal: from the nearest object point towards the centre, flipped when the centre
         # is inside the object (then the nearest boundary point lies ahead of the centre).
         towards = pos - obj_pts[:, 1]
@@ -366,15 +349,17 @@ class CollisionScene:
             pair_curvature=1.0 / np.maximum(centre_dist, 1e-9),
             object_distance=obj_d, object_normal=obj_normal, object_points=obj_pts,
             object_curvature=np.where(at_vertex, 1.0 / np.maximum(rho, 1e-9), 0.0),
-            wall_distance=wall_d, wall_normal=WALL_NORMALS.copy(),
+            wall_distance=wall_d, wall_normal=WALL_NORMALS.copy(), pieces=q,
         )
 
-    def _snap_to_edge(self, centres: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Exact nearest points on the polygon edges that pass within 1e-4 m of FCL's (N, 2)
-        points, and whether each is an end of its edge (the projection was clamped: a vertex, as
-        :func:`point_polygon` decides it)."""
-        a = self.polygon[None]
-        e = np.roll(self.polygon, -1, axis=0)[None] - a                  # (1, M, 2)
+    @staticmethod
+    def _snap_to_edge(centres: np.ndarray, near: np.ndarray, polygon: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Exact nearest points on the (M, 2) polygon's edges that pass within 1e-4 m of FCL's
+        (N, 2) points, and whether each is an end of its edge (the projection was clamped: a
+        vertex, as :func:`point_polygon` decides it)."""
+        a = polygon[None]
+        e = np.roll(polygon, -1, axis=0)[None] - a                       # (1, M, 2)
         len2 = np.sum(e * e, -1)
 
         def project(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:   # (N, M, 2), (N, M)

@@ -188,10 +188,11 @@ def horizon_ticks(age_s: np.ndarray, delay_s: float, dt: float) -> np.ndarray:
     return np.maximum(np.ceil((np.asarray(age_s) + delay_s) / dt - 1e-9).astype(np.int64), 0)
 
 
-def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray) -> np.ndarray:
+def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, pieces: int = 1) -> np.ndarray:
     """(K,) per-row sums of a per-robot (N,) quantity in the row layout of
-    :mod:`controllers.safety.barrier`: ``x_i + x_j`` on pairs, ``x_i`` on object and wall rows."""
-    return np.concatenate([x[pair_i] + x[pair_j], x, np.repeat(x, 4)])
+    :mod:`controllers.safety.barrier`: ``x_i + x_j`` on pairs, ``x_i`` on the object rows (one per
+    convex piece of the object, ``pieces`` of them per robot) and on the wall rows."""
+    return np.concatenate([x[pair_i] + x[pair_j], np.repeat(x, pieces), np.repeat(x, 4)])
 
 
 VELOCITY_NOISE_BOUND = 3.0

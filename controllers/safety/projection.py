@@ -65,29 +65,19 @@ def project_octagon(u: np.ndarray, a_box: float) -> np.ndarray:
     return out
 
 
-def row_robots(k: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(i, j)`` (each (len(k),)) of rows ``k`` in the layout of :mod:`controllers.safety.barrier`
-    (P pair rows, N object rows, 4N wall rows); ``j = -1`` for rows of one robot."""
-    p = len(pair_i)
-    i = np.where(k < p, pair_i[np.minimum(k, p - 1)] if p else 0, np.where(k < p + n, k - p, (k - p - n) // 4))
-    j = np.where(k < p, pair_j[np.minimum(k, p - 1)] if p else -1, -1)
-    return i.astype(np.int64), j.astype(np.int64)
-
-
-def separable_answer(normals: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, values: np.ndarray,
+def separable_answer(normals: np.ndarray, row_i: np.ndarray, row_j: np.ndarray, values: np.ndarray,
                      lower: np.ndarray, a: np.ndarray, a_box: float) -> np.ndarray | None:
     """The projection onto S of the module docstring, or None when the broken rows share a robot.
 
     Args:
-        normals: (K, 2) row normals (:meth:`BarrierTerms.row_normals`); pair_i, pair_j: (P,) the
-            pairs' robots.
+        normals: (K, 2) row normals (:meth:`BarrierTerms.row_normals`); row_i, row_j: (K,) the
+            robots of every row, ``row_j = -1`` on rows of one robot (:meth:`BarrierTerms.row_robots`).
         values: (K,) ``r_k . a``; lower: (K,) ``c_k``; a: (N, 2) the clipped nominal.
         a_box: the octagon's half-width [m/s^2].
     Not yet verified: :func:`projected_optimum` checks it (rows and octagon) before use.
     """
-    n = len(a)
     broken = np.flatnonzero(values < lower)
-    i, j = row_robots(broken, pair_i, pair_j, n)
+    i, j = row_i[broken], row_j[broken]
     robots = np.concatenate([i, j[j >= 0]])
     if len(np.unique(robots)) != len(robots):
         return None
@@ -109,11 +99,11 @@ def projected_optimum(terms, values: np.ndarray, lower: np.ndarray, a: np.ndarra
     rows times ``a``; ``lower`` (K,) the tightened bounds ``c_k``; ``a`` (N, 2) the clipped
     nominal. The answer of :func:`separable_answer` is accepted only when it meets every row and
     every octagon, i.e. lies in F (module docstring)."""
-    u = separable_answer(terms.row_normals(), terms.pair_i, terms.pair_j, values, lower, a, a_box)
+    u = separable_answer(terms.row_normals(), *terms.row_robots(), values, lower, a, a_box)
     if u is None or not (terms.rows_times(u) >= lower).all() or not inside_octagon(u, a_box).all():
         return None
     return u
 
 
-__all__ = ["inside_octagon", "octagon_vertices", "project_octagon", "projected_optimum", "row_robots",
+__all__ = ["inside_octagon", "octagon_vertices", "project_octagon", "projected_optimum",
            "separable_answer"]

@@ -24,14 +24,10 @@ _TOL = 1e-9
 
 def _row_robots(terms: BarrierTerms, rows: np.ndarray, num: int) -> np.ndarray:
     """(num,) bool: robots that take part in the given (K,) bool rows."""
-    if isinstance(terms, FusedTerms):
-        return (np.abs(terms.gather_t) @ rows.astype(np.float64)) > 0
-    p = len(terms.pair_i)
+    i, j = terms.row_robots()
     out = np.zeros(num, dtype=bool)
-    pair = rows[:p]
-    out[terms.pair_i[pair]] = out[terms.pair_j[pair]] = True
-    out |= rows[p:p + num]
-    out |= rows[p + num:].reshape(num, 4).any(axis=1)
+    out[i[rows]] = True
+    out[j[rows & (j >= 0)]] = True
     return out
 
 
@@ -46,7 +42,7 @@ def recheck(terms: BarrierTerms | None, a_safe: np.ndarray, a_cmd: np.ndarray, k
     out = np.array(a_cmd, dtype=np.float64)   # a C-contiguous copy, as the kernel takes
     if isinstance(terms, FusedTerms):          # compiled first test: most ticks stop here
         a_safe, floor, values = f64(a_safe), np.empty(len(terms.bound)), np.empty(len(terms.bound))
-        if not fused_kernels.command_breaks_rows(terms.normal_xy, terms.pair_i, terms.pair_j, a_safe,
+        if not fused_kernels.command_breaks_rows(terms.normal_xy, terms.row_i, terms.row_j, a_safe,
                                                  out, terms.bound, _TOL, floor, values):
             return out[:keep]
     else:

@@ -41,10 +41,12 @@ class ReducedQP:
         pair_i, pair_j: (P,) the robots of each pair row.
         fixed: (M,) bool, at least one robot listening.
         config: eps and max_iter of OSQP.
+        pieces: object rows per robot (one per convex piece of the object).
     """
 
     def __init__(self, coo_rows: np.ndarray, coo_cols: np.ndarray, num_rows: int, num_barrier: int,
-                 pair_i: np.ndarray, pair_j: np.ndarray, fixed: np.ndarray, config: SafetyConfig):
+                 pair_i: np.ndarray, pair_j: np.ndarray, fixed: np.ndarray, config: SafetyConfig,
+                 pieces: int = 1):
         m = len(fixed)
         self.free = np.flatnonzero(~fixed)
         column = np.full(2 * m, -1)
@@ -52,7 +54,7 @@ class ReducedQP:
         column[2 * self.free + 1] = 2 * np.arange(len(self.free)) + 1
         robot_of_row = np.empty(num_rows, dtype=np.int64)
         p = len(pair_i)
-        robot_of_row[p:] = np.concatenate([np.arange(m), np.repeat(np.arange(m), 4),
+        robot_of_row[p:] = np.concatenate([np.repeat(np.arange(m), pieces), np.repeat(np.arange(m), 4),
                                            _actuator_robots(m, num_rows - num_barrier)])
         live = np.ones(num_rows, dtype=bool)
         live[:p] = ~(fixed[pair_i] & fixed[pair_j])

@@ -69,7 +69,7 @@ class NumpyFusedScene(FusedScene):
         curvature = np.where(vertex, 1.0 / np.maximum(rho, 1e-9), 0.0)
         return sign * rho - self.radius, normal, curvature
 
-    def terms(self, pos: np.ndarray, vel: np.ndarray, polygon: np.ndarray,
+    def terms(self, pos: np.ndarray, vel: np.ndarray, pieces: np.ndarray | list,
               prediction: Prediction | None = None) -> FusedTerms:
         """Barrier values and rows of (N, 2) centres [m] and velocities [m/s] (module docstring).
 
@@ -93,7 +93,7 @@ class NumpyFusedScene(FusedScene):
         if p and not centre.min() > 1e-12:                                  # coincident centres
             pair_normal[:, centre <= 1e-12] = np.array([[1.0], [0.0]])
         # object, walls; then every row side by side
-        obj_s, obj_n, obj_k = self.object_geometry(pos, polygon)
+        obj_s, obj_n, obj_k = self.object_section(pos, pieces)
         walls = pos @ self.wall_map + self.wall_offset                       # (N, 4)
         normal = np.concatenate((pair_normal, obj_n.T, self._wall_normal_xy), axis=1)
         dist = np.concatenate((centre - 2.0 * self.radius, obj_s, walls.ravel()))
@@ -127,10 +127,7 @@ class NumpyFusedScene(FusedScene):
         if dropped is not None and dropped.any():
             bound[dropped] = -np.inf
             h = np.where(dropped, np.inf, h)
-        return FusedTerms(pair_i=self.pair_i, pair_j=self.pair_j, pair_normal=normal[:, :p].T,
-                          object_normal=obj_n, wall_normal=self._wall_normal, h=h, drift=drift,
-                          bound=bound, normal_xy=normal, gather_t=self.gather_t,
-                          distance=dist, pair_delta=delta)
+        return self.wrap_terms(normal, dist, h, drift, bound, delta, obj_n)
 
     def _sweep(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, widen: np.ndarray,
                terms: FusedTerms, margin: float) -> tuple[bool, np.ndarray, ...]:
@@ -155,7 +152,7 @@ class NumpyFusedScene(FusedScene):
             gap = np.hypot(start[0] + t * chord[0], start[1] + t * chord[1])
             hit = gap < 2 * r + (bulge + widen) @ self.pair_both_t + m
         # walls: s of both chord ends against the widening (s + r < r + e + m)
-        start_walls = terms.distance[p + n:].reshape(n, 4)
+        start_walls = terms.distance[self.wall_start:].reshape(n, 4)
         end_walls = end @ self.wall_map + self.wall_offset - widen[:, None]
         wall_hit = np.minimum(start_walls, end_walls) < (bulge + m)[:, None]
         return False, end, bulge, travel, hit, wall_hit

@@ -11,6 +11,7 @@ from controllers.safety.barrier import SafetyConfig
 from controllers.safety.fused import FusedScene
 from controllers.safety.geometry import CollisionScene
 from controllers.safety.latency import Prediction
+from controllers.safety.polygon import convex_pieces
 from controllers.safety.postcheck import SweepChecker, braking_acceleration, clip_norm
 from sim.scenario import Dynamics, make_scenario
 from tests.controllers.safety.fused_reference import NumpyFusedScene
@@ -25,6 +26,7 @@ SHAPES = {
     "L (not convex)": np.array([[0.35, 0.35], [0.65, 0.35], [0.65, 0.45], [0.45, 0.45], [0.45, 0.65],
                                 [0.35, 0.65]]),
 }
+SHAPES["L (pieces)"] = convex_pieces(SHAPES["L (not convex)"])
 
 
 @settings(max_examples=80, deadline=None)
@@ -38,7 +40,8 @@ def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted,
     if n > 1 and rng.random() < 0.2:
         pos[1] = pos[0]                                         # coincident centres
     if rng.random() < 0.2:
-        pos[0] = SHAPES[shape][0]                               # on a vertex
+        first = SHAPES[shape][0] if isinstance(SHAPES[shape], list) else SHAPES[shape]
+        pos[0] = first[0]                                       # on a vertex
     vel = rng.normal(0.0, speed + 1e-12, (n, 2))
     prediction = None
     if predicted:
@@ -47,7 +50,8 @@ def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted,
                                 unsure=rng.random(n) < 0.5 if rng.random() < 0.7 else None)
     config = SafetyConfig(class_k="cubic" if cubic else "linear")
     polygon = SHAPES[shape]
-    args = (R, SCENARIO.arena, DYN, config, n)
+    pieces = polygon if isinstance(polygon, list) else [polygon]
+    args = (R, SCENARIO.arena, DYN, config, n, len(pieces))
     with np.errstate(all="ignore"):
         got = FusedScene(*args).terms(pos, vel, polygon, prediction)
         want = NumpyFusedScene(*args).terms(pos, vel, polygon, prediction)
@@ -55,9 +59,10 @@ def test_compiled_rows_equal_numpy_formulation(seed, n, shape, speed, predicted,
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
     u = rng.normal(0.0, 1.0, (n, 2))                             # the rows' values: one product in numpy
     np.testing.assert_array_equal(got.rows_times(u), (want.normal_xy * (u.T @ want.gather_t)).sum(axis=0))
-    geometry = FusedScene(*args).object_geometry(pos, polygon), NumpyFusedScene(*args).object_geometry(pos, polygon)
-    for a, b in zip(*geometry, strict=True):
-        np.testing.assert_array_equal(a, b)
+    for piece in pieces:
+        geometry = FusedScene(*args).object_geometry(pos, piece), NumpyFusedScene(*args).object_geometry(pos, piece)
+        for a, b in zip(*geometry, strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_the_reference_is_not_the_compiled_code():
@@ -119,7 +124,7 @@ def test_screen_equals_its_numpy_formulation(seed, n, scale, poison):
         for arr in (bound, distance, h):
             arr[rng.integers(scene.k)] = float(poison)
     nominal, values = np.empty((n, 2)), np.empty(scene.k)
-    low_d, low_h, bounded, met = fused_kernels.screen(terms.normal_xy, terms.pair_i, terms.pair_j, a_nom,
+    low_d, low_h, bounded, met = fused_kernels.screen(terms.normal_xy, terms.row_i, terms.row_j, a_nom,
                                                       DYN.accel_limit, bound, distance, h, nominal, values)
     want_nominal = clip_norm(a_nom, DYN.accel_limit)
     np.testing.assert_array_equal(nominal, want_nominal)

@@ -16,11 +16,19 @@ from controllers.safety.projection import (
     inside_octagon,
     project_octagon,
     projected_optimum,
-    row_robots,
     separable_answer,
 )
 
 WALLS = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+
+
+def row_robots(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The robots of every row of N robots and a convex object (:meth:`BarrierTerms.row_robots`)."""
+    pi, pj = np.triu_indices(n, 1)
+    k = len(pi) + 5 * n
+    terms = BarrierTerms(pair_i=pi, pair_j=pj, pair_normal=np.zeros((len(pi), 2)), object_normal=np.zeros((n, 2)),
+                         wall_normal=WALLS, h=np.zeros(k), drift=np.zeros(k), bound=np.zeros(k))
+    return terms.row_robots()
 
 
 def test_one_pair_row_moves_both_robots_apart_by_half_the_deficit_each():
@@ -30,7 +38,7 @@ def test_one_pair_row_moves_both_robots_apart_by_half_the_deficit_each():
     lower[0] = 0.2
     a = np.zeros((2, 2))
     values = np.zeros(len(normals))
-    u = separable_answer(normals, np.array([0]), np.array([1]), values, lower, a, a_box=1.0)
+    u = separable_answer(normals, *row_robots(2), values, lower, a, a_box=1.0)
     assert u == pytest.approx(np.array([[0.1, 0.0], [-0.1, 0.0]]), abs=1e-11)
 
 
@@ -39,8 +47,7 @@ def test_rows_that_share_a_robot_are_left_to_the_solver():
     normals[:2] = (1.0, 0.0)                                   # pairs (0, 1) and (0, 2) both broken
     lower = np.full(len(normals), -np.inf)
     lower[:2] = 0.2
-    assert separable_answer(normals, np.array([0, 0, 1]), np.array([1, 2, 2]), np.zeros(len(normals)),
-                            lower, np.zeros((3, 2)), 1.0) is None
+    assert separable_answer(normals, *row_robots(3), np.zeros(len(normals)), lower, np.zeros((3, 2)), 1.0) is None
 
 
 def test_octagon_projection_by_hand():
@@ -52,12 +59,6 @@ def test_octagon_projection_by_hand():
     assert got == pytest.approx(want, abs=1e-12)
     assert inside_octagon(got, 1.0).all()
     assert inside_octagon(points, 1.0).tolist() == [False, False, True, False, False]
-
-
-def test_row_robots_follow_the_row_layout():
-    pair_i, pair_j = np.triu_indices(3, 1)                     # P = 3, then 3 object rows, 12 wall rows
-    i, j = row_robots(np.array([0, 2, 3, 5, 6, 9, 10, 17]), pair_i, pair_j, 3)
-    assert i.tolist() == [0, 1, 0, 2, 0, 0, 1, 2] and j.tolist() == [1, 2, -1, -1, -1, -1, -1, -1]
 
 
 def exact_qp(terms: BarrierTerms, a: np.ndarray, lower: np.ndarray, a_box: float) -> np.ndarray:

@@ -144,7 +144,7 @@ def test_the_qp_without_its_fixed_robots_has_the_full_qps_answer(seed, n, k):
     overlap, infeasible for both)."""
     scene, a_nom = _random_scene(seed, n, k)
     prob = SafetyFilter(SCENARIO).problem(n + k)
-    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_polygon(None), scene)
+    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_pieces(None), scene)
     a_nom = np.where(scene.fixed[:, None], 0.0, np.clip(a_nom, -0.6, 0.6))
     want = _pinned_qp(terms, a_nom, scene.fixed, prob.a_box)
     got, status = prob.solve(terms, a_nom, CONFIG.tighten, scene.fixed)
@@ -165,7 +165,7 @@ def test_every_row_of_a_disc_left_out_holds_for_any_command(seed, n, k, unit):
     binding = binding_fixed_rows(scene, n, config, DYN, R)
     safety = SafetyFilter(SCENARIO, config)
     prob = safety.problem(n + k)
-    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_polygon(None), scene)
+    terms = prob.fused.terms(scene.pos, scene.vel, prob.posed_pieces(None), scene)
     idle_rows = np.isin(terms.pair_j, n + np.flatnonzero(~binding)) & (terms.pair_i < n)
     assert np.all(terms.bound[:len(terms.pair_i)][idle_rows] + config.tighten <= -DYN.accel_limit)
     assert np.all(terms.distance[:len(terms.pair_i)][idle_rows] > DYN.dt * DYN.speed_limit)

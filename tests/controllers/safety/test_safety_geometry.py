@@ -13,10 +13,9 @@ from controllers.safety.geometry import (
     WALL_NORMALS,
     CollisionScene,
     analytic_distances,
-    ear_clip,
-    is_convex_ccw,
     point_polygon,
 )
+from controllers.safety.polygon import ear_clip, is_convex_ccw
 from sim.scenario import transport_scenario
 from tests.controllers.safety.fcl_child import run_child
 
@@ -146,8 +145,15 @@ def test_non_convex_object_outside_distances_are_exact():
     pos = np.array([[0.55, 0.55], [0.8, 0.35], [0.35, 0.8]])   # in the notch, right, above
     scene.update(pos)
     sd, _, _ = point_polygon(pos, l_shape)
-    np.testing.assert_allclose(scene.distances().object_distance, sd - R, atol=1e-5)
+    d = scene.distances()
+    np.testing.assert_allclose(d.object_clearance(), sd - R, atol=1e-5)
     assert sd[0] == pytest.approx(0.15)     # nearest is the top edge y = 0.4 of the lower arm
+    # one row per robot and convex piece (lower arm, upper arm): in the notch both faces are rows
+    assert d.pieces == 2
+    np.testing.assert_allclose(d.object_distance.reshape(3, 2)[0], [0.15 - R, 0.15 - R], atol=1e-5)
+    np.testing.assert_allclose(d.object_normal[:2], [[0.0, 1.0], [1.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(d.object_distance, analytic_distances(pos, R, scenario.arena, scene.pieces)
+                               .object_distance, atol=1e-5)
 
 
 def test_robots_touching_the_objects_corners_are_measured_without_aborting_the_process():
