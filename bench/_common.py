@@ -23,6 +23,10 @@ from sim.scenario import MAX_ROBOTS
 from stack.commands import argtypes
 
 GIT_AT_START = git_commit()
+
+L_OBJECT = ((0.4, 0.35), (0.6, 0.35), (0.6, 0.45), (0.5, 0.45), (0.5, 0.65), (0.4, 0.65))
+"""An L-shaped, non-convex object cut from the presets' 0.2 x 0.3 box (its re-entrant corner at
+(0.5, 0.45)): the held-out layout of ``generalization.py`` and an object condition of ``safety.py``."""
 """The checkout when the benchmark started: the code that ran. A long run outlives commits and
 edits made beside it; what its document records is this, with the checkout at the end beside
 it (``git_at_end``) when they differ."""

@@ -9,8 +9,11 @@ the largest delay seen); measurement noise (1 cm on positions, 2 cm/s on velocit
 the states lost on the way; a robot that freezes mid-episode (silent and deaf, its own watchdog
 brakes it after two ticks), and the same with a tracker over the arena that sees every robot
 (``frozen_robot_tracked``: motion capture one tick late, within 5 mm and 2 cm/s, identifying
-each robot, :func:`tracked`); gain 0.7 with two ticks of delay; and the randomised
-gain/lag/friction/disturbance model error of part (a). Per condition, on the same seeds:
+each robot, :func:`tracked`); gain 0.7 with two ticks of delay; the randomised
+gain/lag/friction/disturbance model error of part (a); and an L-shaped, non-convex object in
+place of the box (``bench._common.L_OBJECT``), on a clean link (``l_object``) and on one with
+jittering delay, noise and dropped states at once (``l_object_link``). Per condition, on the same
+seeds:
 
 * ``episodes`` adversarial episodes (3-16 robots, the adversary of :mod:`_adversary`, random
   starts inside ``h >= 0``), once with the stack (filter + MEC: ``StackConfig()``, or its latency
@@ -45,7 +48,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 from _adversary import MAX_ROBOTS, MIN_ROBOTS, AdversarialPolicy, random_start, without_docking
-from _common import map_episodes
+from _common import L_OBJECT, map_episodes
 
 from controllers.docking import DockingConfig
 from controllers.safety import SafetyFilter
@@ -53,7 +56,7 @@ from controllers.scripted import ScriptedController
 from sim.fleet import Fleet, FleetState
 from sim.intruders import IntruderFleet, RobotSightings
 from sim.pymunk_world import ModelError, PymunkWorld
-from sim.scenario import make_scenario, transport_scenario
+from sim.scenario import Scenario, make_scenario, transport_scenario
 from stack.pipeline import ControlStack, StackConfig, load_policy, nominal_step, run_episode
 
 CONDITIONS: dict[str, dict] = {
@@ -70,9 +73,13 @@ CONDITIONS: dict[str, dict] = {
     "frozen_robot_tracked": {"freeze": "random", "tracked": True},
     "gain0.7_delay2": {"gain": 0.7, "delay_ticks": 2},
     "model": {"model": "random"},
+    "l_object": {"object": "L"},
+    "l_object_link": {"object": "L", "delay_ticks": 1, "delay_jitter_ticks": 2, "position_noise_std": 0.01,
+                      "velocity_noise_std": 0.02, "state_drop": 0.2},
 }
 """Condition name -> ModelError fields ("random": drawn per episode, see :func:`model_error`;
-"tracked": a tracker over the arena also sees the robots, :func:`tracked`)."""
+"tracked": a tracker over the arena also sees the robots, :func:`tracked`; "object": "L", the
+scenarios' object is :data:`bench._common.L_OBJECT`, :func:`with_object`)."""
 
 BARE = StackConfig(safety=False, mec=False)
 OPEN_LOOP = StackConfig(safety=False, mec=False, docking=DockingConfig(enabled=False))
@@ -84,6 +91,7 @@ def model_error(name: str, rng: np.random.Generator, num_robots: int, steps: int
     """The condition's ModelError for one episode (freeze: a random robot at a random tick)."""
     fields = dict(CONDITIONS[name])
     fields.pop("tracked", None)
+    fields.pop("object", None)
     if fields.get("freeze") == "random":
         fields["freeze"] = (int(rng.integers(num_robots)), int(rng.integers(5, max(6, steps // 2))))
     if fields.pop("model", None) == "random":
@@ -92,6 +100,13 @@ def model_error(name: str, rng: np.random.Generator, num_robots: int, steps: int
                   "floor_friction": float(rng.uniform(0, 0.1)), "disturbance_std": 0.02,
                   "disturbance": tuple(float(rng.uniform(0, 0.05)) * np.array([np.cos(angle), np.sin(angle)]))}
     return ModelError(**fields)
+
+
+def with_object(name: str, scenario: Scenario) -> Scenario:
+    """The scenario with the condition's object (the L inside the presets' box: their slots fit)."""
+    if CONDITIONS[name].get("object") == "L":
+        return dataclasses.replace(scenario, object_vertices=L_OBJECT)
+    return scenario
 
 
 def tracked(name: str, world: PymunkWorld, seed: int) -> Fleet:
@@ -119,7 +134,7 @@ def adversarial_episode(task: tuple[str, int, int, StackConfig]) -> dict:
         config = without_docking(config)
         rng = np.random.default_rng(seed)
         n = int(rng.integers(MIN_ROBOTS, MAX_ROBOTS + 1))
-        sc = transport_scenario(n)
+        sc = with_object(name, transport_scenario(n))
         world = tracked(name, PymunkWorld(sc, model_error(name, rng, n, steps)), seed)
         stack = ControlStack(sc, AdversarialPolicy(sc, rng), config)
         barrier = SafetyFilter(sc)
@@ -136,7 +151,7 @@ def paired_task_runs(name: str, seed: int, policy: str | None, stack_config: Sta
     model error; ``wrap(world, seed)`` may put the world in another fleet. Yields ("on" | "off",
     the fleet, its EpisodeMetrics)."""
     torch.set_num_threads(1)
-    sc = make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3])
+    sc = with_object(name, make_scenario(("paper-3", "paper-4", "paper-5")[seed % 3]))
     for key, config in (("on", stack_config), ("off", BARE)):
         rng = np.random.default_rng(seed)
         world = PymunkWorld(sc, model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps))
@@ -185,7 +200,7 @@ def tracking_error_mm(name: str, episodes: int, seed: int) -> dict:
     """The MEC's open-loop tracking error under the condition (module docstring) [mm]."""
     errors: dict[str, list[float]] = {"mec": [], "no_mec": []}
     for k in range(episodes):
-        sc = make_scenario(("paper-3", "paper-4", "paper-5")[k % 3])
+        sc = with_object(name, make_scenario(("paper-3", "paper-4", "paper-5")[k % 3]))
         rng = np.random.default_rng(seed + k)
         me = model_error(name, rng, sc.num_robots, sc.dynamics.episode_steps)
         start = PymunkWorld(sc).reset(seed=seed + k)

@@ -57,6 +57,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench._common import (  # noqa: E402
+    L_OBJECT,
     add_output_args,
     json_object,
     nonnegative_int,
@@ -99,8 +100,7 @@ def held_out(n: int = 4):
     """The fine-tuning layout: an L-shaped (non-convex) object of the preset's 0.2 x 0.3 box."""
     from sim.scenario import transport_scenario
 
-    l_shape = ((0.4, 0.35), (0.6, 0.35), (0.6, 0.45), (0.5, 0.45), (0.5, 0.65), (0.4, 0.65))
-    return transport_scenario(n, object_vertices=l_shape, name=f"l-shape-{n}")
+    return transport_scenario(n, object_vertices=L_OBJECT, name=f"l-shape-{n}")
 
 
 def _base(args) -> dict:

@@ -34,7 +34,8 @@ same answers; run both to compare their latency.
 
 (d) conditions: the imperfections of a real link, one by one (delay 1-3 ticks, jittering delay,
     noise, dropped states, a frozen robot, the same seen by a tracker that identifies robots,
-    gain 0.7 with delay, the model error of (a)), each with ``--condition-episodes``
+    gain 0.7 with delay, the model error of (a), an L-shaped object on a clean and on a poor
+    link), each with ``--condition-episodes``
     adversarial episodes of ``--episode-ticks`` ticks, default stack against bare, plus the
     scripted controller (and ``--policy``) and the MEC's tracking error; see
     :mod:`_safety_conditions`.

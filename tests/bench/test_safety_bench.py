@@ -228,3 +228,19 @@ def test_ticks_per_episode_and_processes_are_episode_ticks_and_cpus(capsys):
 def test_the_old_spellings_still_work_and_warn(old, new, capsys):
     assert _parse(old) == _parse(new)
     assert capsys.readouterr().err == f"warning: {old[0]} is deprecated; use {new[0]}\n"
+
+
+def test_the_l_object_conditions_put_the_l_in_every_scenario_and_nothing_else():
+    import numpy as np
+    from _common import L_OBJECT
+    from _safety_conditions import model_error, with_object
+
+    from sim.scenario import make_scenario
+    paper = make_scenario("paper-4")
+    for name in ("l_object", "l_object_link"):
+        assert with_object(name, paper).object_vertices == L_OBJECT
+        assert with_object(name, paper).target_slots == paper.target_slots
+    assert with_object("delay2", paper) is paper
+    link = model_error("l_object_link", np.random.default_rng(0), 4, 128)
+    assert (link.delay_ticks, link.delay_jitter_ticks, link.state_drop) == (1, 2, 0.2)
+    assert model_error("l_object", np.random.default_rng(0), 4, 128).delay_ticks == 0
