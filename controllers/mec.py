@@ -92,6 +92,14 @@ With 2 cm/s of noise a robot with a real gain error is then left uncompensated u
 stands out of the noise: less compensation, never a random walk. A robot's first
 ``WARMUP_UPDATES`` measurements only estimate (its noise level is not known before).
 
+A row without a new measurement (NaN: dropped on the way) only predicts, so what
+:meth:`~ModelErrorCompensator.update` returns for it is a prediction to now, through the
+commands of the hypothesis in charge. A caller that carries the robot on from its last
+measurement itself, through the commands sent since (the latency prediction of
+:mod:`controllers.safety.latency` does), reads :attr:`~ModelErrorCompensator.v_measured`
+instead: the estimate as of that measurement. Fed the prediction to now, it counts those
+commands twice.
+
 Estimates are keyed by robot id (``ids`` of :meth:`ModelErrorCompensator.step`): a robot that
 leaves takes its estimate with it, a robot that joins starts afresh, and rows may reorder.
 
@@ -279,6 +287,7 @@ class ModelErrorCompensator:
         self.ids: tuple[str, ...] | None = None
         self.v_hat = self.d_hat = self.score = self.sent = self.charge = self.level = None
         self.noise_var = self.noise_count = self.y_prev = self.r_prev = None
+        self.v_measured: np.ndarray | None = None
 
     def _align(self, ids: tuple[str, ...], vel: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Re-key the estimates to ``ids``; (N,) bool of robots that start afresh this tick."""
@@ -291,6 +300,7 @@ class ModelErrorCompensator:
         level, noise_var = np.zeros(n, dtype=np.int64), np.full(n, self.config.velocity_noise**2)
         noise_count = np.zeros(n)
         y_prev, r_prev = np.where(valid[:, None], vel, np.nan), np.full((n, 2), np.nan)
+        v_measured = v0.copy()
         if self.ids is not None:
             old = {rid: k for k, rid in enumerate(self.ids)}
             rows = [(k, old[rid]) for k, rid in enumerate(ids) if rid in old]
@@ -301,10 +311,11 @@ class ModelErrorCompensator:
                 charge[new], level[new], noise_var[new] = self.charge[prev], self.level[prev], self.noise_var[prev]
                 noise_count[new] = self.noise_count[prev]
                 y_prev[new], r_prev[new] = self.y_prev[prev], self.r_prev[prev]
+                v_measured[new] = self.v_measured[prev]
                 fresh[new] = False
         self.ids, self.v_hat, self.d_hat, self.score, self.sent = ids, v_hat, d_hat, score, sent
         self.charge, self.level, self.noise_var, self.noise_count = charge, level, noise_var, noise_count
-        self.y_prev, self.r_prev = y_prev, r_prev
+        self.y_prev, self.r_prev, self.v_measured = y_prev, r_prev, v_measured
         return fresh
 
     def step(self, velocity: np.ndarray, a_safe: np.ndarray,
@@ -316,7 +327,8 @@ class ModelErrorCompensator:
 
     def update(self, velocity: np.ndarray, ids: tuple[str, ...] | None = None) -> np.ndarray:
         """Take this tick's measured (N, 2) velocities (NaN rows: no new measurement, predict
-        only); returns the (N, 2) velocity estimate of the hypothesis in charge [m/s]."""
+        only); returns the (N, 2) velocity estimate of the hypothesis in charge [m/s], now.
+        :attr:`v_measured` keeps, per robot, that estimate as of its last measurement."""
         start = time.perf_counter()
         vel = np.asarray(velocity, dtype=np.float64)
         if vel.ndim != 2 or vel.shape[1] != 2:
@@ -336,6 +348,7 @@ class ModelErrorCompensator:
         if not self._all_valid:
             vel = np.where(valid[:, None], vel, 0.0)
         v_out = self._observe(vel, valid & ~fresh)
+        self.v_measured = v_out if self._all_valid else np.where(valid[:, None], v_out, self.v_measured)
         self._update_s = time.perf_counter() - start
         return v_out
 

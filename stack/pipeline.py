@@ -11,7 +11,14 @@ every per-robot estimate is keyed by robot id)::
       -> MEC in:   controllers.mec.ModelErrorCompensator.update(vel, ids) (optional): a bank of
                    Kalman observers over command delays 0..3 ticks, noise-adaptive; its velocity
                    estimate replaces the measured one for policy and filter
-                   (``estimated_velocity``); dropped or stale rows only predict
+                   (``estimated_velocity``); dropped or stale rows only predict, and a dropped
+                   row reads the estimate as of its last measurement (``v_measured``), as its
+                   position and age are: the latency prediction carries it on from there through
+                   the commands sent since. The prediction to now already holds them (under the
+                   observer's delay hypothesis); carried through them again, a robot coasting at
+                   0.175 m/s towards a wall 4 cm off was judged at 0.084 m/s one tick after the
+                   start and let accelerate into it (``bench/safety.py``, jitter, noise and drops
+                   at once, seed 292)
       -> positions: controllers.position_estimator.PositionEstimator (``estimated_position``):
                    a Kalman filter per robot on the measured positions, driven by the measured
                    velocity, that measures its own noise (exact measurements pass unchanged);
@@ -52,7 +59,9 @@ every per-robot estimate is keyed by robot id)::
       -> MEC out:  ModelErrorCompensator.compensate(a_safe) => a_cmd = clip_norm(a_safe - c)
       -> re-check: controllers.safety.recheck: a_cmd must satisfy the barrier rows too, else
                    its robots' compensation is withdrawn
-      -> commands  a_cmd (N, 2) numpy float64, always finite; stale rows the braking law; the
+      -> commands  a_cmd (N, 2) numpy float64, always finite; stale rows the braking law at the
+                   velocity the prediction carries them to (controllers.safety.latency, Braking a
+                   robot that is not listening), not at their last measured one; the
                    acceleration each robot is to achieve is recorded for the next prediction
                    (a caller that sends BRAKE instead says so: :meth:`ControlStack.sent_braking`)
 
@@ -223,7 +232,7 @@ class ControlStack(PolicyStage):
                 a_cmd = recheck(safe.result.terms, safe.full(a_safe), safe.full(held), n)
             achieved = a_cmd + np.where(stale[:, None], 0.0, mec.compensation)
         if np.count_nonzero(stale):             # not listening or not seen: brake, as the robot would
-            a_cmd = np.where(stale[:, None], self.brake(vel), a_cmd)
+            a_cmd = np.where(stale[:, None], self.brake(self._braked_velocity(vel, stale, safe)), a_cmd)
             achieved = np.where(stale[:, None], a_cmd, achieved)
         if self.mec is not None:
             self.mec.replace_last_command(a_cmd)
@@ -268,6 +277,15 @@ class ControlStack(PolicyStage):
         if self.mec is not None and self.mec.sent is not None:
             self.mec.replace_last_command(np.where(braking[:, None], brake, self.mec.sent[-1]))
 
+    @staticmethod
+    def _braked_velocity(vel: np.ndarray, stale: np.ndarray, safe: SafeStage | None) -> np.ndarray:
+        """(N, 2) the velocity each stale row's BRAKE is to cancel [m/s]: the prediction's
+        (:attr:`Prediction.brake_vel`: its last state carried through the commands in flight,
+        the brakes already sent among them), ``vel`` without one (and for the other rows)."""
+        if safe is None or safe.prediction is None:
+            return vel
+        return np.where(stale[:, None], safe.prediction.braking_velocity()[:len(vel)], vel)
+
     def _estimate(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, measured_at: np.ndarray,
                   stale: np.ndarray, news: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """The MEC's velocity and the position estimator's positions for the fresh rows (stale
@@ -276,8 +294,10 @@ class ControlStack(PolicyStage):
         any_stale = np.count_nonzero(stale) > 0         # none: the np.where below are copies
         if self.mec is not None:            # the observer's velocity: less noisy, same delay
             skip = stale | ~news
-            v_est = self.mec.update(np.where(skip[:, None], np.nan, vel) if np.count_nonzero(skip) else vel,
-                                    ids)
+            skipped = np.count_nonzero(skip) > 0
+            v_est = self.mec.update(np.where(skip[:, None], np.nan, vel) if skipped else vel, ids)
+            if skipped:     # as of the row's measurement, as its position and age are (module docstring)
+                v_est = np.where(skip[:, None], self.mec.v_measured, v_est)
             if self.config.estimated_velocity:
                 vel = np.where(stale[:, None], vel, v_est) if any_stale else v_est
         if self.positions is None:

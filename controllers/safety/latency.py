@@ -101,6 +101,21 @@ a few narrow discs round its branches' rest points instead of the one (:meth:`Si
 once it is at rest narrows those discs (``predict(seen=)``; silent_reach, Seen at rest). What
 each step gained on the frozen-robot condition: docs/safety.md, "A silent robot seen where it
 stopped" and "A silent robot the tracker sees".
+
+**Braking a robot that is not listening.** The stack sends such a robot BRAKE every tick; one
+that still hears it acts on it after the commands in flight. A robot that takes BRAKE as an
+acceleration to achieve (a pymunk robot, which has no braking law of its own) must get the
+braking law at the velocity it will have then: its measured velocity carried through the
+commands it had yet to act on when measured, as a listening robot is carried (``m_i``
+commands, ``h_i`` where the count is unknown), the brakes already sent to it among them
+(:attr:`Prediction.brake_vel` of its row; a row with more of them than the history holds keeps
+its disc's velocity, at rest by then). From the last measured velocity itself, every BRAKE
+cancels the same velocity, 0.15 s or more behind the robot: on an exact link a robot at
+0.2 m/s along +y that had been pushed along -x since was never braked along x and turned round
+along y on the fourth BRAKE (``tests/stack/test_pipeline.py``); with jitter, noise and drops
+at once a robot sliding round the object's corner, its velocity turned from (-0.06, 0.22) to
+(-0.17, 0.13) m/s by the commands in flight, was pushed at (0.25, -0.97) m/s^2 into the face
+below it for three ticks and touched (``bench/safety.py``, seed 223).
 """
 
 from __future__ import annotations
@@ -354,8 +369,10 @@ class LatencyPredictor:
                 grow[by_ball] = radius + sigma[by_ball]
                 closing[by_ball] = rate + cfg.velocity_noise
         brake_vel, measured = v, jittering & ~fixed
+        if np.count_nonzero(fixed):
+            brake_vel = self._carried(pos, vel, ages, pending, fixed, delay, v)
         if cfg.jitter_brake_measured and np.count_nonzero(measured):
-            brake_vel = np.where(measured[:, None], vel, v)
+            brake_vel = np.where(measured[:, None], vel, brake_vel)
         velocity_error = closing.copy()
         if velocity_noise is not None:
             sigma_v = np.asarray(velocity_noise, dtype=np.float64)
@@ -364,6 +381,26 @@ class LatencyPredictor:
         return Prediction(pos=p, vel=v, grow=grow, closing=closing, fixed=fixed, horizon=h,
                           brake_vel=brake_vel, velocity_error=velocity_error,
                           unsure=unsure, covers=tuple(covers))
+
+    def _carried(self, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray, pending: np.ndarray,
+                 fixed: np.ndarray, delay: float, v: np.ndarray) -> np.ndarray:
+        """(N, 2) the velocity the BRAKE sent to each fixed robot is to cancel (module docstring,
+        Braking a robot that is not listening): its measured velocity carried through the
+        commands it had yet to act on (``pending``, ``h`` where unknown, as a listening robot is
+        carried; before its first command, none: it held nothing), where the history holds them
+        all; ``v`` (its disc's) for the other rows."""
+        h = horizon_ticks(ages, delay, self.dynamics.dt)
+        m = np.where(fixed, np.where(pending >= 0, pending, h), 0).astype(np.int64)
+        held = fixed & (m <= self.depth) & np.isfinite(vel).all(axis=1)
+        if not held.any():
+            return v
+        m = np.where(held, m, 0)
+        p_out, v_out = np.empty_like(pos), np.empty_like(vel)
+        dyn = self.dynamics
+        latency_kernels._roll_forward(f64(pos), f64(vel), m, self._history, False, float(dyn.dt),
+                                      float(dyn.damping), float(dyn.speed_limit), float(dyn.speed_limit ** 2),
+                                      float(dyn.accel_limit), p_out, v_out)
+        return np.where(held[:, None], v_out, v)
 
     def _listening(self, pos: np.ndarray, vel: np.ndarray, ages: np.ndarray, a_nom: np.ndarray,
                    pending: np.ndarray, given_fixed: np.ndarray, sigma_p: np.ndarray,

@@ -168,6 +168,9 @@ def _warm_up() -> None:
                       np.empty((n, 2)), np.empty((n, 2)), np.empty(n), np.empty(n), np.empty(n, dtype=bool),
                       np.empty(n, dtype=np.int64), np.empty(n, dtype=bool))
     late_rows(np.zeros(n, dtype=np.int64), z1, 0.15, 0.05, np.empty(n, dtype=bool))
+    # called on its own too: a fixed robot's BRAKE velocity (LatencyPredictor._carried)
+    _roll_forward(z2, z2, np.zeros(n, dtype=np.int64), np.zeros((depth, n, 2)), False, 0.05, 0.5, 0.4, 0.16, 1.0,
+                  np.empty((n, 2)), np.empty((n, 2)))
     record_rows(z2, 1.0, np.zeros(n, dtype=bool), np.zeros((depth, n, 2)), np.zeros((depth, n), dtype=bool),
                 np.zeros(n, dtype=np.int64), depth)
 

@@ -26,6 +26,8 @@ class Prediction:
         horizon: (N,) ticks predicted.
         brake_vel: (N, 2) the velocity a braking command aims to stop [m/s]: ``vel``, or the
             measured velocity of a robot whose delay jitters (:mod:`controllers.safety.latency`, Braking);
+            for a fixed robot, its last state carried through the commands in flight, which the
+            BRAKE the stack sends it cancels (ibid., Braking a robot that is not listening);
             None: ``vel``.
         velocity_error: (N,) bound on the error of ``vel`` [m/s]: ``closing`` plus
             ``VELOCITY_NOISE_BOUND`` times the velocity noise the caller measured; read by the

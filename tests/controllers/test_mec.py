@@ -174,6 +174,28 @@ def test_estimates_follow_robot_ids_through_a_leave_and_a_join_in_one_tick():
     assert out.status is not MecStatus.RESET                       # b was known
 
 
+def test_a_dropped_measurement_keeps_the_estimate_as_of_the_last_one_by_robot_id():
+    """A NaN row only predicts: ``update`` returns the prediction to now, ``v_measured`` the
+    estimate of the tick the robot's last measurement arrived (what a caller that carries the
+    robot on from that measurement itself needs), and it follows the robot's id."""
+    mec = ModelErrorCompensator(DYN)
+    vel, u = np.array([[0.1, 0.0], [0.0, -0.1]]), np.array([[0.5, 0.0], [0.0, 0.5]])
+    mec.step(vel, u, ids=("a", "b"))
+    vel = plant(vel, u)
+    fresh = mec.update(vel, ids=("a", "b")).copy()
+    np.testing.assert_array_equal(mec.v_measured, fresh)
+    mec.compensate(u)
+    now = mec.update(np.array([[np.nan, np.nan], vel[1] + DYN.dt * 0.5]), ids=("a", "b"))
+    assert np.abs(now[0] - fresh[0]).max() > 0.02                  # predicted through u: 0.025 m/s on
+    np.testing.assert_array_equal(mec.v_measured[0], fresh[0])
+    np.testing.assert_array_equal(mec.v_measured[1], now[1])
+    mec.compensate(u)
+    again = mec.update(np.array([[np.nan, np.nan], [0.0, 0.0], [np.nan, np.nan]]), ids=("b", "a", "c"))
+    np.testing.assert_array_equal(mec.v_measured[0], now[1])      # b lost this one: its last, by id
+    np.testing.assert_array_equal(mec.v_measured[1], again[1])    # a measured again, now row 1
+    np.testing.assert_array_equal(mec.v_measured[2], 0.0)         # c never measured
+
+
 def test_velocity_noise_is_measured_and_not_compensated_as_a_disturbance():
     """Teeth: with 2 cm/s of velocity noise (4x the design's 5 mm/s) and no disturbance at all,
     the fixed design gain turns the noise into compensation of several tenths of m/s^2 (a random

@@ -131,11 +131,16 @@ def test_nan_network_output_and_nan_state_brake():
     moving = FleetState(time=0.0, step=0, positions=state.positions,
                         velocities=np.array([[0.2, 0.0], [0.0, 0.1], [0.0, 0.0]]), targets=state.targets,
                         object_pose=state.object_pose)
-    stack.tick(moving)
+    sent = stack.tick(moving).a_cmd[0]
     bad.time = 0.05
     tick = stack.tick(bad)
     assert tick.policy_status is PolicyStatus.OK and tick.stale.tolist() == [True, False, False]
-    np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(moving.velocities, sc.dynamics)[0])
+    # BRAKE at its last velocity carried through what it may have acted on since: its pending
+    # count unknown, the h = 4 ticks the bound allows, the command sent to it the newest of them
+    dyn, v = sc.dynamics, moving.velocities[:1].copy()
+    for u in (0.0, 0.0, 0.0, sent):
+        v = v + dyn.dt * (u - dyn.damping * v)
+    np.testing.assert_allclose(tick.a_cmd[0], braking_acceleration(v, dyn)[0], rtol=0, atol=1e-12)
 
 
 def test_a_robot_that_acts_on_no_new_command_is_braked_though_its_state_is_fresh():
@@ -178,6 +183,85 @@ def test_a_repeated_state_is_no_news_and_a_robot_away_keeps_its_last_state():
     np.testing.assert_allclose(v[0], vel[1])
     assert ages[0] == pytest.approx(0.2)                            # measured at 1.0 s
     assert unplaced.tolist() == [False, True]                       # c was never seen
+
+
+def _filter_sees(stack: ControlStack) -> list:
+    """Record the prediction the stack's filter is given each tick."""
+    seen, judge = [], stack.safety.filter
+
+    def recorded(*args, prediction=None, **kwargs):
+        seen.append(prediction)
+        return judge(*args, prediction=prediction, **kwargs)
+    stack.safety.filter = recorded
+    return seen
+
+
+def _exact_link_with_robot_0_lost(moving: np.ndarray, push: np.ndarray, lost_from: int, ticks: int):
+    """transport-3 in pymunk on an exact link (no delay, no noise), robot 0 starting at 0.2 m/s,
+    the others at rest, the policy asking ``push`` (3, 2) every tick; robot 0's states from tick
+    ``lost_from`` on are lost (its last delivered row repeated, older, a command more pending
+    each tick). Yields (tick, the stack's TickResult, robot 0's true state, the prediction)."""
+    sc = transport_scenario(3)
+    world = PymunkWorld(sc)
+    world.reset(seed=0)
+    world.set_state(np.array([[0.25, 0.2], [0.8, 0.85], [0.8, 0.15]]), moving)
+    state = world.read_state()
+    stack = ControlStack(sc, lambda s: push)
+    seen = _filter_sees(stack)
+    for k in range(ticks):
+        if k < lost_from:
+            delivered = state.positions[0].copy(), state.velocities[0].copy()
+        else:
+            state.positions[0], state.velocities[0] = delivered
+            state.state_age_s = np.array([(k - lost_from + 1) * sc.dynamics.dt, 0.0, 0.0])
+            state.commands_pending = np.array([k - lost_from + 1, 0, 0])
+        tick = stack.tick(state)
+        yield k, tick, world.true_state(), seen[-1]
+        world.send_accelerations(tick.a_cmd)
+        state = world.step()
+
+
+def test_a_lost_state_is_carried_on_from_its_measurement_exactly_on_a_link_that_keeps_its_delay():
+    """Robot 0's states of ticks 3 and 4 are lost: the tick-2 row arrives again, older, with
+    more commands pending. Without delay, where the new command acts is where the robot is now,
+    and the filter must judge it there, to rounding: the position estimator gives its position
+    and the MEC its velocity as of that measurement, and the latency prediction carries both
+    through the commands sent since. The MEC's prediction to now already held those commands;
+    carried through them again, the robot was judged 28 and 54 mm/s and 1.4 and 5.4 mm off
+    (``bench/safety.py`` jitter, noise and drops at once, seed 292: one tick after the start,
+    a robot coasting at 0.175 m/s towards a wall 4 cm off was judged at 0.084 m/s and let
+    accelerate into it)."""
+    moving = np.array([[0.0, 0.2], [0.0, 0.0], [0.0, 0.0]])
+    push = np.array([[0.0, -0.5], [0.0, 0.0], [0.0, 0.0]])
+    judged = 0
+    for k, tick, true, prediction in _exact_link_with_robot_0_lost(moving, push, lost_from=3, ticks=5):
+        assert not tick.stale[0]
+        np.testing.assert_allclose(prediction.pos[0], true.positions[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(prediction.vel[0], true.velocities[0], rtol=0, atol=1e-12)
+        judged += k >= 3
+    assert judged == 2
+
+
+def test_a_robot_gone_stale_is_braked_from_the_velocity_its_commands_in_flight_gave_it():
+    """Robot 0, at 0.2 m/s along +y, is pushed along -x at full thrust, and its states are lost
+    from tick 1 on: from tick 3 its row is stale, an obstacle sent BRAKE, which a pymunk robot
+    takes as the acceleration to achieve. On an exact link its last state carried through the
+    commands it was sent since (the pushes, then the brakes already sent) is its true velocity,
+    so every BRAKE is the braking law at it and the robot comes to rest. Braked from its last
+    measured velocity, it got (0, -1) m/s^2 every tick: never braked along x, reversed along y."""
+    moving = np.array([[0.0, 0.2], [0.0, 0.0], [0.0, 0.0]])
+    push = np.array([[-1.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    dyn, stale, last = transport_scenario(3).dynamics, [], None
+    for k, tick, true, _ in _exact_link_with_robot_0_lost(moving, push, lost_from=1, ticks=9):
+        if tick.stale[0]:
+            stale.append(k)
+            brake = braking_acceleration(true.velocities[:1], dyn)[0]
+            np.testing.assert_allclose(tick.a_cmd[0], brake, rtol=0, atol=1e-12)
+        if last is not None:
+            assert true.velocities[0] @ last >= 0.0                   # never turned round
+        last = true.velocities[0]
+    assert stale == [3, 4, 5, 6, 7, 8]
+    assert np.hypot(*last) < 1e-12                                  # at rest
 
 
 def test_robot_count_can_change_between_ticks():

@@ -224,6 +224,30 @@ def test_a_robot_whose_pending_commands_outrun_the_bound_is_an_obstacle():
     assert pred.late(np.array([0.1, 0.0]), np.array([4, 3])).tolist() == [False, False]  # 2 ticks old
 
 
+def test_a_stale_robot_is_braked_from_its_state_carried_through_the_commands_in_flight():
+    """Robot "a" was measured at 0.2 m/s along +y four ticks ago and sent four commands since
+    (all pending): a push along -x, then three brakes. Stale, it is an obstacle whose BRAKE is
+    to cancel the velocity those commands give it: its measurement run through them, by hand.
+    With more pending commands than the history holds, the disc's own velocity stays."""
+    pred = LatencyPredictor(DYN)
+    ids = ("a", "b")
+    pos, vel = np.array([[0.3, 0.3], [0.7, 0.7]]), np.array([[0.0, 0.2], [0.0, 0.0]])
+    sent = [np.array([-1.0, 0.0]), np.array([0.6, -0.8]), np.array([0.3, -0.4]), np.array([0.0, -0.5])]
+    for u in sent:
+        pred.record(ids, np.array([u, [0.0, 0.0]]), braking=np.array([u[1] < 0, False]))
+    ages = np.array([4 * DYN.dt, 0.0])
+    out = pred.predict(ids, pos, vel, ages, np.zeros((2, 2)), pending=np.array([4, 0]), now=1.0)
+    assert out.fixed.tolist() == [True, False]
+    v = vel[0].copy()
+    for u in sent:
+        v = v + DYN.dt * (u - DYN.damping * v)
+    np.testing.assert_allclose(out.braking_velocity()[0], v, rtol=0, atol=1e-15)
+    assert np.abs(out.braking_velocity()[0] - out.vel[0]).max() > 0.01     # not the disc's
+    beyond = pred.predict(ids, pos, vel, np.array([10 * DYN.dt, 0.0]), np.zeros((2, 2)),
+                          pending=np.array([pred.depth + 1, 0]), now=1.0)
+    np.testing.assert_array_equal(beyond.braking_velocity()[0], beyond.vel[0])
+
+
 def test_a_robot_whose_delay_changes_gets_the_jitter_weight_for_a_while():
     """Spread 0.3 m/s^2 over h = 2 ticks: grow = w * 0.3 * dt^2 * h (h + 1) / 2, w = 0.25 while the
     observed delay holds, 0.5 from the tick it changes and for ``depth`` ticks after."""
