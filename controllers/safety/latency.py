@@ -116,86 +116,36 @@ along y on the fourth BRAKE (``tests/stack/test_pipeline.py``); with jitter, noi
 at once a robot sliding round the object's corner, its velocity turned from (-0.06, 0.22) to
 (-0.17, 0.13) m/s by the commands in flight, was pushed at (0.25, -0.97) m/s^2 into the face
 below it for three ticks and touched (``bench/safety.py``, seed 223).
+
+**Robots whose state is late.** A robot whose state is a tick or more old but not stale may
+still listen (its updates were lost) or may have stopped acting on commands at its last state
+(it froze): the prediction above assumes the first. With ``cover_late`` (default) its disc
+also holds the second from the first late tick: the disc it would get as an obstacle (its
+branches, or the ball), taken at the time its prediction is for (``m_i`` ticks after its
+state; ``h_i`` when the pending count is unknown), joins its row's ``grow`` and ``closing``
+round the listening centre, which stays (:mod:`controllers.safety.late_cover` gives the maths:
+``g = max(g_1, |c_2 - p| + g_2)`` and the allowance that keeps the stopped disc inside one tick
+on). Before, that disc appeared only once the state was stale, at once 12-44 mm wide round a
+neighbour already inside it, and a neighbour braking two or three ticks late at 70 % of its
+acceleration touched (``bench/safety.py`` seeds 130 and 278 of gain 0.7, two ticks of delay and
+a frozen robot).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from controllers.checks import check_numbers
 from controllers.jit import f64, require_shapes
 from controllers.safety import latency_kernels
+from controllers.safety.late_cover import cover_both
+from controllers.safety.latency_config import LatencyConfig, LatencyConfigError
 from controllers.safety.prediction import Prediction
 from controllers.safety.reach import reach
 from controllers.safety.silent_reach import Sighting, SilentPaths, narrowed, silent_paths
 from sim.scenario import Dynamics, clip_norm
-
-
-class LatencyConfigError(ValueError):
-    """A latency setting that cannot work; the message names the field and the fix."""
-
-
-@dataclass(frozen=True)
-class LatencyConfig:
-    """What the filter assumes of the link (module docstring). The defaults cover 150 ms.
-
-    Attributes:
-        enabled: predict and tighten (False: the filter judges the measured state as it is).
-        command_delay_s: bound ``L`` on the time from sending a command to it acting (transport
-            plus actuation, jitter included) [s]; a measured bound, if larger, wins.
-        stale_after_s: a state older than this makes its robot a fixed obstacle [s].
-        accel_uncertainty: ``delta_a``, bound on achieved minus asked acceleration [m/s^2].
-        position_noise: ``sigma_p``, bound on the position measurement error [m].
-        velocity_noise: ``sigma_v``, bound on the velocity measurement error [m/s].
-        watchdog_s: a robot that hears no command brakes on its own after this long [s].
-        spread_weight: ``w``, weight of the command spread in the tightening (module docstring).
-        jitter_spread_weight: the weight for a robot whose observed delay changed lately or whose
-            pending count is unknown (the larger of the two weights applies).
-        jitter_brake_measured: a robot whose observed delay changed lately is braked from its
-            measured velocity, not the predicted one (module docstring, Braking).
-        measured_velocity_sigmas: how many standard deviations of each robot's measured velocity
-            noise (the caller's ``velocity_noise``, the compensator's) count as approach speed,
-            besides ``velocity_noise`` (0 on an exact link, where nothing is measured).
-        cover_merge: a silent robot at rest is bounded by discs round groups of its branches'
-            rest points, each group within this of its centre [m] (:meth:`SilentPaths.cover`).
-        cover_discs: at most this many discs per silent robot (1: the one disc of its branches).
-    """
-
-    enabled: bool = True
-    command_delay_s: float = 0.15
-    stale_after_s: float = 0.15
-    accel_uncertainty: float = 0.05
-    position_noise: float = 0.0
-    velocity_noise: float = 0.0
-    watchdog_s: float = 0.1
-    spread_weight: float = 0.25
-    jitter_spread_weight: float = 0.5
-    jitter_brake_measured: bool = True
-    measured_velocity_sigmas: float = 2.0
-    cover_merge: float = 0.01
-    cover_discs: int = 6
-
-    def delay_bound(self, measured_s: float | None) -> float:
-        """``L`` [s]: ``command_delay_s``, or the measured bound where that is larger."""
-        return max(self.command_delay_s, measured_s or 0.0)
-
-    def __post_init__(self) -> None:
-        check_numbers(self, ("command_delay_s", "stale_after_s", "accel_uncertainty", "position_noise",
-                             "velocity_noise", "watchdog_s", "spread_weight", "jitter_spread_weight",
-                             "measured_velocity_sigmas"),
-                      "latency", LatencyConfigError)
-        check_numbers(self, ("cover_merge",), "latency", LatencyConfigError, positive=True)
-        if isinstance(self.cover_discs, bool) or not isinstance(self.cover_discs, int | np.integer) \
-                or self.cover_discs < 1:
-            raise LatencyConfigError(f"latency.cover_discs must be a whole number >= 1, got {self.cover_discs!r}")
-        if not isinstance(self.jitter_brake_measured, bool | np.bool_):
-            raise LatencyConfigError("latency.jitter_brake_measured must be true or false, "
-                                     f"got {self.jitter_brake_measured!r}")
-        if self.stale_after_s <= 0:
-            raise LatencyConfigError(f"latency.stale_after_s must be > 0 seconds, got {self.stale_after_s!r}")
 
 
 def horizon_ticks(age_s: np.ndarray, delay_s: float, dt: float) -> np.ndarray:
@@ -212,6 +162,21 @@ def row_sums(x: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, pieces: int 
 
 VELOCITY_NOISE_BOUND = 3.0
 """A measured velocity noise of standard deviation sigma counts as an error bound of 3 sigma."""
+
+
+class _Stopped(NamedTuple):
+    """What one :meth:`LatencyPredictor.predict` knows of every robot's last state, for bounding
+    robots as obstacles: (N, 2) ``pos``, ``vel``; (N,) ``ages``, ``pending``, ``sigma_p`` and the
+    spread ``weight`` of their branches; the latency bound ``delay`` [s] and ``now`` (or None)."""
+
+    pos: np.ndarray
+    vel: np.ndarray
+    ages: np.ndarray
+    pending: np.ndarray
+    sigma_p: np.ndarray
+    weight: np.ndarray
+    delay: float
+    now: float | None
 
 
 class LatencyPredictor:
@@ -316,7 +281,8 @@ class LatencyPredictor:
         of each robot's velocity measurement (the compensator's), for
         :attr:`Prediction.velocity_error`. ``now`` [s]: the state's time; with it, a robot that is
         stale by age or given ``fixed`` is bounded by the branches of the commands it was sent
-        (:mod:`controllers.safety.silent_reach`), else by :func:`reach`. ``seen``: a tracker's
+        (:mod:`controllers.safety.silent_reach`), else by :func:`reach`; a robot whose state is
+        late but not stale is grown to hold that bound too (``cover_late``). ``seen``: a tracker's
         sightings by row, which narrow such a robot's bound once its branches are at rest
         (:func:`~controllers.safety.silent_reach.narrowed`).
         """
@@ -337,37 +303,20 @@ class LatencyPredictor:
         p, v, grow, closing, fixed, h, jittering = self._listening(pos, vel, ages, a_nom, pending, given_fixed,
                                                                    sigma_p, delay)
         unsure = jittering | (pending < 0)                    # the delay may change under it
+        weight = np.where(unsure, max(cfg.jitter_spread_weight, cfg.spread_weight), 0.0)
+        stopped = _Stopped(pos, vel, ages, pending, np.broadcast_to(sigma_p, (n,)), weight, delay, now)
         covers: list[tuple[int, np.ndarray, np.ndarray]] = []
         if np.count_nonzero(fixed):
-            sigma = np.broadcast_to(sigma_p, (len(p),))
-            by_ball = fixed.copy()
-            if now is not None:
-                silent = fixed & ((ages > cfg.stale_after_s) | given_fixed)
-                unsure_weight = np.where(unsure, max(cfg.jitter_spread_weight, cfg.spread_weight), 0.0)
-                for i in np.flatnonzero(silent):
-                    paths = self._silent_paths(i, pos[i], vel[i], now - ages[i], pending[i], ages[i],
-                                               delay, unsure_weight[i])
-                    if paths is None:
-                        continue
-                    by_ball[i] = False
-                    p[i], v[i], radius, rate = paths.disc(ages[i] + delay)
-                    grow[i], closing[i] = radius + sigma[i], rate + cfg.velocity_noise
-                    cover = (None if cfg.cover_discs == 1
-                             else paths.cover(ages[i] + delay, cfg.cover_merge, cfg.cover_discs))
-                    cover = cover and (cover[0], cover[1] + sigma[i])
-                    sighting = seen.get(int(i)) if seen else None
-                    if sighting is not None and paths.seen_at_rest(sighting.taken_at):
-                        cover, slower = narrowed(cover or (p[i][None], grow[i:i + 1]), sighting)
-                        p[i], v[i], grow[i], closing[i] = cover[0][0], 0.0, cover[1][0], min(closing[i], slower)
-                    if cover is not None and len(cover[1]) > 1:
-                        covers.append((int(i), *cover))
-            if by_ball.any():
-                brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + delay
-                centre, centre_vel, radius, rate = reach(pos[by_ball], vel[by_ball], ages[by_ball] + delay,
-                                                         brake_after, dyn, self._accel_bound[by_ball])
-                p[by_ball], v[by_ball] = centre, centre_vel
-                grow[by_ball] = radius + sigma[by_ball]
-                closing[by_ball] = rate + cfg.velocity_noise
+            covers = self._not_listening(stopped, fixed, fixed & ((ages > cfg.stale_after_s) | given_fixed),
+                                         seen, p, v, grow, closing)
+        late = ~fixed & (ages >= dyn.dt * (1.0 - 1e-9)) & np.isfinite(ages)
+        if cfg.cover_late and np.count_nonzero(late):
+            rows = np.flatnonzero(late)
+            ran = np.where(pending[rows] >= 0, np.minimum(pending[rows], h[rows]), h[rows])   # ticks p is ahead
+            centre, centre_vel, grow_stopped, closing_stopped, _ = self._stopped(
+                stopped, rows, np.ones(len(rows), dtype=bool), ran * dyn.dt, final=False)
+            grow[rows], closing[rows] = cover_both(p[rows], v[rows], grow[rows], closing[rows], centre, centre_vel,
+                                                   grow_stopped, closing_stopped, dyn.dt)
         brake_vel, measured = v, jittering & ~fixed
         if np.count_nonzero(fixed):
             brake_vel = self._carried(pos, vel, ages, pending, fixed, delay, v)
@@ -418,13 +367,71 @@ class LatencyPredictor:
             *self._kernel_consts, p, v, grow, closing, fixed, h, jittering)
         return p, v, grow, closing, fixed, h, jittering
 
+    def _not_listening(self, stopped: _Stopped, fixed: np.ndarray, silent: np.ndarray,
+                       seen: Mapping[int, Sighting] | None, p: np.ndarray, v: np.ndarray, grow: np.ndarray,
+                       closing: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """The ``fixed`` robots as obstacles (module docstring, Robots that are not listening),
+        written into ``p, v, grow, closing``: the ``silent`` ones (stale by age, or given fixed)
+        by their branches, their covers and sightings where the stack passes ``now``; the others
+        by the ball. Returns the covers."""
+        cfg = self.config
+        rows = np.flatnonzero(fixed)
+        p[rows], v[rows], grow[rows], closing[rows], paths = self._stopped(
+            stopped, rows, silent[rows], stopped.ages[rows] + stopped.delay, final=True)
+        covers = []
+        for i, path in zip(rows, paths, strict=True):
+            if path is None:
+                continue
+            t = stopped.ages[i] + stopped.delay
+            cover = None if cfg.cover_discs == 1 else path.cover(t, cfg.cover_merge, cfg.cover_discs)
+            cover = cover and (cover[0], cover[1] + stopped.sigma_p[i])
+            sighting = seen.get(int(i)) if seen else None
+            if sighting is not None and path.seen_at_rest(sighting.taken_at):
+                cover, slower = narrowed(cover or (p[i][None], grow[i:i + 1]), sighting)
+                p[i], v[i], grow[i], closing[i] = cover[0][0], 0.0, cover[1][0], min(closing[i], slower)
+            if cover is not None and len(cover[1]) > 1:
+                covers.append((int(i), *cover))
+        return covers
+
+    def _stopped(self, stopped: _Stopped, rows: np.ndarray, branches: np.ndarray, t: np.ndarray, final: bool
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[SilentPaths | None]]:
+        """Robots ``rows`` (K,) as obstacles ``t`` (K,) [s] after their last states (``tau + L``
+        for those not listening): ``(centre (K, 2), centre velocity (K, 2), grow (K,), closing
+        (K,), branches)``. Where ``branches`` (K,) and the history holds the commands a robot may
+        act on, the disc of its branches (their
+        :class:`SilentPaths` returned; ``final``: the robot is stale, see :meth:`_silent_paths`),
+        else the ball of :func:`reach` (None), each grown by ``sigma_p`` and its rate by
+        ``velocity_noise`` (module docstring, Robots that are not listening)."""
+        cfg, s, k = self.config, stopped, len(rows)
+        centre, centre_vel, grow, closing = np.empty((k, 2)), np.empty((k, 2)), np.empty(k), np.empty(k)
+        paths: list[SilentPaths | None] = [None] * k
+        for q, i in enumerate(rows):
+            if branches[q] and s.now is not None:
+                paths[q] = self._silent_paths(i, s.pos[i], s.vel[i], s.now - s.ages[i], s.pending[i], s.ages[i],
+                                              s.delay, s.weight[i], final)
+            if paths[q] is not None:
+                centre[q], centre_vel[q], radius, rate = paths[q].disc(t[q])
+                grow[q], closing[q] = radius + s.sigma_p[i], rate + cfg.velocity_noise
+        ball = np.array([path is None for path in paths], dtype=bool)
+        if ball.any():
+            by_ball = rows[ball]
+            brake_after = max(cfg.stale_after_s, cfg.watchdog_s) + s.delay
+            centre[ball], centre_vel[ball], radius, rate = reach(
+                s.pos[by_ball], s.vel[by_ball], t[ball], brake_after, self.dynamics,
+                self._accel_bound[by_ball])
+            grow[ball], closing[ball] = radius + s.sigma_p[by_ball], rate + cfg.velocity_noise
+        return centre, centre_vel, grow, closing, paths
+
     def _silent_paths(self, i: int, pos: np.ndarray, vel: np.ndarray, measured_at: float, pending: int,
-                      age: float, delay: float, spread_weight: float) -> SilentPaths | None:
-        """Robot ``i``'s branches from its state measured at ``measured_at`` (cached per id until
-        a newer state), or None where its history does not hold the commands it may act on."""
+                      age: float, delay: float, spread_weight: float, final: bool = True) -> SilentPaths | None:
+        """Robot ``i``'s branches from its state measured at ``measured_at``, or None where its
+        history does not hold the commands it may act on. A stale robot's (``final``) are cached
+        per id until a newer state: it is sent BRAKE from then on, which its branches already
+        hold. A robot only late is still sent commands, so its branches are built anew each tick
+        and not kept (nor read by :meth:`dead_reckoned`)."""
         rid = self._ids[i]
         cached = self._paths.get(rid)
-        if cached is not None and abs(cached.measured_at - measured_at) < 1e-9:
+        if final and cached is not None and abs(cached.measured_at - measured_at) < 1e-9:
             return cached
         dyn, cfg = self.dynamics, self.config
         if pending >= 0:
@@ -439,9 +446,11 @@ class LatencyPredictor:
         sequences = [(self._history[self.depth - m - 1:, i], self._braked[self.depth - m - 1:, i]) for m in counts]
         asked = self._history[self.depth - deepest:, i][~self._braked[self.depth - deepest:, i]]
         spread = float(np.hypot(*(asked.max(axis=0) - asked.min(axis=0)))) if len(asked) else 0.0
-        self._paths[rid] = silent_paths(pos, vel, sequences, hold, cfg.accel_uncertainty + spread_weight * spread,
-                                        cfg.accel_uncertainty, measured_at, dyn)
-        return self._paths[rid]
+        paths = silent_paths(pos, vel, sequences, hold, cfg.accel_uncertainty + spread_weight * spread,
+                             cfg.accel_uncertainty, measured_at, dyn)
+        if final:
+            self._paths[rid] = paths
+        return paths
 
     def dead_reckoned(self, ids: tuple[str, ...], pos: np.ndarray, vel: np.ndarray, ages: np.ndarray,
                       stale: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
