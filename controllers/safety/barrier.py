@@ -242,11 +242,8 @@ class BarrierTerms:
         return np.concatenate([self.pair_normal, self.object_normal, np.tile(self.wall_normal, (n, 1))])
 
     def row_robots(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(i, j)``, each (K,): the robots of every row, ``j = -1`` on rows of one robot."""
-        robots = np.arange(len(self.object_normal) // self.pieces)
-        i = np.concatenate([self.pair_i, np.repeat(robots, self.pieces), np.repeat(robots, 4)])
-        j = np.concatenate([self.pair_j, np.full(len(i) - len(self.pair_j), -1)])
-        return i.astype(np.int64), j.astype(np.int64)
+        """``(i, j)``, each (K,): the robots of every row (:func:`row_robots`)."""
+        return row_robots(self.pair_i, self.pair_j, len(self.object_normal) // self.pieces, self.pieces)
 
     def dense(self, num_robots: int) -> np.ndarray:
         """(K, 2N) dense row matrix (for tests and the fallback QP)."""
@@ -258,6 +255,16 @@ class BarrierTerms:
             a[rows, 2 * i + axis] = normals[:, axis]
             a[rows[pairs], 2 * j[pairs] + axis] = -normals[pairs, axis]
         return a
+
+
+def row_robots(pair_i: np.ndarray, pair_j: np.ndarray, num_robots: int, pieces: int = 1
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``(i, j)``, each (K,) int64: the robots of every row in the layout of the module docstring
+    for N robots and an object of Q ``pieces``; ``j = -1`` on rows of one robot."""
+    robots = np.arange(num_robots)
+    i = np.concatenate([pair_i, np.repeat(robots, pieces), np.repeat(robots, 4)])
+    j = np.concatenate([pair_j, np.full(len(i) - len(pair_j), -1)])
+    return i.astype(np.int64), j.astype(np.int64)
 
 
 def _phi(z: np.ndarray, alpha: float | np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:

@@ -56,7 +56,7 @@ import numpy as np
 
 from controllers.jit import f64, require_shapes
 from controllers.safety import fused_kernels
-from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel
+from controllers.safety.barrier import BarrierTerms, SafetyConfig, octagon_accel, row_robots
 from controllers.safety.geometry import WALL_NORMALS
 from controllers.safety.latency import Prediction
 from controllers.safety.polygon import is_convex_ccw
@@ -103,6 +103,7 @@ class FusedTerms(BarrierTerms):
         return out
 
     def row_robots(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(row_i, row_j)``, prepared once per scene."""
         return self.row_i, self.row_j
 
     def object_distance(self) -> np.ndarray:
@@ -131,9 +132,7 @@ class FusedScene:
         p = self.p = len(self.pair_i)
         self.wall_start = p + n * q
         k = self.k = p + n * q + 4 * n
-        robots = np.arange(n)
-        self.row_i = np.concatenate([self.pair_i, np.repeat(robots, q), np.repeat(robots, 4)]).astype(np.int64)
-        self.row_j = np.concatenate([self.pair_j, np.full(k - p, -1)]).astype(np.int64)
+        self.row_i, self.row_j = row_robots(self.pair_i, self.pair_j, n, q)
         gather = np.zeros((k, n))
         gather[np.arange(k), self.row_i] = 1.0
         gather[np.arange(p), self.pair_j] = -1.0

@@ -27,7 +27,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from controllers.safety.barrier import SafetyConfig
+from controllers.safety.barrier import SafetyConfig, row_robots
 
 
 class ReducedQP:
@@ -54,7 +54,7 @@ class ReducedQP:
         column[2 * self.free + 1] = 2 * np.arange(len(self.free)) + 1
         robot_of_row = np.empty(num_rows, dtype=np.int64)
         p = len(pair_i)
-        robot_of_row[p:] = np.concatenate([np.repeat(np.arange(m), pieces), np.repeat(np.arange(m), 4),
+        robot_of_row[p:] = np.concatenate([row_robots(pair_i, pair_j, m, pieces)[0][p:],
                                            _actuator_robots(m, num_rows - num_barrier)])
         live = np.ones(num_rows, dtype=bool)
         live[:p] = ~(fixed[pair_i] & fixed[pair_j])

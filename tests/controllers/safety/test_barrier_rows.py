@@ -171,3 +171,11 @@ def test_rows_of_an_unsure_robot_take_the_unsure_gain():
     pred.unsure = np.array([False, True, False])
     terms = barrier_terms(analytic_distances(pos, R, SCENARIO.arena, SCENARIO.polygon), vel, DYN, cfg, pred)
     np.testing.assert_allclose(terms.bound, -np.array(want) * terms.h - terms.drift, atol=1e-12)
+
+
+def test_row_robots_follow_the_row_layout_with_two_object_pieces():
+    from controllers.safety.barrier import row_robots
+    pair_i, pair_j = np.triu_indices(3, 1)     # P = 3, then 3 x 2 object rows, then 12 wall rows
+    i, j = row_robots(pair_i, pair_j, 3, pieces=2)
+    assert i.tolist() == [0, 0, 1, 0, 0, 1, 1, 2, 2] + [0] * 4 + [1] * 4 + [2] * 4
+    assert j.tolist() == [1, 2, 2] + [-1] * 18
